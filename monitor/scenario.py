@@ -1,0 +1,296 @@
+"""Fault and voltage scenarios: what the virtual ECU and the benchmarks inject.
+
+A scenario is a timeline of actuator loss of effectiveness gamma(t) (eqs 3-5) and a
+voltage command u(t), plus noise levels. It is read from TOML or taken from a built-in
+name. Example::
+
+    name = "my-test"
+    duration = 12.0            # s
+    [noise]
+    current_sigma = 0.5        # A, measurement noise (R = sigma^2)
+    process = 1.0              # scale on the model's process-noise intensity
+    [voltage]
+    steps = [[0.0, 220.0], [8.0, 180.0]]   # piecewise-constant command [t, V]
+    [[fault]]                  # abrupt: gamma from start until end
+    start = 3.0
+    end = 6.0
+    gamma = 0.4
+    [[fault]]
+    kind = "ramp"              # incipient: linear from gamma_from to gamma_to
+    start = 6.0
+    end = 9.0
+    gamma_from = 0.0
+    gamma_to = 0.6
+    [[fault]]
+    kind = "intermittent"      # gamma during the first `duty` of every `period`
+    start = 9.0
+    end = 11.0
+    gamma = 0.5
+    period = 0.5
+    duty = 0.4
+
+Faults on the same actuator do not overlap; where they would, the later one wins.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "BUILTIN_SCENARIOS",
+    "FaultSegment",
+    "Scenario",
+    "ScenarioError",
+    "load_scenario",
+]
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be run; the message is one line naming the problem."""
+
+
+FAULT_KINDS = ("step", "ramp", "intermittent")
+
+
+@dataclass(frozen=True)
+class FaultSegment:
+    start: float
+    end: float
+    kind: str = "step"
+    gamma: float = 0.0
+    gamma_from: float = 0.0
+    gamma_to: float = 0.0
+    period: float = 1.0
+    duty: float = 0.5
+    actuator: int = 0
+
+    def gamma_at(self, t: float) -> float | None:
+        """gamma at time t, or None when t is outside this segment."""
+        if not (self.start <= t < self.end):
+            return None
+        if self.kind == "step":
+            return self.gamma
+        if self.kind == "ramp":
+            frac = (t - self.start) / (self.end - self.start)
+            return self.gamma_from + frac * (self.gamma_to - self.gamma_from)
+        phase = math.fmod(t - self.start, self.period) / self.period
+        return self.gamma if phase < self.duty else 0.0
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    duration: float
+    faults: tuple[FaultSegment, ...] = ()
+    voltage_steps: tuple[tuple[float, float], ...] = ((0.0, 220.0),)
+    current_sigma: float = 0.5
+    process: float = 1.0
+    actuators: int = 1
+    description: str = ""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def gamma_at(self, t: float) -> list[float]:
+        g = [0.0] * self.actuators
+        for seg in self.faults:
+            v = seg.gamma_at(t)
+            if v is not None:
+                g[seg.actuator] = v
+        return g
+
+    def voltage_at(self, t: float) -> float:
+        v = self.voltage_steps[0][1]
+        for t0, volts in self.voltage_steps:
+            if t >= t0:
+                v = volts
+            else:
+                break
+        return v
+
+    def change_times(self) -> list[float]:
+        """Times where gamma changes abruptly (segment edges), for scoring windows."""
+        times: set[float] = set()
+        for seg in self.faults:
+            times.update((seg.start, seg.end))
+            if seg.kind == "intermittent":
+                k = 0
+                while True:
+                    on = seg.start + k * seg.period
+                    if on >= seg.end:
+                        break
+                    times.add(on)
+                    off = on + seg.duty * seg.period
+                    if off < seg.end:
+                        times.add(off)
+                    k += 1
+        return sorted(t for t in times if 0 < t < self.duration)
+
+
+def _number(table: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
+    if key not in table:
+        if default is None:
+            raise ScenarioError(f"{where}: missing '{key}'")
+        return default
+    v = table[key]
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ScenarioError(f"{where}: '{key}' must be a finite number, got {v!r}")
+    return float(v)
+
+
+def scenario_from_dict(data: Mapping[str, Any], default_name: str = "scenario") -> Scenario:
+    """Validate a parsed TOML table into a Scenario (one-line ScenarioError on any fault)."""
+    name = str(data.get("name", default_name))
+    duration = _number(data, "duration", name)
+    if duration <= 0:
+        raise ScenarioError(f"{name}: duration must be positive, got {duration}")
+    noise = data.get("noise", {})
+    if not isinstance(noise, dict):
+        raise ScenarioError(f"{name}: [noise] must be a table")
+    sigma = _number(noise, "current_sigma", f"{name} [noise]", 0.5)
+    process = _number(noise, "process", f"{name} [noise]", 1.0)
+    if sigma <= 0 or process < 0:
+        raise ScenarioError(f"{name}: noise levels must be positive (current_sigma > 0, process >= 0)")
+    volt = data.get("voltage", {"steps": [[0.0, 220.0]]})
+    if not isinstance(volt, dict) or "steps" not in volt:
+        raise ScenarioError(f"{name}: [voltage] needs steps = [[t, volts], ...]")
+    steps_raw = volt["steps"]
+    if not isinstance(steps_raw, list) or not steps_raw:
+        raise ScenarioError(f"{name}: voltage steps must be a non-empty list of [t, volts]")
+    steps: list[tuple[float, float]] = []
+    for i, s in enumerate(steps_raw):
+        if (
+            not isinstance(s, list)
+            or len(s) != 2
+            or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in s)
+            or not all(math.isfinite(x) for x in s)
+        ):
+            raise ScenarioError(f"{name}: voltage step {i} must be [t, volts] numbers, got {s!r}")
+        steps.append((float(s[0]), float(s[1])))
+    if any(b[0] <= a[0] for a, b in zip(steps, steps[1:], strict=False)):
+        raise ScenarioError(f"{name}: voltage steps must be in increasing time order")
+    if abs(steps[0][0]) > 0:
+        steps.insert(0, (0.0, steps[0][1]))
+    faults_raw = data.get("fault", [])
+    if not isinstance(faults_raw, list):
+        raise ScenarioError(f"{name}: faults must be given as [[fault]] tables")
+    faults: list[FaultSegment] = []
+    actuators = int(data.get("actuators", 1)) if isinstance(data.get("actuators", 1), int) else 0
+    if actuators < 1:
+        raise ScenarioError(f"{name}: actuators must be a positive integer")
+    for i, f in enumerate(faults_raw):
+        where = f"{name} fault {i}"
+        if not isinstance(f, dict):
+            raise ScenarioError(f"{where}: must be a table")
+        kind = f.get("kind", "step")
+        if kind not in FAULT_KINDS:
+            raise ScenarioError(f"{where}: kind must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
+        start = _number(f, "start", where)
+        end = _number(f, "end", where, duration)
+        if not 0 <= start < end:
+            raise ScenarioError(f"{where}: need 0 <= start < end, got start={start}, end={end}")
+        act = f.get("actuator", 0)
+        if not isinstance(act, int) or not 0 <= act < actuators:
+            raise ScenarioError(f"{where}: actuator must be an integer in [0, {actuators})")
+        seg = FaultSegment(
+            start=start,
+            end=end,
+            kind=kind,
+            gamma=_number(f, "gamma", where, 0.0 if kind == "ramp" else None),
+            gamma_from=_number(f, "gamma_from", where, 0.0),
+            gamma_to=_number(f, "gamma_to", where, 0.0 if kind != "ramp" else None),
+            period=_number(f, "period", where, 1.0),
+            duty=_number(f, "duty", where, 0.5),
+            actuator=act,
+        )
+        for g in (seg.gamma, seg.gamma_from, seg.gamma_to):
+            if not 0.0 <= g <= 1.0:
+                raise ScenarioError(f"{where}: gamma values must lie in [0, 1] (eq 3), got {g}")
+        if kind == "intermittent" and not (seg.period > 0 and 0 < seg.duty < 1):
+            raise ScenarioError(f"{where}: intermittent needs period > 0 and 0 < duty < 1")
+        faults.append(seg)
+    return Scenario(
+        name=name,
+        duration=duration,
+        faults=tuple(faults),
+        voltage_steps=tuple(steps),
+        current_sigma=sigma,
+        process=process,
+        actuators=actuators,
+        description=str(data.get("description", "")),
+    )
+
+
+def _builtin() -> dict[str, Scenario]:
+    def mk(d: dict[str, Any]) -> Scenario:
+        return scenario_from_dict(d)
+
+    return {
+        "healthy": mk({"name": "healthy", "duration": 20.0, "description": "no fault"}),
+        "fault-outage-recovery": mk(
+            {
+                "name": "fault-outage-recovery",
+                "duration": 16.0,
+                "description": "fault-free, 40 % loss at 4 s, outage at 8 s, recovery at 11 s",
+                "fault": [
+                    {"start": 4.0, "end": 8.0, "gamma": 0.4},
+                    {"start": 8.0, "end": 11.0, "gamma": 1.0},
+                ],
+            }
+        ),
+        "incipient": mk(
+            {
+                "name": "incipient",
+                "duration": 20.0,
+                "description": "slowly growing loss from 0 to 0.6 between 4 s and 14 s",
+                "fault": [
+                    {"kind": "ramp", "start": 4.0, "end": 14.0, "gamma_from": 0.0, "gamma_to": 0.6},
+                    {"start": 14.0, "end": 20.0, "gamma": 0.6},
+                ],
+            }
+        ),
+        "intermittent": mk(
+            {
+                "name": "intermittent",
+                "duration": 16.0,
+                "description": "50 % loss for 1 s in every 2 s between 4 s and 12 s",
+                "fault": [
+                    {
+                        "kind": "intermittent",
+                        "start": 4.0,
+                        "end": 12.0,
+                        "gamma": 0.5,
+                        "period": 2.0,
+                        "duty": 0.5,
+                    }
+                ],
+            }
+        ),
+    }
+
+
+BUILTIN_SCENARIOS: dict[str, Scenario] = _builtin()
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """A built-in scenario by name, or a TOML file (ScenarioError with one line on failure)."""
+    key = str(name_or_path)
+    if key in BUILTIN_SCENARIOS:
+        return BUILTIN_SCENARIOS[key]
+    path = Path(key)
+    if path.suffix != ".toml" and not path.exists():
+        raise ScenarioError(
+            f"unknown scenario {key!r}: use one of {', '.join(BUILTIN_SCENARIOS)} or a .toml file"
+        )
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ScenarioError(f"{path}: cannot read scenario file ({exc.strerror})") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{path}: not valid TOML ({exc})") from exc
+    return scenario_from_dict(data, default_name=path.stem)
