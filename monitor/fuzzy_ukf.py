@@ -280,7 +280,9 @@ def _fuzzy_ukf_step(
             acc += V[r, a] * dg[a]
         x[r] += acc
     for a in range(m):
-        gamma[a] += dg[a]
+        # a convex combination of bounded consequents, up to one ulp of round-off
+        g = gamma[a] + dg[a]
+        gamma[a] = lo if g < lo else (hi if g > hi else g)
     # 6. fuzzy input x_e = x~ - x^ (50), normalised by the prior standard deviation
     for r in range(n):
         xe[r] = xtilde[r] - x[r]

@@ -121,10 +121,10 @@ class StateSpace:
         keeps physical coordinates.
         """
         n = self.n
-        O = np.vstack([self.C @ np.linalg.matrix_power(self.A, k) for k in range(n)])
+        obs = np.vstack([self.C @ np.linalg.matrix_power(self.A, k) for k in range(n)])
         # Scale-aware rank decision (the observability matrix mixes units).
-        U, s, Vt = np.linalg.svd(O)
-        tol = max(O.shape) * np.finfo(float).eps * (s[0] if s.size else 1.0) * 1e3
+        _, s, Vt = np.linalg.svd(obs)
+        tol = max(obs.shape) * np.finfo(float).eps * (s[0] if s.size else 1.0) * 1e3
         rank = int(np.sum(s > tol))
         null = Vt[rank:]
         if rank == n:
@@ -195,7 +195,7 @@ class ContinuousDescriptor:
         pts = rng.uniform(0.5, 2.0, n + 1) * np.exp(1j * rng.uniform(0, np.pi, n + 1))
         scale = max(1.0, float(np.abs(self.A).max()), float(np.abs(self.E).max())) ** n
         if all(abs(np.linalg.det(s * self.E - self.A)) < 1e-10 * scale for s in pts):
-            raise ModelError("singular pencil: det(sE - A) is identically zero (no unique solution)")
+            raise ModelError("singular pencil: det(sE - A) vanishes for every s (no solution)")
 
     def standard_form(self) -> StateSpace:
         """Reduce to standard form x' = A x + B u, y = C x + D u.
@@ -210,7 +210,8 @@ class ContinuousDescriptor:
         m = B.shape[1]
         if np.linalg.matrix_rank(E) == n:
             Ei = np.linalg.inv(E)
-            return StateSpace(Ei @ A, Ei @ B, C.copy(), np.zeros((C.shape[0], m)), self.state_names)
+            D0 = np.zeros((C.shape[0], m))
+            return StateSpace(Ei @ A, Ei @ B, C.copy(), D0, self.state_names)
         if np.allclose(E, np.diag(np.diag(E))):
             # Diagonal E: keep physical coordinates (a permutation, not a rotation).
             d = np.abs(np.diag(E))
@@ -262,7 +263,7 @@ class ContinuousDescriptor:
             E, np.diag(np.diag(E))
         ) else None
         if keep is None:
-            U, s, Vt = np.linalg.svd(E)
+            U, s, _Vt = np.linalg.svd(E)
             r = int(np.sum(s > 1e-12 * s[0]))
             Sinv = np.diag(1.0 / s[:r])
             Qt = (U.T @ self.Qc @ U)[:r, :r]
@@ -347,7 +348,7 @@ class DiscreteModel:
 
     def full_at(self, dt: float) -> tuple[Array, Array, Array, Array, Array]:
         """(A_o, B_o, Q_o, A_full, B_full) for a step of dt seconds, cached per microsecond."""
-        key = int(round(dt * 1e6))
+        key = round(dt * 1e6)
         hit = self._cache.get(key)
         if hit is not None:
             return hit

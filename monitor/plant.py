@@ -117,7 +117,7 @@ def simulate(
         sim.x = xs
     N = round(scenario.duration / T)
     p = sim.C.shape[0]
-    t = np.arange(N) * T
+    t = np.arange(N, dtype=np.float64) * T
     U = np.empty((N, m))
     Y = np.empty((N, p))
     Yt = np.empty((N, p))

@@ -34,6 +34,7 @@ Faults on the same actuator do not overlap; where they would, the later one wins
 
 from __future__ import annotations
 
+import itertools
 import math
 import tomllib
 from collections.abc import Mapping
@@ -153,7 +154,7 @@ def scenario_from_dict(data: Mapping[str, Any], default_name: str = "scenario") 
     sigma = _number(noise, "current_sigma", f"{name} [noise]", 0.5)
     process = _number(noise, "process", f"{name} [noise]", 1.0)
     if sigma <= 0 or process < 0:
-        raise ScenarioError(f"{name}: noise levels must be positive (current_sigma > 0, process >= 0)")
+        raise ScenarioError(f"{name}: noise needs current_sigma > 0 and process >= 0")
     volt = data.get("voltage", {"steps": [[0.0, 220.0]]})
     if not isinstance(volt, dict) or "steps" not in volt:
         raise ScenarioError(f"{name}: [voltage] needs steps = [[t, volts], ...]")
@@ -170,7 +171,7 @@ def scenario_from_dict(data: Mapping[str, Any], default_name: str = "scenario") 
         ):
             raise ScenarioError(f"{name}: voltage step {i} must be [t, volts] numbers, got {s!r}")
         steps.append((float(s[0]), float(s[1])))
-    if any(b[0] <= a[0] for a, b in zip(steps, steps[1:], strict=False)):
+    if any(b[0] <= a[0] for a, b in itertools.pairwise(steps)):
         raise ScenarioError(f"{name}: voltage steps must be in increasing time order")
     if abs(steps[0][0]) > 0:
         steps.insert(0, (0.0, steps[0][1]))
@@ -187,7 +188,8 @@ def scenario_from_dict(data: Mapping[str, Any], default_name: str = "scenario") 
             raise ScenarioError(f"{where}: must be a table")
         kind = f.get("kind", "step")
         if kind not in FAULT_KINDS:
-            raise ScenarioError(f"{where}: kind must be one of {', '.join(FAULT_KINDS)}, got {kind!r}")
+            kinds = ", ".join(FAULT_KINDS)
+            raise ScenarioError(f"{where}: kind must be one of {kinds}, got {kind!r}")
         start = _number(f, "start", where)
         end = _number(f, "end", where, duration)
         if not 0 <= start < end:

@@ -1,0 +1,156 @@
+"""The bus description itself: dbc/motor.dbc as cantools and its command line see it."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cantools
+import pytest
+from cantools.database.can import Database
+
+from monitor.codec import HEALTH_STATES, KINDS, N_NODES, e2e_data_id, load_database
+
+ROOT = Path(__file__).resolve().parents[1]
+REPO_DBC = ROOT / "dbc" / "motor.dbc"
+PACKAGE_DBC = ROOT / "monitor" / "data" / "motor.dbc"
+
+LAYOUT = {  # kind: (message prefix, base id, sender, cycle time ms, E2E protected)
+    "current": ("MotorCurrent", 0x110, "MotorECU", 10, True),
+    "voltage": ("MotorVoltage", 0x120, "MotorECU", 50, True),
+    "truth": ("SimTruth", 0x7E0, "MotorECU", 10, False),
+    "diagnosis": ("MonitorDiagnosis", 0x180, "Monitor", 100, True),
+}
+
+
+def _cantools_cli() -> list[str]:
+    """The `cantools` console script installed next to the running interpreter."""
+    script = Path(sys.executable).with_name("cantools")
+    return [str(script)] if script.exists() else [sys.executable, "-m", "cantools"]
+
+
+@pytest.fixture(scope="module")
+def db() -> Database:
+    loaded = cantools.database.load_file(REPO_DBC, database_format="dbc", strict=True)
+    assert isinstance(loaded, Database)
+    return loaded
+
+
+def test_package_copy_is_byte_identical() -> None:
+    # dbc/motor.dbc is the source of truth; the wheel ships monitor/data/motor.dbc.
+    assert PACKAGE_DBC.read_bytes() == REPO_DBC.read_bytes()
+
+
+def test_one_message_per_kind_and_node(db: Database) -> None:
+    assert len(db.messages) == len(LAYOUT) * N_NODES
+    assert sorted(LAYOUT) == sorted(KINDS)
+    assert {n.name for n in db.nodes} == {"MotorECU", "Monitor"}
+    for prefix, base, sender, cycle, _e2e in LAYOUT.values():
+        for node in range(N_NODES):
+            msg = db.get_message_by_name(f"{prefix}_N{node}")
+            assert msg.frame_id == base + node
+            assert msg.frame_id & 0xF == node
+            assert not msg.is_extended_frame
+            assert msg.length == 8
+            assert msg.senders == [sender]
+            assert msg.cycle_time == cycle
+            assert msg.dbc is not None
+            assert msg.dbc.attributes["NodeNumber"].value == node
+            assert msg.comment and f"node {node}" in msg.comment
+
+
+def test_signals_little_endian_commented_and_bounded(db: Database) -> None:
+    for msg in db.messages:
+        for sig in msg.signals:
+            assert sig.byte_order == "little_endian", (msg.name, sig.name)
+            assert sig.comment, (msg.name, sig.name)
+            assert sig.minimum is not None and sig.maximum is not None
+
+
+def test_e2e_layout_and_data_ids(db: Database) -> None:
+    data_ids: list[int] = []
+    for prefix, base, _sender, _cycle, e2e in LAYOUT.values():
+        for node in range(N_NODES):
+            msg = db.get_message_by_name(f"{prefix}_N{node}")
+            assert msg.dbc is not None
+            if not e2e:
+                assert "E2EDataID" not in msg.dbc.attributes
+                assert "CRC" not in [s.name for s in msg.signals]
+                continue
+            crc = msg.get_signal_by_name("CRC")
+            counter = msg.get_signal_by_name("Counter")
+            assert (crc.start, crc.length, crc.is_signed) == (0, 8, False)
+            assert (counter.start, counter.length, counter.is_signed) == (8, 4, False)
+            data_id = int(msg.dbc.attributes["E2EDataID"].value)
+            assert data_id == e2e_data_id(base + node) == (base + node) & 0xFF
+            assert f"0x{data_id:02X}" in (msg.comment or "")
+            data_ids.append(data_id)
+    assert len(set(data_ids)) == len(data_ids) == 3 * N_NODES  # masquerade -> CRC fails
+
+
+def test_signal_ranges(db: Database) -> None:
+    cur = db.get_message_by_name("MotorCurrent_N0").get_signal_by_name("ArmatureCurrent")
+    assert (cur.scale, cur.minimum, cur.maximum, cur.unit) == (0.01, -300, 300, "A")
+    assert cur.is_signed
+    volt = db.get_message_by_name("MotorVoltage_N0").get_signal_by_name("VoltageCommand")
+    assert (volt.scale, volt.minimum, volt.maximum, volt.unit) == (0.01, -400, 400, "V")
+    truth = db.get_message_by_name("SimTruth_N0")
+    assert truth.get_signal_by_name("TrueGamma").minimum == 0
+    assert truth.get_signal_by_name("TrueGamma").maximum == 1
+    assert truth.get_signal_by_name("TrueSpeed").unit == "rad/s"
+    diag = db.get_message_by_name("MonitorDiagnosis_N0")
+    state = diag.get_signal_by_name("HealthState")
+    assert state.choices is not None
+    assert {int(k): str(v) for k, v in state.choices.items()} == dict(enumerate(HEALTH_STATES))
+    assert diag.get_signal_by_name("RuleCount").maximum == 255
+
+
+def test_cantools_dump_runs() -> None:
+    proc = subprocess.run([*_cantools_cli(), "dump", str(REPO_DBC)],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "MotorCurrent_N15" in proc.stdout
+    assert "MonitorDiagnosis_N0" in proc.stdout
+
+
+def test_cantools_decode_reads_our_frames() -> None:
+    mdb = load_database(REPO_DBC)
+    frames = [
+        (mdb.frame_id("current", 1), mdb.encode_current(1, 12.34, 5)),
+        (mdb.frame_id("voltage", 15), mdb.encode_voltage(15, -230.5, 15)),
+        (mdb.frame_id("truth", 3), mdb.encode_truth(3, 0.25, -3.2, 615.5)),
+        (mdb.frame_id("diagnosis", 0), mdb.encode_diagnosis(0, "outage", 0.987, -400.0, 12, 0)),
+    ]
+    log = "".join(
+        f"(1700000000.{i:06d}) vcan0 {fid:03X}#{data.hex().upper()}\n"
+        for i, (fid, data) in enumerate(frames)
+    )
+    proc = subprocess.run([*_cantools_cli(), "decode", "--single-line", str(REPO_DBC)],
+                          input=log, capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert len(lines) == len(frames)
+
+    def signals(line: str) -> tuple[str, dict[str, str]]:
+        m = re.search(r":: (\w+)\((.*)\)$", line)
+        assert m, line
+        return m[1], dict(kv.split(": ", 1) for kv in m[2].split(", "))
+
+    name, sig = signals(lines[0])
+    assert name == "MotorCurrent_N1"
+    assert sig["ArmatureCurrent"] == "12.34 A" and sig["Counter"] == "5"
+    assert int(sig["CRC"]) == frames[0][1][0]
+    name, sig = signals(lines[1])
+    assert name == "MotorVoltage_N15"
+    assert sig["VoltageCommand"] == "-230.5 V" and sig["Counter"] == "15"
+    name, sig = signals(lines[2])
+    assert name == "SimTruth_N3"
+    assert sig == {"TrueGamma": "0.25", "TrueCurrent": "-3.2 A", "TrueSpeed": "615.5 rad/s"}
+    name, sig = signals(lines[3])
+    assert name == "MonitorDiagnosis_N0"
+    assert sig["HealthState"] == "outage"
+    assert sig["GammaEstimate"] == "0.987"
+    assert sig["FaultEstimate"] == "-400.0 V"
+    assert sig["RuleCount"] == "12" and sig["Counter"] == "0"
