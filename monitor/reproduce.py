@@ -207,10 +207,11 @@ def _figures(r: ReproduceResult, out: Path, f1: float, f2: float) -> list[Path]:
     u = fcm_memberships(r.gamma_hat, fcm.centres)
     label = np.argmax(u, axis=0)
     fig, ax = plt.subplots(figsize=(8, 4))
-    names = ("fault-free", "fault", "outage")
-    for c, (name, col) in enumerate(zip(names, ("tab:green", "tab:orange", "tab:red"), strict=True)):
+    regions = (("fault-free", "tab:green"), ("fault", "tab:orange"), ("outage", "tab:red"))
+    for c, (name, col) in enumerate(regions):
         sel = label == c
-        ax.scatter(s[sel], r.gamma_hat[sel], s=3, color=col, label=f"{name} (centre {fcm.centres[c]:.2f})")
+        tag = f"{name} (centre {fcm.centres[c]:.2f})"
+        ax.scatter(s[sel], r.gamma_hat[sel], s=3, color=col, label=tag)
     ax.axhline(f1, color="k", ls="--", lw=0.8, label=f"F1 = {f1:.3f}")
     ax.axhline(f2, color="k", ls="-.", lw=0.8, label=f"F2 = {f2:.3f}")
     ax.set_xlabel("step")
