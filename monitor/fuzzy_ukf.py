@@ -28,11 +28,15 @@ Per sample k (the paper's order, made sound where NOTES.md says it must be):
    on the unobservable angle); the fuzzy input is x_e = x~ - x^ (50), normalised per state
    by its prior standard deviation so the membership functions are scale-free.
 7. Structure learning (20)-(22): the paper's test |e| > 1e-5 on the raw current error fires
-   every sample (noise sigma is 0.5 A). Here an exponentially weighted mean of the
-   normalised innovation squared (NIS, chi-square with p degrees of freedom when the model
-   fits) over a short window must exceed a threshold; then an MF is added on the input
+   every sample (noise sigma is 0.5 A). Here the error e is whitened (w = L^-1 nu with
+   L L' = S_tot) and averaged exponentially over a short window; the average's chi-square
+   statistic (p degrees of freedom when the model fits, at any sample rate) must exceed a
+   threshold. Keeping the sign makes a persistent bias -- what a changed fault produces --
+   far more visible than the squared NIS would. Then an MF is added on the input
    with the largest |z| at z (if the bound and the spacing allow), and the firing rules'
-   variances are re-opened so that they learn fast. A dwell time separates two events.
+   variances are re-opened so that they learn fast, and the sensitivity V restarts at 0
+   (the new fault has not yet acted on the state; keeping V would push x^ as if it had
+   always been there). A dwell time separates two events.
 
 A missed sample is a step with dt = k T: the ZOH model for that span holds the last
 voltage, which is what the ECU does, and the covariance grows accordingly.
@@ -67,20 +71,21 @@ class FuzzyUKFConfig:
     var0: initial variance of the consequents (gamma^2).
     var_reopen: variance given to firing and new rules on a structure-learning event.
     var_max: cap on consequent variances (rules that never fire do not grow forever).
-    nis_window: time constant of the NIS average, seconds.
-    nis_threshold: structure-learning threshold on the averaged NIS.
+    nis_window: time constant of the innovation average, seconds.
+    nis_threshold: structure-learning threshold on the chi-square statistic of the averaged
+        whitened innovation (p degrees of freedom; 14 is 3.7 sigma for one output).
     dwell: minimum time between two structure-learning events, seconds.
     P0: initial state covariance (diagonal value, or None for the steady-state-free 1.0).
     """
 
     alpha: float = 1e-4
     beta: float = 2.0
-    q_gamma: float = 2e-4
+    q_gamma: float = 5e-3
     var0: float = 0.05
     var_reopen: float = 0.05
     var_max: float = 0.25
-    nis_window: float = 0.03
-    nis_threshold: float = 4.0
+    nis_window: float = 0.05
+    nis_threshold: float = 14.0
     dwell: float = 0.2
     P0: float = 1.0
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
@@ -95,7 +100,7 @@ class EstimatorOutput:
     x_tilde: fault-model state (52), observable part. x_e = x_tilde - x_hat_obs (50).
     gamma: loss of effectiveness per actuator. fault: f^ = -B diag(u) gamma (10), per state.
     y_hat: predicted output before the update. nis: normalised innovation squared.
-    innovation: normalised innovation nu / sqrt(S) per output. rules: rule count.
+    innovation: whitened innovation L^-1 nu (L L' = S_tot), per output. rules: rule count.
     """
 
     x_hat: Array
@@ -145,7 +150,8 @@ def _fuzzy_ukf_step(
     xe = out[o:o + n]; o += n
     yhat = out[o:o + p]; o += p
     innov = out[o:o + p]; o += p
-    stats = out[o:o + 3]
+    stats = out[o:o + 3]; o += 3
+    ebar = out[o:o + p]
     o = 0
     uf = wk[o:o + m]; o += m
     b = wk[o:o + n]; o += n
@@ -288,11 +294,21 @@ def _fuzzy_ukf_step(
         xe[r] = xtilde[r] - x[r]
         sd = math.sqrt(Pp[r, r]) if Pp[r, r] > 0.0 else 1.0
         z[r] = xe[r] / sd
+    # whitened innovation w = L^-1 nu with L L' = S_tot (Ls holds that factor)
     for r in range(p):
-        innov[r] = nu[r] / math.sqrt(St[r, r])
-    # 7. statistics for structure learning
+        acc = nu[r]
+        for c in range(r):
+            acc -= Ls[r, c] * innov[c]
+        innov[r] = acc / Ls[r, r]
+    # 7. statistics for structure learning: an exponentially weighted mean of the whitened
+    # innovation; under a fitting model it is N(0, c/(2-c) I), so the statistic below is
+    # chi-square with p degrees of freedom whatever the sample rate.
+    chi = 0.0
+    for r in range(p):
+        ebar[r] += nis_coef * (innov[r] - ebar[r])
+        chi += ebar[r] * ebar[r]
     stats[0] = nis
-    stats[1] = stats[1] + nis_coef * (nis - stats[1])
+    stats[1] = chi * (2.0 - nis_coef) / nis_coef
     stats[2] += rep
 
 
@@ -341,9 +357,10 @@ class FuzzyUKF:
                 raise ValueError(f"x0 must have {model.n_full} (full) or {n} (observable) entries")
         self.P[:] = np.eye(n) * cfg.P0
         self._wk = np.zeros(_work_size(n, m, p))
-        self._out = np.zeros(m + 3 * n + 2 * p + 3)
+        self._out = np.zeros(m + 3 * n + 3 * p + 3)
         ob = self._out
-        self._stats = ob[m + 3 * n + 2 * p:]
+        self._stats = ob[m + 3 * n + 2 * p:m + 3 * n + 2 * p + 3]
+        self._ebar = ob[m + 3 * n + 2 * p + 3:]
         self.out = EstimatorOutput(
             x_hat=self.x,
             x_tilde=ob[m + n:m + 2 * n],
@@ -426,6 +443,10 @@ class FuzzyUKF:
         """
         self._last_event = self._time
         self.structure_events += 1
+        self._ebar[:] = 0.0  # one change, one event
+        # V = d x^ / d gamma accumulates the effect of a gamma error held since the start;
+        # a detected change starts a new one, whose effect on the state begins now.
+        self.V[:] = 0.0
         fz = self.fuzzy
         cfg = self.config
         fz.cons[:] = self.out.gamma

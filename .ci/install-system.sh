@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# System packages for the test suite on Debian 12 (bookworm):
+#   user-mode-linux  /usr/bin/linux.uml, a real Linux kernel (with vcan modules) run as a
+#                    process, for the vcan tests on hosts whose kernel has no SocketCAN
+#                    (see tests/vcan_harness.py and /work/shared/VCAN.md)
+#   kmod             insmod, used inside the User-Mode Linux guest
+#   can-utils        candump, cansend, cangen, canplayer
+#   iproute2         ip link add/set/del
+#   systemd          systemd-analyze (unit file checks)
+# Run as root, or as a user with sudo.  Packages already installed are skipped.
+set -euo pipefail
+
+PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd)
+
+if [[ "$(id -u)" -eq 0 ]]; then
+    SUDO=()
+elif command -v sudo >/dev/null 2>&1; then
+    SUDO=(sudo)
+else
+    echo "install-system.sh: must run as root (sudo is not available)" >&2
+    exit 1
+fi
+
+missing=()
+for pkg in "${PACKAGES[@]}"; do
+    status="$(dpkg-query -W -f='${db:Status-Status}' "$pkg" 2>/dev/null || true)"
+    if [[ "$status" != "installed" ]]; then
+        missing+=("$pkg")
+    fi
+done
+
+if [[ ${#missing[@]} -eq 0 ]]; then
+    echo "install-system.sh: already installed: ${PACKAGES[*]}"
+else
+    echo "install-system.sh: installing: ${missing[*]}"
+    "${SUDO[@]}" apt-get update
+    "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive \
+        apt-get install -y --no-install-recommends "${missing[@]}"
+fi
+
+# Sanity checks: the UML kernel and its vcan module must be where tests/vcan_harness.py looks.
+test -x /usr/bin/linux.uml || { echo "install-system.sh: /usr/bin/linux.uml missing" >&2; exit 1; }
+uml_version="$(/usr/bin/linux.uml --version)"
+vcan_ko="/usr/lib/uml/modules/${uml_version}/kernel/drivers/net/can/vcan.ko"
+test -f "$vcan_ko" || { echo "install-system.sh: $vcan_ko missing" >&2; exit 1; }
+export PATH="$PATH:/usr/sbin:/sbin"
+for tool in insmod ip candump cansend systemd-analyze; do
+    command -v "$tool" >/dev/null \
+        || { echo "install-system.sh: $tool missing" >&2; exit 1; }
+done
+echo "install-system.sh: ok (User-Mode Linux ${uml_version})"

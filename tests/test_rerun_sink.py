@@ -1,0 +1,368 @@
+"""RerunSink: write real .rrd files / a real gRPC stream and read back what the sink wrote."""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import tracemalloc
+import uuid
+import warnings
+from collections import defaultdict
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from numpy.typing import NDArray
+from rerun.chunk import Chunk, RrdReader
+
+from monitor.rerun_sink import NullSink, RerunSink, Sink
+
+T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
+DT = 1e-3
+N = 2000
+RERUN_EXE = Path(sys.executable).with_name("rerun")
+
+
+def _values(k: int, node: int) -> tuple[float, float, float, int, int, float]:
+    measured = math.sin(0.01 * k) + 0.1 * node
+    estimated = measured + 1e-3 * math.cos(0.1 * k)
+    gamma = k / N + 0.25 * node
+    rules = 1 + k // 400
+    health = min(3, k // 600)
+    nis = 0.5 + (k % 7) / 7
+    return measured, estimated, gamma, rules, health, nis
+
+
+def _read(path: Path) -> dict[str, list[Chunk]]:
+    """Chunks of the recording in file order, grouped by entity path (temporal only)."""
+    out: dict[str, list[Chunk]] = defaultdict(list)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a file without footer warns (live test)
+        reader = RrdReader(path)
+        for chunk in reader.stream():
+            if not chunk.is_static:
+                out[chunk.entity_path].append(chunk)
+    return out
+
+
+def _static_entities(path: Path) -> set[str]:
+    return {c.entity_path for c in RrdReader(path).stream() if c.is_static}
+
+
+def _series(chunks: list[Chunk]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(time [s], value) of a Scalars entity, sorted by time."""
+    ts: list[NDArray[np.int64]] = []
+    vs: list[NDArray[np.float64]] = []
+    for chunk in chunks:
+        rb = chunk.to_record_batch()
+        t = rb.column("time").cast(pa.int64()).to_numpy()
+        v = rb.column("Scalars:scalars").flatten().to_numpy()
+        assert len(t) == len(v) == chunk.num_rows  # one scalar per row
+        ts.append(t)
+        vs.append(v)
+    if not ts:
+        return np.zeros(0), np.zeros(0)
+    t_all = np.concatenate(ts)
+    v_all = np.concatenate(vs)
+    order = np.argsort(t_all, kind="stable")
+    return t_all[order] / 1e9, v_all[order]
+
+
+def _write_run(sink: RerunSink) -> None:
+    """2 nodes x N samples, voltages, events, counters and a threshold change."""
+    for k in range(N):
+        t = T0 + k * DT
+        for node in (0, 1):
+            m, e, g, r, h, nis = _values(k, node)
+            sink.add_sample(node, t, m, e, g, r, h, nis, true_gamma=0.5 if node == 0 else None)
+        if k % 20 == 0:
+            sink.add_voltage(0, t, 24.0 + k / N)
+        if k == 1200:
+            sink.log_event(1, t, "node 1: health 1 -> 2 (degraded)", level="warning")
+        if k == 1000:
+            sink.set_thresholds(0.2, 0.9)
+        if k % 500 == 499:
+            sink.log_counters(t, {"frames_ok": k + 1, "rejected/crc": k // 500})
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("rrd") / "run.rrd"
+    sink = RerunSink(
+        rrd_path=path, nodes=(0, 1), batch_size=128, recording_id="test-run", f1=0.15, f2=0.85
+    )
+    _write_run(sink)
+    sink.close()
+    sink.close()  # idempotent
+    return path
+
+
+def test_rrd_verify(recorded: Path) -> None:
+    proc = subprocess.run(
+        [str(RERUN_EXE), "rrd", "verify", str(recorded)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_recording_and_blueprint_stores(recorded: Path) -> None:
+    reader = RrdReader(recorded)
+    (rec,) = reader.recordings()
+    assert rec.application_id == "motor-monitor"
+    assert rec.recording_id == "test-run"
+    (bp,) = reader.blueprints()
+    names: set[str] = set()
+    for chunk in reader.stream(store=bp):
+        rb = chunk.to_record_batch()
+        for col in rb.schema.names:
+            if col.endswith("Blueprint:display_name"):
+                names.update(x for row in rb.column(col).to_pylist() if row for x in row)
+    assert {
+        "motor 0",
+        "motor 1",
+        "measured vs estimated current",
+        "gamma^ vs thresholds",
+        "rule count",
+        "health state",
+        "events",
+        "daemon counters",
+    } <= names
+
+
+def test_samples_read_back_exactly(recorded: Path) -> None:
+    ents = _read(recorded)
+    k = np.arange(N)
+    expected_t = T0 + k * DT
+    for node in (0, 1):
+        vals = np.array([_values(i, node) for i in range(N)], dtype=np.float64)
+        for col, suffix in enumerate(
+            ["current/measured", "current/estimated", "gamma/estimate", "rules", "health", "nis"]
+        ):
+            t, v = _series(ents[f"/motor/{node}/{suffix}"])
+            assert len(v) == N, suffix
+            np.testing.assert_array_equal(v, vals[:, col], err_msg=suffix)
+            np.testing.assert_allclose(t, expected_t, rtol=0, atol=1e-6)
+    t, v = _series(ents["/motor/0/gamma/estimate"])
+    assert v[-1] == _values(N - 1, 0)[2] == (N - 1) / N
+    # the true gamma exists only where it was given
+    t, v = _series(ents["/motor/0/gamma/true"])
+    assert len(v) == N and np.all(v == 0.5)
+    assert "/motor/1/gamma/true" not in ents
+    assert "/motor/1/gamma/true" not in _static_entities(recorded)
+
+
+def test_thresholds_span_the_data_and_step(recorded: Path) -> None:
+    ents = _read(recorded)
+    t_est, _ = _series(ents["/motor/0/gamma/estimate"])
+    t_change = T0 + 1000 * DT
+    for suffix, old, new in (("F1", 0.15, 0.2), ("F2", 0.85, 0.9)):
+        t, v = _series(ents[f"/motor/0/gamma/{suffix}"])
+        assert t[0] == t_est[0] and t[-1] == t_est[-1]
+        np.testing.assert_array_equal(v[t < t_change - 1e-7], old)
+        np.testing.assert_array_equal(v[t > t_change - 1e-7], new)
+    assert "/motor/0/gamma/F1" in _static_entities(recorded)  # styled
+
+
+def test_voltage_counters_and_event(recorded: Path) -> None:
+    ents = _read(recorded)
+    _, v = _series(ents["/motor/0/voltage"])
+    assert len(v) == N // 20 and v[-1] == 24.0 + (N - 20) / N
+    assert "/motor/1/voltage" not in ents
+
+    _, v = _series(ents["/monitor/counters/frames_ok"])
+    np.testing.assert_array_equal(v, [500, 1000, 1500, 2000])
+    _, v = _series(ents["/monitor/counters/rejected/crc"])
+    np.testing.assert_array_equal(v, [0, 1, 2, 3])
+
+    (event,) = ents["/motor/1/events"]
+    rb = event.to_record_batch()
+    assert rb.column("TextLog:text").flatten().to_pylist() == ["node 1: health 1 -> 2 (degraded)"]
+    assert rb.column("TextLog:level").flatten().to_pylist() == ["WARN"]
+    t_event = rb.column("time").cast(pa.int64()).to_numpy()[0] / 1e9
+    assert t_event == pytest.approx(T0 + 1200 * DT, abs=1e-6)
+
+
+def test_event_comes_after_the_samples_before_it(recorded: Path) -> None:
+    """log_event flushes the node's buffer first: in file order, every sample of node 1 up to
+    the event time is written before the event."""
+    chunks = [c for c in RrdReader(recorded).stream() if not c.is_static]
+    i_event = next(i for i, c in enumerate(chunks) if c.entity_path == "/motor/1/events")
+    t_event = T0 + 1200 * DT
+    before, _ = _series([c for c in chunks[:i_event] if c.entity_path == "/motor/1/gamma/estimate"])
+    assert len(before) == 1201 and before[-1] == pytest.approx(t_event, abs=1e-6)
+
+
+def test_maybe_flush_makes_data_visible_while_open(tmp_path: Path) -> None:
+    path = tmp_path / "open.rrd"
+    sink = RerunSink(rrd_path=path, batch_size=10_000, flush_interval_s=0.2)
+    for k in range(10):
+        sink.add_sample(0, T0 + k * DT, 1.0, 1.0, 0.1 * k, 1, 0, 1.0)
+    now = time.monotonic()
+    sink.maybe_flush(now)  # < flush_interval since construction: keeps buffering
+    sink.recording.flush(timeout_sec=10)
+    assert "/motor/0/gamma/estimate" not in _read(path)
+    sink.maybe_flush(now + 0.25)
+    sink.recording.flush(timeout_sec=10)
+    _, v = _series(_read(path)["/motor/0/gamma/estimate"])
+    np.testing.assert_array_equal(v, 0.1 * np.arange(10))
+    sink.close()
+
+
+def test_close_twice_and_use_after_close(tmp_path: Path) -> None:
+    path = tmp_path / "c.rrd"
+    with RerunSink(rrd_path=path, nodes=(3,)) as sink:
+        sink.add_sample(3, T0, 1.0, 1.0, 0.5, 1, 0, 1.0)
+    assert sink.closed
+    sink.close()
+    sink.add_sample(3, T0 + 1, 1.0, 1.0, 0.5, 1, 0, 1.0)  # ignored, no error
+    sink.log_event(3, T0 + 1, "late")
+    sink.flush()
+    _, v = _series(_read(path)["/motor/3/gamma/estimate"])
+    assert list(v) == [0.5]
+
+
+def test_unannounced_node_is_added(tmp_path: Path) -> None:
+    path = tmp_path / "n.rrd"
+    with RerunSink(rrd_path=path, nodes=(0,)) as sink:
+        sink.add_sample(7, T0, 1.0, 1.0, 0.25, 1, 0, 1.0)
+    _, v = _series(_read(path)["/motor/7/gamma/estimate"])
+    assert list(v) == [0.25]
+
+
+def test_needs_a_destination() -> None:
+    with pytest.raises(ValueError):
+        RerunSink()
+
+
+def test_null_sink_and_protocol(tmp_path: Path) -> None:
+    null = NullSink()
+    assert isinstance(null, Sink)
+    with null as s:
+        s.add_sample(0, T0, 1.0, 1.0, 0.5, 1, 0, 1.0, true_gamma=0.5)
+        s.add_voltage(0, T0, 24.0)
+        s.log_event(0, T0, "x", "ERROR")
+        s.log_counters(T0, {"a": 1})
+        s.set_thresholds(0.1, 0.9)
+        s.maybe_flush(time.monotonic())
+        s.flush()
+    null.close()
+    with RerunSink(rrd_path=tmp_path / "p.rrd") as sink:
+        assert isinstance(sink, Sink)
+
+
+def test_memory_bounded_and_buffers_reused(tmp_path: Path) -> None:
+    n = 100_000
+    sink = RerunSink(rrd_path=tmp_path / "m.rrd", nodes=(0,), batch_size=64, write_footer=False)
+    node = sink._nodes[0]
+    buffers = [node.t, node.gamma, node.measured, node.health]
+    ids = [id(b) for b in buffers]
+
+    def feed(start: int, count: int) -> None:
+        for k in range(start, start + count):
+            sink.add_sample(0, T0 + k * 1e-4, 1.0, 1.0, 0.3, 2, 1, 1.0, 0.3)
+
+    feed(0, 5_000)  # warm up caches (descriptors, arrow types, ...)
+    gc.collect()
+    tracemalloc.start()
+    try:
+        before, _ = tracemalloc.get_traced_memory()
+        feed(5_000, n)
+        sink.flush()
+        # Rerun keeps the Arrow copies of the batches alive until its writer thread has
+        # encoded them: wait for that, then nothing of the 10^5 samples may remain.
+        sink.recording.flush(timeout_sec=30)
+        gc.collect()
+        after, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    sink.close()
+    assert [id(b) for b in (node.t, node.gamma, node.measured, node.health)] == ids
+    assert all(len(b) == 64 for b in buffers)
+    # 10^5 samples of 8 float64 would be 6.4 MB if they were kept
+    assert after - before < 256 * 1024, (before, after)
+
+
+# -- live streaming to a headless gRPC receiver -------------------------------------------
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextlib.contextmanager
+def _headless_receiver(save_to: Path) -> Iterator[str]:
+    """`rerun --port P --save FILE` hosts a gRPC proxy without a viewer and writes whatever
+    SDKs stream to it into FILE."""
+    port = _free_port()
+    proc = subprocess.Popen(
+        [str(RERUN_EXE), "--bind", "127.0.0.1", "--port", str(port), "--save", str(save_to)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        start_new_session=True,  # the `rerun` script runs the real binary as a child
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            if proc.poll() is not None or time.monotonic() > deadline:
+                err = proc.stderr.read().decode() if proc.stderr else ""
+                pytest.skip(f"headless rerun receiver did not start: {err[-500:]}")
+            time.sleep(0.05)
+        yield f"rerun+http://127.0.0.1:{port}/proxy"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+        if proc.stderr:
+            proc.stderr.close()
+
+
+def test_live_stream_to_headless_server_and_file_at_once(tmp_path: Path) -> None:
+    received = tmp_path / "received.rrd"
+    local = tmp_path / "local.rrd"
+    rec_id = f"live-{uuid.uuid4().hex[:8]}"
+    n = 500
+    with _headless_receiver(received) as url:
+        sink = RerunSink(
+            rrd_path=local, connect_url=url, nodes=(0,), batch_size=64, recording_id=rec_id
+        )
+        for k in range(n):
+            sink.add_sample(0, T0 + k * DT, 1.0, 2.0, k / n, 1, 0, 1.0)
+        sink.log_event(0, T0 + n * DT, "live hello")
+        sink.close()
+        deadline = time.monotonic() + 30
+        got: NDArray[np.float64] = np.zeros(0)
+        while time.monotonic() < deadline:
+            with contextlib.suppress(Exception):  # the file may end in a partial message
+                if received.exists():
+                    ents = _read(received)
+                    _, got = _series(ents.get("/motor/0/gamma/estimate", []))
+                    if len(got) == n and "/motor/0/events" in ents:
+                        break
+            time.sleep(0.1)
+    assert len(got) == n
+    np.testing.assert_array_equal(got, np.arange(n) / n)
+    _, v_local = _series(_read(local)["/motor/0/gamma/estimate"])
+    np.testing.assert_array_equal(v_local, got)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert {r.recording_id for r in RrdReader(received).recordings()} == {rec_id}
