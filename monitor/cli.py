@@ -10,7 +10,7 @@ import argparse
 import json
 import logging
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 __all__ = ["UsageError", "main"]
@@ -88,17 +88,16 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", default="thresholds.toml")
     c.set_defaults(func=_cmd_calibrate)
 
-    for extra in _EXTRA_COMMANDS:
-        extra(sub)
+    from . import daemon, demo
+
+    daemon.add_commands(sub)
+    demo.add_command(sub)
     return p
-
-
-# Further subcommands (run, replay, demo) register themselves here.
-_EXTRA_COMMANDS: list[Callable[[argparse._SubParsersAction[argparse.ArgumentParser]], None]] = []
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     from .codec import CodecError
+    from .daemon import BusError
     from .diagnosis import DiagnosisError
     from .model import ModelError
     from .scenario import ScenarioError
@@ -111,7 +110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return int(args.func(args))
-    except (UsageError, CodecError, DiagnosisError, ModelError, ScenarioError) as exc:
+    except (UsageError, BusError, CodecError, DiagnosisError, ModelError, ScenarioError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"motor-monitor: error: {msg}", file=sys.stderr)
         return 2

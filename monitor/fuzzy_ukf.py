@@ -26,7 +26,10 @@ Per sample k (the paper's order, made sound where NOTES.md says it must be):
 6. Fault-model state (52)-(53): x~_k = A x^_{k-1} + B u + f^_k (the paper's open-loop x~
    would integrate the process noise w, which no estimator knows, and drift without bound
    on the unobservable angle); the fuzzy input is x_e = x~ - x^ (50), normalised per state
-   by its prior standard deviation so the membership functions are scale-free.
+   by its prior standard deviation so the membership functions are scale-free, and
+   averaged over the same short window as the structure-learning test: one sample of x_e
+   is mostly measurement noise, and rules switched by noise drift apart and make gamma^
+   noisy; the average follows a persistent discrepancy, which is what a fault makes.
 7. Structure learning (20)-(22): the paper's test |e| > 1e-5 on the raw current error fires
    every sample (noise sigma is 0.5 A). Here the error e is whitened (w = L^-1 nu with
    L L' = S_tot) and averaged exponentially over a short window; the average's chi-square
@@ -99,7 +102,8 @@ class EstimatorOutput:
     (the motor angle) are left out of the filter: they carry no information on the fault.
     x_tilde: fault-model state (52), observable part. x_e = x_tilde - x_hat_obs (50).
     gamma: loss of effectiveness per actuator. fault: f^ = -B diag(u) gamma (10), per state.
-    y_hat: predicted output before the update. nis: normalised innovation squared.
+    y_hat: predicted output before the update; y_est: output of the final estimate,
+    C x^ + D u (1 - gamma^). nis: normalised innovation squared.
     innovation: whitened innovation L^-1 nu (L L' = S_tot), per output. rules: rule count.
     """
 
@@ -110,6 +114,7 @@ class EstimatorOutput:
     fault: Array
     y_hat: Array
     innovation: Array
+    y_est: Array
     nis: float = 0.0
     rules: int = 0
     structure_event: bool = False
@@ -151,7 +156,8 @@ def _fuzzy_ukf_step(
     yhat = out[o:o + p]; o += p
     innov = out[o:o + p]; o += p
     stats = out[o:o + 3]; o += 3
-    ebar = out[o:o + p]
+    ebar = out[o:o + p]; o += p
+    yest = out[o:o + p]
     o = 0
     uf = wk[o:o + m]; o += m
     b = wk[o:o + n]; o += n
@@ -289,11 +295,20 @@ def _fuzzy_ukf_step(
         # a convex combination of bounded consequents, up to one ulp of round-off
         g = gamma[a] + dg[a]
         gamma[a] = lo if g < lo else (hi if g > hi else g)
-    # 6. fuzzy input x_e = x~ - x^ (50), normalised by the prior standard deviation
+    # posterior output estimate y^ = C x^ + D u (1 - gamma^)
+    for r in range(p):
+        acc = 0.0
+        for c in range(n):
+            acc += C[r, c] * x[c]
+        for a in range(m):
+            acc += D[r, a] * u[a] * (1.0 - gamma[a])
+        yest[r] = acc
+    # 6. fuzzy input x_e = x~ - x^ (50), normalised by the prior standard deviation and
+    # averaged exponentially
     for r in range(n):
         xe[r] = xtilde[r] - x[r]
         sd = math.sqrt(Pp[r, r]) if Pp[r, r] > 0.0 else 1.0
-        z[r] = xe[r] / sd
+        z[r] += nis_coef * (xe[r] / sd - z[r])
     # whitened innovation w = L^-1 nu with L L' = S_tot (Ls holds that factor)
     for r in range(p):
         acc = nu[r]
@@ -357,10 +372,10 @@ class FuzzyUKF:
                 raise ValueError(f"x0 must have {model.n_full} (full) or {n} (observable) entries")
         self.P[:] = np.eye(n) * cfg.P0
         self._wk = np.zeros(_work_size(n, m, p))
-        self._out = np.zeros(m + 3 * n + 3 * p + 3)
+        self._out = np.zeros(m + 3 * n + 4 * p + 3)
         ob = self._out
         self._stats = ob[m + 3 * n + 2 * p:m + 3 * n + 2 * p + 3]
-        self._ebar = ob[m + 3 * n + 2 * p + 3:]
+        self._ebar = ob[m + 3 * n + 2 * p + 3:m + 3 * n + 3 * p + 3]
         self.out = EstimatorOutput(
             x_hat=self.x,
             x_tilde=ob[m + n:m + 2 * n],
@@ -369,6 +384,7 @@ class FuzzyUKF:
             fault=ob[m:m + n],
             y_hat=ob[m + 3 * n:m + 3 * n + p],
             innovation=ob[m + 3 * n + p:m + 3 * n + 2 * p],
+            y_est=ob[m + 3 * n + 3 * p + 3:],
             rules=self.fuzzy.rule_count,
         )
         self._u = np.zeros(m)

@@ -1,0 +1,280 @@
+"""`motor-monitor run` (a live bus) and `motor-monitor replay LOG` (a recorded one).
+
+Both build the same `MonitorPipeline`; they differ in where frames come from and where
+the diagnosis goes (the bus, or JSON lines).
+
+Live: frames come from a python-can bus (`--interface/--channel`, or python-can's own
+configuration: CAN_INTERFACE / CAN_CHANNEL / CAN_CONFIG and its config file). An
+interface that fails (deleted, down) is closed and reopened with back-off while the
+pipeline keeps its state; the outage is counted and logged. SIGINT and SIGTERM stop the
+loop; the recording is flushed and closed so that `rerun rrd verify` passes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import suppress
+from pathlib import Path
+from struct import error as StructError
+from types import FrameType
+from typing import IO, Any
+
+import can
+
+from .codec import load_database
+from .diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
+from .pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
+from .rerun_sink import NullSink, RerunSink, Sink
+
+__all__ = ["BusError", "add_commands", "open_bus", "read_log"]
+
+log = logging.getLogger("motor_monitor")
+
+LOG_SUFFIXES = (".log", ".asc", ".blf")
+
+
+class BusError(Exception):
+    """The CAN interface cannot be opened; the message is one line."""
+
+
+def open_bus(interface: str | None, channel: str | None, bitrate: int | None = None) -> can.BusABC:
+    """A python-can bus; missing interface/channel come from python-can's configuration."""
+    kwargs: dict[str, Any] = {}
+    if interface:
+        kwargs["interface"] = interface
+    if channel:
+        kwargs["channel"] = channel
+    if bitrate:
+        kwargs["bitrate"] = bitrate
+    try:
+        return can.Bus(**kwargs)
+    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
+        where = f"{interface or '<config>'}:{channel or '<config>'}"
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise BusError(f"cannot open CAN interface {where}: {msg}") from None
+
+
+def _thresholds(path: str | None) -> Thresholds:
+    return load_thresholds(path) if path else DEFAULT_THRESHOLDS
+
+
+def _nodes(text: str) -> tuple[int, ...] | None:
+    if text == "all":
+        return None
+    try:
+        nodes = tuple(sorted({int(x) for x in text.split(",") if x.strip()}))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"nodes must be 'all' or e.g. 0,1,2: {text!r}") from None
+    if not nodes or any(not 0 <= n <= 15 for n in nodes):
+        raise argparse.ArgumentTypeError(f"node numbers must lie in 0..15: {text!r}")
+    return nodes
+
+
+def _make_sink(args: argparse.Namespace, cfg: MonitorConfig) -> Sink:
+    if not (args.rrd or args.connect):
+        return NullSink()
+    if args.rrd:
+        parent = Path(args.rrd).parent
+        if not parent.is_dir():
+            raise BusError(f"--rrd: directory {parent} does not exist")
+    try:
+        return RerunSink(rrd_path=args.rrd, connect_url=args.connect, nodes=cfg.nodes or (),
+                         f1=cfg.thresholds.f1, f2=cfg.thresholds.f2,
+                         recording_id=getattr(args, "recording_id", None))
+    except (ValueError, RuntimeError, OSError) as exc:
+        raise BusError(f"cannot start the Rerun recording: {exc}") from None
+
+
+def _config(args: argparse.Namespace) -> MonitorConfig:
+    return MonitorConfig(nodes=args.nodes, rate=args.rate, thresholds=_thresholds(args.thresholds))
+
+
+def _event_writer(path: str | None, default: IO[str] | None) -> tuple[
+        Callable[[DiagnosisEvent], None] | None, IO[str] | None]:
+    fh: IO[str] | None = open(path, "a", encoding="utf-8") if path else default  # noqa: SIM115
+    if fh is None:
+        return None, None
+    out = fh
+
+    def write(ev: DiagnosisEvent) -> None:
+        out.write(ev.to_json() + "\n")
+        out.flush()
+
+    return write, (fh if path else None)
+
+
+class _Stop:
+    """SIGINT/SIGTERM set an event; the main loop ends at its next turn."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.signal: int | None = None
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._handler)
+
+    def _handler(self, signum: int, frame: FrameType | None) -> None:
+        self.signal = signum
+        self.event.set()
+
+
+def run_live(args: argparse.Namespace) -> int:
+    db = load_database(args.dbc)
+    cfg = _config(args)
+    stop = _Stop()
+    stop.install()
+    bus = open_bus(args.interface, args.channel, args.bitrate)
+    sink = _make_sink(args, cfg)
+    on_event, events_fh = _event_writer(args.events, None)
+    holder: dict[str, can.BusABC | None] = {"bus": bus}
+
+    def publish(msg: can.Message) -> None:
+        b = holder["bus"]
+        if b is None:
+            raise can.CanOperationError("interface is down")
+        b.send(msg, timeout=0.01)
+
+    pipe = MonitorPipeline(db, cfg, sink=sink, publish=publish, on_event=on_event)
+    log.warning("monitoring %s:%s, nodes %s", args.interface or "<config>",
+                args.channel or "<config>", "all" if cfg.nodes is None else cfg.nodes)
+    last_tick = 0.0
+    backoff = 0.1
+    down_since: float | None = None
+    try:
+        while not stop.event.is_set():
+            b = holder["bus"]
+            if b is None:
+                if stop.event.wait(backoff):
+                    break
+                try:
+                    holder["bus"] = open_bus(args.interface, args.channel, args.bitrate)
+                except BusError as exc:
+                    backoff = min(2.0, backoff * 2)
+                    log.debug("still down: %s", exc)
+                    continue
+                outage = time.monotonic() - (down_since or time.monotonic())
+                pipe.counters.inc("bus/reconnects")
+                log.warning("CAN interface back after %.1f s", outage)
+                sink.log_event(-1, time.time(), f"CAN interface back after {outage:.1f} s",
+                               "WARN")
+                backoff = 0.1
+                down_since = None
+                continue
+            try:
+                msg = b.recv(timeout=0.05)
+            except (can.CanError, OSError) as exc:
+                pipe.counters.inc("bus/outages")
+                log.warning("CAN interface failed: %s; reconnecting", exc)
+                sink.log_event(-1, time.time(), f"CAN interface failed: {exc}", "ERROR")
+                with suppress(Exception):
+                    b.shutdown()
+                holder["bus"] = None
+                down_since = time.monotonic()
+                continue
+            if msg is not None:
+                pipe.feed(msg)
+            now = time.time()
+            if now - last_tick >= 0.05:
+                last_tick = now
+                pipe.tick(now)
+                sink.maybe_flush(time.monotonic())
+    finally:
+        sink.close()
+        b = holder["bus"]
+        if b is not None:
+            with suppress(Exception):
+                b.shutdown()
+        if events_fh is not None:
+            events_fh.close()
+        c = pipe.counters
+        why = f"signal {stop.signal}" if stop.signal else "end"
+        print(f"motor-monitor: stopped ({why}): {c.get('frames/received', 0)} frames, "
+              f"{c.get('samples/estimated', 0)} estimated, "
+              f"{sum(v for k, v in c.items() if k.startswith('rejected/'))} rejected, "
+              f"{c.get('publish/sent', 0)} diagnosis frames sent", file=sys.stderr)
+    return 0
+
+
+def read_log(path: Path) -> Iterator[can.Message]:
+    """Frames of a candump .log, Vector .asc or .blf file, through python-can's readers."""
+    if path.suffix.lower() not in LOG_SUFFIXES:
+        raise BusError(f"{path}: unsupported log format (use {', '.join(LOG_SUFFIXES)})")
+    if not path.is_file():
+        raise BusError(f"{path}: no such file")
+    try:
+        reader = can.LogReader(str(path))
+    except (OSError, ValueError) as exc:
+        raise BusError(f"{path}: cannot read log ({exc})") from None
+    try:
+        yield from reader
+    except (ValueError, IndexError, OSError, StructError) as exc:
+        raise BusError(f"{path}: malformed log ({exc})") from None
+    finally:
+        with suppress(Exception):
+            reader.stop()
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    db = load_database(args.dbc)
+    cfg = _config(args)
+    path = Path(args.log)
+    frames = read_log(path)
+    sink = _make_sink(args, cfg)
+    on_event, events_fh = _event_writer(args.events, sys.stdout)
+    pipe = MonitorPipeline(db, cfg, sink=sink, publish=None, on_event=on_event)
+    t0 = time.perf_counter()
+    last_tick = -math.inf
+    n = 0
+    try:
+        for msg in frames:
+            pipe.feed(msg)
+            n += 1
+            ts = msg.timestamp
+            if ts - last_tick >= 0.05:
+                last_tick = ts
+                pipe.tick(ts)
+    finally:
+        sink.close()
+        if events_fh is not None:
+            events_fh.close()
+    el = time.perf_counter() - t0
+    c = pipe.counters
+    print(f"motor-monitor: replayed {n} frames in {el:.2f} s ({n / max(el, 1e-9):.0f} frames/s): "
+          f"{c.get('samples/estimated', 0)} estimated, "
+          f"{sum(v for k, v in c.items() if k.startswith('rejected/'))} rejected", file=sys.stderr)
+    return 0
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dbc", default=None, help="DBC file (default: the one shipped)")
+    p.add_argument("--nodes", type=_nodes, default=None,
+                   help="nodes to monitor, e.g. 0,3 (default: all that send)")
+    p.add_argument("--rate", type=float, default=100.0, help="ECU current-sample rate, Hz")
+    p.add_argument("--thresholds", default=None, help="thresholds TOML (motor-monitor calibrate)")
+    p.add_argument("--rrd", default=None, help="record to this .rrd file")
+    p.add_argument("--connect", default=None, metavar="URL",
+                   help="stream to a Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
+
+
+def add_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    r = sub.add_parser("run", help="monitor a live CAN bus")
+    r.add_argument("--interface", default=None, help="python-can interface (e.g. socketcan)")
+    r.add_argument("--channel", default=None, help="channel (e.g. vcan0)")
+    r.add_argument("--bitrate", type=int, default=None)
+    r.add_argument("--events", default=None, help="append diagnosis events as JSON lines")
+    _common(r)
+    r.set_defaults(func=run_live)
+
+    p = sub.add_parser("replay", help="run a candump .log, .asc or .blf file as fast as possible")
+    p.add_argument("log", help="log file")
+    p.add_argument("--events", default=None, help="JSON lines to this file (default: stdout)")
+    _common(p)
+    p.set_defaults(func=run_replay)

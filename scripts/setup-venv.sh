@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Create .venv with Python >= 3.11 and install the project with pinned versions.
+# Usage: scripts/setup-venv.sh [EXTRAS]   e.g. scripts/setup-venv.sh dev
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY="${PYTHON:-}"
+if [[ -z "$PY" ]]; then
+    for cand in python3.11 python3.12 python3.13 python3; do
+        if command -v "$cand" >/dev/null 2>&1 \
+            && "$cand" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+            PY="$cand"
+            break
+        fi
+    done
+fi
+[[ -n "$PY" ]] || { echo "setup-venv: need Python >= 3.11" >&2; exit 1; }
+if [[ ! -x .venv/bin/python ]]; then
+    "$PY" -m venv .venv
+fi
+.venv/bin/python -m pip install -q --upgrade pip
+spec="."
+[[ $# -gt 0 && -n "$1" ]] && spec=".[$1]"
+.venv/bin/python -m pip install -q -c constraints.txt -e "$spec"

@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# Fresh machine -> everything checked: system packages (apt-get), the virtual environment,
+# lint (ruff), types (mypy) and the whole test suite, vcan integration tests included
+# (through User-Mode Linux where the kernel has no SocketCAN).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash .ci/install-system.sh
+bash scripts/setup-venv.sh dev
+.venv/bin/ruff check .
+.venv/bin/mypy
+.venv/bin/pytest -q "$@"
