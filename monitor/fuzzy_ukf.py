@@ -78,7 +78,8 @@ class FuzzyUKFConfig:
     nis_threshold: structure-learning threshold on the chi-square statistic of the averaged
         whitened innovation (p degrees of freedom; 14 is 3.7 sigma for one output).
     dwell: minimum time between two structure-learning events, seconds.
-    P0: initial state covariance (diagonal value, or None for the steady-state-free 1.0).
+    P0: initial state covariance (diagonal value). Without an x0 the first sample sets x^ to
+        the fault-free steady state closest to it.
     """
 
     alpha: float = 1e-4
@@ -371,6 +372,7 @@ class FuzzyUKF:
             else:
                 raise ValueError(f"x0 must have {model.n_full} (full) or {n} (observable) entries")
         self.P[:] = np.eye(n) * cfg.P0
+        self._needs_init = x0 is None
         self._wk = np.zeros(_work_size(n, m, p))
         self._out = np.zeros(m + 3 * n + 4 * p + 3)
         ob = self._out
@@ -425,6 +427,8 @@ class FuzzyUKF:
         yy = self._y
         uu[:] = u
         yy[:] = y
+        if self._needs_init:
+            self._init_from_sample(uu, yy)
         blk = self._blocks.get(dt)
         if blk is None:
             blk = self._block(dt)
@@ -448,6 +452,21 @@ class FuzzyUKF:
             out.structure_event = False
         out.nis = stats[0]
         return out
+
+    def _init_from_sample(self, u: Array, y: Array) -> None:
+        """x^(0) without a given x0: the fault-free steady state closest to the first sample.
+
+        Least squares on [I - A; C] x = [B u; y - D u]: a monitor attached to a running
+        motor would otherwise start from x = 0 and read its own convergence as a fault.
+        """
+        self._needs_init = False
+        A, B, _ = self.model.at(self.model.T)
+        md = self.model
+        M = np.vstack([np.eye(self._dims[0]) - A, md.C])
+        rhs = np.concatenate([B @ u, y - md.D @ u])
+        x, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+        if np.all(np.isfinite(x)):
+            self.x[:] = x
 
     def _structure_event(self) -> None:
         """(20)-(22): add an MF where the evidence is, and re-open every consequent.

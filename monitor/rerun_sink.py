@@ -275,7 +275,7 @@ class RerunSink:
         nodes: Sequence[int] = (0,),
         f1: float = 0.15,
         f2: float = 0.85,
-        batch_size: int = 256,
+        batch_size: int = 2048,
         flush_interval_s: float = 0.2,
         write_footer: bool = True,
     ) -> None:
@@ -290,6 +290,7 @@ class RerunSink:
         self._closed = False
         self._nodes: dict[int, _Node] = {}
         self._counters: dict[str, str] = {}
+        self._counter_rows: list[tuple[float, dict[str, int]]] = []
         self._last_flush = time.monotonic()
         self.rrd_path = None if rrd_path is None else Path(rrd_path)
 
@@ -372,11 +373,24 @@ class RerunSink:
         )
 
     def log_counters(self, t: float, counters: Mapping[str, int]) -> None:
-        """Log the daemon's health counters as scalars under ``/monitor/counters/<name>``."""
+        """Buffer the daemon's health counters, scalars under ``/monitor/counters/<name>``.
+
+        Rows are sent as columns with the next flush: one chunk per counter per flush,
+        not one per call, so a long run does not pile up tiny chunks.
+        """
         if self._closed or not counters:
             return
-        index = [rr.TimeColumn(TIMELINE, timestamp=np.array([t], dtype=np.float64))]
-        for name, value in counters.items():
+        self._counter_rows.append((t, dict(counters)))
+        if len(self._counter_rows) >= self._batch_size:
+            self._flush_counters()
+
+    def _flush_counters(self) -> None:
+        rows = self._counter_rows
+        if not rows:
+            return
+        self._counter_rows = []
+        names = dict.fromkeys(name for _, c in rows for name in c)
+        for name in names:
             path = self._counters.get(name)
             if path is None:
                 path = _counter_path(name)
@@ -384,10 +398,12 @@ class RerunSink:
                 self._rec.log(
                     path, _series_style(name, _COUNTER_COLOR, 1.5, stepped=True), static=True
                 )
+            ts = np.array([t for t, c in rows if name in c], dtype=np.float64)
+            vs = np.array([c[name] for _, c in rows if name in c], dtype=np.float64)
             self._rec.send_columns(
                 path,
-                indexes=index,
-                columns=rr.Scalars.columns(scalars=np.array([value], dtype=np.float64)),
+                indexes=[rr.TimeColumn(TIMELINE, timestamp=ts)],
+                columns=rr.Scalars.columns(scalars=vs),
             )
 
     def set_thresholds(self, f1: float, f2: float) -> None:
@@ -414,6 +430,7 @@ class RerunSink:
         for st in self._nodes.values():
             self._flush_samples(st)
             self._flush_voltage(st)
+        self._flush_counters()
         try:
             self._rec.flush(timeout_sec=0.0)  # start pushing to the sinks, don't wait
         except RuntimeError as exc:  # e.g. the gRPC viewer is unreachable
