@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import can
 import numpy as np
 import pytest
@@ -55,7 +57,7 @@ def test_fault_outage_recovery_is_diagnosed_and_published(db: MotorDatabase,
     # steady publication at ~10 Hz over 16 s plus the transitions
     assert 150 <= len(sent) <= 175
     counters = [d.counter for d in decoded]  # type: ignore[union-attr]
-    assert all((b - a) % 16 == 1 for a, b in zip(counters, counters[1:], strict=False))
+    assert all((b - a) % 16 == 1 for a, b in itertools.pairwise(counters))
     c = pipe.counters
     assert c["samples/estimated"] == 1599 and not any(k.startswith("rejected/") for k in c)
 
