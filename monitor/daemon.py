@@ -204,7 +204,11 @@ def run_live(args: argparse.Namespace) -> int:
 
 
 def read_log(path: Path) -> Iterator[can.Message]:
-    """Frames of a candump .log, Vector .asc or .blf file, through python-can's readers."""
+    """Frames of a candump .log, Vector .asc or .blf file, through python-can's readers.
+
+    Not a generator itself: a bad path raises `BusError` here, before the caller opens
+    any output (--rrd, --events) that an error must not create or overwrite.
+    """
     if path.suffix.lower() not in LOG_SUFFIXES:
         raise BusError(f"{path}: unsupported log format (use {', '.join(LOG_SUFFIXES)})")
     if not path.is_file():
@@ -213,6 +217,10 @@ def read_log(path: Path) -> Iterator[can.Message]:
         reader = can.LogReader(str(path))
     except (OSError, ValueError) as exc:
         raise BusError(f"{path}: cannot read log ({exc})") from None
+    return _frames(path, reader)
+
+
+def _frames(path: Path, reader: can.io.generic.MessageReader) -> Iterator[can.Message]:
     try:
         yield from reader
     except (ValueError, IndexError, OSError, StructError) as exc:

@@ -154,6 +154,7 @@ def _figures(r: ReproduceResult, out: Path, f1: float, f2: float) -> list[Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     paths = []
     s = r.steps
@@ -194,6 +195,7 @@ def _figures(r: ReproduceResult, out: Path, f1: float, f2: float) -> list[Path]:
 
     fig, ax = plt.subplots(figsize=(8, 3.5))
     ax.step(s, r.rules, where="post")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
     ax.axvline(360, color="grey", ls=":", lw=0.8)
     ax.set_xlabel("step")
     ax.set_ylabel("rules")

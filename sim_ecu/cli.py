@@ -1,0 +1,307 @@
+"""``sim-ecu``: run one virtual motor ECU node on a CAN bus in real time.
+
+Every configuration mistake is one ``sim-ecu: error: ...`` line on stderr and exit code 2;
+a run that ends (its duration, SIGINT or SIGTERM) prints a one-line summary on stderr and
+exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import errno
+import logging
+import math
+import signal
+import sys
+import threading
+from collections.abc import Iterator, Sequence
+from types import FrameType
+from typing import Any, NoReturn
+
+import can
+
+from monitor.codec import N_NODES, CodecError, load_database
+from monitor.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario
+
+from .ecu import ECUError, ECUStats, VirtualECU, load_motor_parameters
+
+__all__ = ["build_parser", "main", "open_bus"]
+
+PROG = "sim-ecu"
+EXIT_USAGE = 2
+
+log = logging.getLogger("sim_ecu")
+
+
+class UsageError(Exception):
+    """A configuration mistake: reported as one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but its errors are a single line (no usage block)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog=PROG,
+        description="Virtual DC-motor ECU: sends MotorCurrent, MotorVoltage and SimTruth "
+        "frames of one node for a fault scenario, paced in real time.",
+    )
+    p.add_argument(
+        "--interface",
+        help="python-can interface (socketcan, virtual, ...); default: python-can's "
+        "configuration (CAN_INTERFACE, ~/.canrc, ...)",
+    )
+    p.add_argument(
+        "--channel",
+        help="channel, e.g. vcan0; default: python-can's configuration (CAN_CHANNEL, ...)",
+    )
+    p.add_argument("--node", type=int, required=True, help=f"node number 0..{N_NODES - 1}")
+    p.add_argument(
+        "--scenario",
+        required=True,
+        metavar="NAME|FILE.toml",
+        help=f"built-in ({', '.join(BUILTIN_SCENARIOS)}) or a scenario TOML file "
+        "(optionally with a [motor] table: J, b, Ke, Ki, Ra, La)",
+    )
+    p.add_argument("--rate", type=float, default=100.0, help="sample rate in Hz (default 100)")
+    p.add_argument(
+        "--voltage-rate",
+        type=float,
+        default=20.0,
+        help="MotorVoltage frame rate in Hz (default 20; also sent at every command change)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        help="run length in s (default: the scenario's; 0: until stopped). Past the "
+        "scenario's end its last inputs hold",
+    )
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--no-truth", action="store_true", help="do not send SimTruth frames")
+    p.add_argument("--dbc", metavar="PATH", help="DBC file (default: the packaged motor.dbc)")
+    p.add_argument("--bitrate", type=int, help="bitrate passed to the interface")
+    p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    return p
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return text or type(exc).__name__
+
+
+@contextlib.contextmanager
+def _quiet_can_logger(quiet: bool) -> Iterator[None]:
+    """Silence python-can's own log records while opening (its error becomes our one line).
+
+    e.g. socketcan logs "Could not access SocketCAN device ..." at ERROR before it raises.
+    """
+    can_log = logging.getLogger("can")
+    old = can_log.level
+    if quiet:
+        can_log.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        can_log.setLevel(old)
+
+
+def open_bus(
+    interface: str | None, channel: str | None, bitrate: int | None, quiet: bool = True
+) -> can.BusABC:
+    """``can.Bus`` with python-can's configuration filling in what is None.
+
+    Raises `UsageError` with one line when nothing names an interface (or a channel for
+    socketcan, whose default "" means every interface and cannot send), or the bus cannot
+    be opened. Other missing settings are left to the backend's defaults.
+    """
+    given: dict[str, Any] = {}
+    if interface is not None:
+        given["interface"] = interface
+    if channel is not None:
+        given["channel"] = channel
+    if bitrate is not None:
+        given["bitrate"] = bitrate
+    # Resolve once ourselves for clear messages; can.Bus repeats exactly this lookup.
+    try:
+        resolved = can.util.load_config(config=dict(given))
+    except can.CanInterfaceNotImplementedError:
+        name = _configured_interface(given)
+        if name is None:
+            raise UsageError(
+                "no CAN interface given: use --interface or set CAN_INTERFACE or a "
+                "python-can config file"
+            ) from None
+        known = ", ".join(sorted(can.VALID_INTERFACES))
+        raise UsageError(f"unknown CAN interface {name!r}; python-can knows {known}") from None
+    except Exception as exc:  # malformed CAN_CONFIG JSON, bad config-file values, ...
+        raise UsageError(f"python-can configuration: {_one_line(exc)}") from None
+    shown = "(default)" if resolved["channel"] is None else repr(resolved["channel"])
+    where = f"interface {resolved['interface']!r} channel {shown}"
+    if resolved["channel"] is None and resolved["interface"] == "socketcan":
+        # socketcan's default channel "" binds to every interface and cannot send.
+        raise UsageError(
+            "no CAN channel given for interface 'socketcan': use --channel or set "
+            "CAN_CHANNEL or a python-can config file"
+        )
+    extra: dict[str, Any] = {"bitrate": bitrate} if bitrate is not None else {}
+    try:
+        with _quiet_can_logger(quiet):
+            bus = can.Bus(interface=interface, channel=channel, **extra)
+    except Exception as exc:  # backends raise CanError, OSError, ImportError, ValueError...
+        hint = ""
+        if isinstance(exc, OSError) and exc.errno == errno.EAFNOSUPPORT:
+            hint = " (this kernel has no SocketCAN support)"
+        raise UsageError(f"cannot open CAN {where}: {_one_line(exc)}{hint}") from None
+    log.info("opened %s (%s)", where, bus.channel_info)
+    return bus
+
+
+def _configured_interface(given: dict[str, Any]) -> str | None:
+    """The interface python-can's configuration yields for `given` (None: nowhere set)."""
+    if given.get("interface"):
+        return str(given["interface"])
+    sources: list[dict[str, Any]] = [
+        dict(can.rc),
+        can.util.load_environment_config(),
+        can.util.load_file_config(),
+    ]
+    for cfg in sources:
+        value = cfg.get("interface") or cfg.get("bustype")
+        if value:
+            return str(value)
+    return None
+
+
+def _check_args(args: argparse.Namespace) -> float | None:
+    """Validate numbers argparse cannot; returns the run duration (None: scenario's)."""
+    if not 0 <= args.node < N_NODES:
+        raise UsageError(f"--node must be in 0..{N_NODES - 1}, got {args.node}")
+    for flag, value in (("--rate", args.rate), ("--voltage-rate", args.voltage_rate)):
+        if not (math.isfinite(value) and value > 0):
+            raise UsageError(f"{flag} must be a positive number of Hz, got {value:g}")
+    if args.seed < 0:
+        raise UsageError(f"--seed must be >= 0, got {args.seed}")
+    if args.bitrate is not None and args.bitrate <= 0:
+        raise UsageError(f"--bitrate must be positive, got {args.bitrate}")
+    if args.duration is None:
+        return None
+    if not (math.isfinite(args.duration) and args.duration >= 0):
+        raise UsageError(f"--duration must be >= 0 seconds (0: forever), got {args.duration:g}")
+    return math.inf if args.duration == 0 else float(args.duration)
+
+
+class _StopOnSignals:
+    """SIGINT/SIGTERM set a stop event (main thread only; previous handlers restored)."""
+
+    def __init__(self, stop: threading.Event) -> None:
+        self.stop = stop
+        self.received: str | None = None
+        self._old: dict[int, Any] = {}
+
+    def _handler(self, signum: int, frame: FrameType | None) -> None:
+        self.received = signal.Signals(signum).name
+        self.stop.set()
+
+    def __enter__(self) -> _StopOnSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def _run_in_worker(ecu: VirtualECU, duration: float | None, stop: threading.Event) -> ECUStats:
+    """ecu.run in a worker thread; the main thread stays free to run signal handlers.
+
+    (Setting an Event from a signal handler that interrupted the same thread inside
+    Event.wait can deadlock on the Event's internal lock, so the waiting happens elsewhere.)
+    """
+    result: list[ECUStats] = []
+    failure: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            result.append(ecu.run(duration, stop))
+        except BaseException as exc:
+            failure.append(exc)
+
+    worker = threading.Thread(target=target, name="sim-ecu-run", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.25)
+    if failure:
+        raise failure[0]
+    return result[0]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2, already printed)
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format=f"{PROG}: %(levelname)s: %(message)s",
+        stream=sys.stderr,
+    )
+    stop = threading.Event()
+    with _StopOnSignals(stop) as signals:
+        try:
+            duration = _check_args(args)
+            scenario = load_scenario(args.scenario)
+            motor = load_motor_parameters(args.scenario)
+            db = load_database(args.dbc)
+        except (UsageError, ScenarioError, ECUError, CodecError) as exc:
+            print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            bus = open_bus(args.interface, args.channel, args.bitrate, quiet=not args.verbose)
+        except UsageError as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            try:
+                ecu = VirtualECU(
+                    bus,
+                    db,
+                    args.node,
+                    scenario,
+                    rate=args.rate,
+                    voltage_rate=args.voltage_rate,
+                    seed=args.seed,
+                    truth=not args.no_truth,
+                    motor=motor,
+                )
+            except ECUError as exc:
+                print(f"{PROG}: error: {exc}", file=sys.stderr)
+                return EXIT_USAGE
+            length = "until stopped" if duration == math.inf else (
+                f"{scenario.duration if duration is None else duration:g} s"
+            )
+            log.info(
+                "running node %d, scenario %s, %g Hz (voltage %g Hz), seed %d, %s",
+                args.node, scenario.name, ecu.rate, ecu.voltage_rate, args.seed, length,
+            )
+            try:
+                stats = _run_in_worker(ecu, duration, stop)
+            except Exception as exc:
+                log.debug("run failed", exc_info=True)
+                print(f"{PROG}: error: run failed: {_one_line(exc)}", file=sys.stderr)
+                return 1
+        finally:
+            bus.shutdown()
+    how = f"stopped by {signals.received}" if signals.received else "done"
+    print(
+        f"{PROG}: {how}: node {args.node}, scenario {scenario.name}: {stats.summary()}",
+        file=sys.stderr,
+    )
+    return 0
