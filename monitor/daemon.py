@@ -28,9 +28,10 @@ from typing import IO, Any
 
 import can
 
+from .busfaults import socket_drops
 from .codec import load_database
 from .diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
-from .pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
+from .pipeline import BUS_EVENTS, DiagnosisEvent, MonitorConfig, MonitorPipeline
 from .rerun_sink import NullSink, RerunSink, Sink
 
 __all__ = ["BusError", "add_commands", "open_bus", "read_log"]
@@ -146,6 +147,7 @@ def run_live(args: argparse.Namespace) -> int:
     log.warning("monitoring %s:%s, nodes %s", args.interface or "<config>",
                 args.channel or "<config>", "all" if cfg.nodes is None else cfg.nodes)
     last_tick = 0.0
+    dropped_before = 0  # socket drops of sockets closed before the current one
     backoff = 0.1
     down_since: float | None = None
     try:
@@ -163,7 +165,7 @@ def run_live(args: argparse.Namespace) -> int:
                 outage = time.monotonic() - (down_since or time.monotonic())
                 pipe.counters.inc("bus/reconnects")
                 log.warning("CAN interface back after %.1f s", outage)
-                sink.log_event(-1, time.time(), f"CAN interface back after {outage:.1f} s",
+                sink.log_event(BUS_EVENTS, time.time(), f"CAN interface back after {outage:.1f} s",
                                "WARN")
                 backoff = 0.1
                 down_since = None
@@ -173,7 +175,8 @@ def run_live(args: argparse.Namespace) -> int:
             except (can.CanError, OSError) as exc:
                 pipe.counters.inc("bus/outages")
                 log.warning("CAN interface failed: %s; reconnecting", exc)
-                sink.log_event(-1, time.time(), f"CAN interface failed: {exc}", "ERROR")
+                sink.log_event(BUS_EVENTS, time.time(), f"CAN interface failed: {exc}", "ERROR")
+                dropped_before = pipe.counters.get("bus/socket_drops", 0)
                 with suppress(Exception):
                     b.shutdown()
                 holder["bus"] = None
@@ -186,6 +189,9 @@ def run_live(args: argparse.Namespace) -> int:
                 last_tick = now
                 pipe.tick(now)
                 sink.maybe_flush(time.monotonic())
+                drops = socket_drops(b)
+                if drops is not None:  # the kernel's count for this socket, since it opened
+                    pipe.counters["bus/socket_drops"] = dropped_before + drops
     finally:
         sink.close()
         b = holder["bus"]

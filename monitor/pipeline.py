@@ -13,6 +13,9 @@ never raises on what the frame holds: each frame ends in exactly one counted out
 * A current sample before any voltage command of its node: `samples/no_voltage`, dropped.
 * Frames of nodes not monitored: `ignored/node`. Our own or another monitor's
   MonitorDiagnosis frames: `ignored/diagnosis`.
+* SocketCAN error frames: `bus/error_frames` and one `bus/errors/<condition>` per
+  condition they report (bus_off, controller/rx_overflow, controller/rx_error_passive,
+  restarted, ...), logged and recorded as bus events.
 
 Voltage and current are aligned by taking, for each current sample, the latest voltage
 command of its node received before it (the ECU holds the command between its 20 Hz
@@ -36,13 +39,16 @@ from typing import Any
 
 import can
 
+from .busfaults import describe_error_frame
 from .codec import CounterOutcome, CounterTracker, Decoded, MotorDatabase, Rejected
 from .diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier, Thresholds
 from .fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from .model import DCMotorParameters, DiscreteModel, dc_motor
 from .rerun_sink import NullSink, Sink
 
-__all__ = ["DiagnosisEvent", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
+__all__ = ["BUS_EVENTS", "DiagnosisEvent", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
+
+BUS_EVENTS = -1  # the node number under which bus-level events (error frames, outages) go
 
 log = logging.getLogger("motor_monitor")
 
@@ -188,6 +194,9 @@ class MonitorPipeline:
     def feed(self, msg: can.Message) -> None:
         """One frame from the bus or a log; never raises on the frame's content."""
         self.counters.inc("frames/received")
+        if msg.is_error_frame:
+            self._on_error_frame(msg)
+            return
         res = self.db.decode_can(msg)
         if isinstance(res, Rejected):
             reason = str(res.reason)
@@ -196,6 +205,18 @@ class MonitorPipeline:
                                     f"{res.detail}")
             return
         self._dispatch(res)
+
+    def _on_error_frame(self, msg: can.Message) -> None:
+        """A SocketCAN error frame: counted per condition, logged, shown in the recording."""
+        self.counters.inc("bus/error_frames")
+        names = describe_error_frame(msg)
+        for name in names:
+            self.counters.inc(f"bus/errors/{name}")
+        text = "CAN error frame: " + ", ".join(names)
+        severe = any(n in ("bus_off", "controller/rx_overflow") or n.endswith("error_passive")
+                     for n in names)
+        self._warn.warn("errframe-" + ",".join(names), text)
+        self.sink.log_event(BUS_EVENTS, float(msg.timestamp), text, "ERROR" if severe else "WARN")
 
     def _dispatch(self, d: Decoded) -> None:
         kind = d.kind

@@ -84,12 +84,10 @@ def test_bad_frames_are_counted_and_never_reach_the_estimator(
                     timestamp=t),  # extended id
         can.Message(arbitration_id=0x110, is_remote_frame=True, is_extended_id=False,
                     timestamp=t),  # remote frame
-        can.Message(is_error_frame=True, arbitration_id=0x20000004, timestamp=t),  # error frame
     ]
     pipe.feed_many(bad)
     c = pipe.counters
-    for reason in ("unknown_id", "wrong_length", "bad_crc", "extended_id", "remote_frame",
-                   "error_frame"):
+    for reason in ("unknown_id", "wrong_length", "bad_crc", "extended_id", "remote_frame"):
         assert c[f"rejected/{reason}"] == 1, reason
     assert c["samples/estimated"] == est_before
     assert np.array_equal(pipe.nodes[0].estimator.out.gamma, gamma_before)
@@ -176,3 +174,20 @@ def test_random_frames_never_crash_and_are_counted(arb: int, data: bytes, dt: fl
 
 
 _PIPE: dict[str, MonitorPipeline] = {}
+
+
+def test_error_frames_are_decoded_and_counted(db: MotorDatabase) -> None:
+    pipe, _, _ = _pipe(db)
+    t = T0
+    # controller: rx overflow + rx error passive; bus-off; restarted (linux/can/error.h)
+    pipe.feed(can.Message(is_error_frame=True, arbitration_id=0x004,
+                          data=bytes([0, 0x11, 0, 0, 0, 0, 0, 0]), timestamp=t))
+    pipe.feed(can.Message(is_error_frame=True, arbitration_id=0x040, data=bytes(8), timestamp=t))
+    pipe.feed(can.Message(is_error_frame=True, arbitration_id=0x100, data=bytes(8), timestamp=t))
+    c = pipe.counters
+    assert c["bus/error_frames"] == 3
+    assert c["bus/errors/controller/rx_overflow"] == 1
+    assert c["bus/errors/controller/rx_error_passive"] == 1
+    assert c["bus/errors/bus_off"] == 1
+    assert c["bus/errors/restarted"] == 1
+    assert not any(k.startswith("rejected/") for k in c)
