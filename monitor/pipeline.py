@@ -19,9 +19,11 @@ never raises on what the frame holds: each frame ends in exactly one counted out
 
 Voltage and current are aligned by taking, for each current sample, the latest voltage
 command of its node received before it (the ECU holds the command between its 20 Hz
-frames). Timestamps are the frames' own (kernel timestamps on SocketCAN); the interval to
-the previous current sample is rounded to a whole number k of nominal periods, which
-absorbs jitter, and k > 1 means missed samples that the estimator predicts through.
+frames). Timestamps are the frames' own (kernel timestamps on SocketCAN). The number k of
+sample periods since the previous current sample comes from the alive counter (lost + 1),
+so bus or queue jitter cannot fake a missed sample; the timestamps only decide how many
+times the 4-bit counter wrapped in a long gap. k > 1 means missed samples that the
+estimator predicts through.
 
 A node whose current frames stop for `silence_timeout_s` turns to `no_data` (see `tick`).
 `MonitorDiagnosis` is published on every state change and at a steady rate.
@@ -228,10 +230,11 @@ class MonitorPipeline:
             self.counters.inc("ignored/node")
             return
         nm = self._node(d.node)
-        if not self._check_counter(d):
+        lost = self._check_counter(d)
+        if lost is None:
             return
         if kind == "current":
-            self._on_current(nm, d.timestamp, d.value)
+            self._on_current(nm, d.timestamp, d.value, lost)
         elif kind == "voltage":
             nm.voltage = d.value
             self.counters.inc("samples/voltage")
@@ -240,20 +243,21 @@ class MonitorPipeline:
             nm.truth_gamma = d.value
             self.counters.inc("samples/truth")
 
-    def _check_counter(self, d: Decoded) -> bool:
+    def _check_counter(self, d: Decoded) -> int | None:
+        """Frames lost before this one by its alive counter (0 if none), None to drop it."""
         check = self.tracker.observe(d)
         if check is None or check.outcome == CounterOutcome.OK:
-            return True
+            return 0
         if check.outcome == CounterOutcome.REPEATED:
             self.counters.inc("e2e/repeated")
             self._warn.warn(f"repeat-{d.kind}-{d.node}", f"node {d.node}: repeated {d.kind} "
                             f"alive counter {d.counter} (replay or duplicate)")
-            return False
+            return None
         self.counters.inc("e2e/counter_jumps")
         self.counters.inc("e2e/lost_frames", check.lost)
-        return True
+        return check.lost
 
-    def _on_current(self, nm: NodeMonitor, t: float, amps: float) -> None:
+    def _on_current(self, nm: NodeMonitor, t: float, amps: float, lost: int) -> None:
         if nm.voltage is None:
             self.counters.inc("samples/no_voltage")
             return
@@ -270,7 +274,7 @@ class MonitorPipeline:
                 nm.restart()
                 k = 1
             else:
-                k = max(1, round(dt * self.cfg.rate))
+                k = self._periods(dt, lost)
                 if k > 1:
                     self.counters.inc("samples/predicted_through", k - 1)
         nm.last_t = t
@@ -296,6 +300,19 @@ class MonitorPipeline:
         if t - self._last_counters_t >= self.cfg.counters_period_s:
             self._last_counters_t = t
             self.sink.log_counters(t, self.counters)
+
+    def _periods(self, dt: float, lost: int) -> int:
+        """Sample periods since the previous current sample.
+
+        The alive counter says it exactly, modulo 16 (lost + 1): a frame delayed on the
+        bus or in a driver queue does not make a missed sample. The timestamps only pick
+        the multiple of 16 when a gap is longer than the counter can tell.
+        """
+        k_counter = lost + 1
+        k_time = dt * self.cfg.rate
+        if k_time < 12.0:
+            return k_counter
+        return k_counter + 16 * max(0, round((k_time - k_counter) / 16.0))
 
     # ------------------------------------------------------------------ diagnosis out
 

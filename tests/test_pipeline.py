@@ -191,3 +191,33 @@ def test_error_frames_are_decoded_and_counted(db: MotorDatabase) -> None:
     assert c["bus/errors/bus_off"] == 1
     assert c["bus/errors/restarted"] == 1
     assert not any(k.startswith("rejected/") for k in c)
+
+
+def test_late_frames_are_not_mistaken_for_lost_ones(db: MotorDatabase,
+                                                    frames: list[can.Message]) -> None:
+    # Every other current frame arrives 6 ms late (jitter) and a few 25 ms late: the alive
+    # counters show nothing was lost, so nothing is predicted through and no state flickers.
+    # Frames of one ECU keep their order (one sender, FIFO queues): a late frame holds back
+    # the ones behind it.
+    pipe, events, _ = _pipe(db)
+    jittered = []
+    prev = 0.0
+    for i, m in enumerate(frames):
+        late = 0.025 if i % 97 == 0 else (0.006 if i % 2 else 0.0)
+        prev = max(m.timestamp + late, prev + 1e-6)
+        jittered.append(can.Message(arbitration_id=m.arbitration_id, data=m.data,
+                                    is_extended_id=False, timestamp=prev))
+    pipe.feed_many(jittered)
+    assert pipe.counters.get("samples/predicted_through", 0) == 0
+    assert [e.state for e in events][:4] == ["fault_free", "fault", "outage", "fault"] or \
+        [e.state for e in events][:4] == ["fault_free", "fault", "outage", "fault_free"]
+
+
+def test_long_gap_counts_whole_counter_wraps(db: MotorDatabase,
+                                             frames: list[can.Message]) -> None:
+    pipe, _, _ = _pipe(db)
+    currents = [m for m in frames if m.arbitration_id == 0x110]
+    pipe.feed(next(m for m in frames if m.arbitration_id == 0x120))
+    pipe.feed_many(currents[:10])
+    pipe.feed_many(currents[10 + 37:60])  # 37 lost: 2 wraps of the 4-bit counter + 5
+    assert pipe.counters["samples/predicted_through"] == 37
