@@ -31,6 +31,7 @@ import can
 from .busfaults import socket_drops
 from .codec import load_database
 from .diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
+from .notify import Notifier
 from .pipeline import BUS_EVENTS, DiagnosisEvent, MonitorConfig, MonitorPipeline
 from .rerun_sink import NullSink, RerunSink, Sink
 
@@ -133,8 +134,12 @@ def run_live(args: argparse.Namespace) -> int:
     stop = _Stop()
     stop.install()
     bus = open_bus(args.interface, args.channel, args.bitrate)
-    sink = _make_sink(args, cfg)
-    on_event, events_fh = _event_writer(args.events, None)
+    try:
+        sink = _make_sink(args, cfg)
+        on_event, events_fh = _event_writer(args.events, None)
+    except BaseException:
+        bus.shutdown()
+        raise
     holder: dict[str, can.BusABC | None] = {"bus": bus}
 
     def publish(msg: can.Message) -> None:
@@ -144,14 +149,22 @@ def run_live(args: argparse.Namespace) -> int:
         b.send(msg, timeout=0.01)
 
     pipe = MonitorPipeline(db, cfg, sink=sink, publish=publish, on_event=on_event)
-    log.warning("monitoring %s:%s, nodes %s", args.interface or "<config>",
-                args.channel or "<config>", "all" if cfg.nodes is None else cfg.nodes)
+    where = f"{args.interface or '<config>'}:{args.channel or '<config>'}"
+    log.warning("monitoring %s, nodes %s", where, "all" if cfg.nodes is None else cfg.nodes)
+    notifier = Notifier.from_environment()
+    notifier.ready(f"monitoring {where}")
+    last_status = 0.0
     last_tick = 0.0
     dropped_before = 0  # socket drops of sockets closed before the current one
     backoff = 0.1
     down_since: float | None = None
     try:
         while not stop.event.is_set():
+            mono = time.monotonic()
+            notifier.maybe_ping(mono)
+            if mono - last_status >= 1.0:
+                last_status = mono
+                notifier.status(_status_line(pipe, holder["bus"] is not None))
             b = holder["bus"]
             if b is None:
                 if stop.event.wait(backoff):
@@ -193,6 +206,7 @@ def run_live(args: argparse.Namespace) -> int:
                 if drops is not None:  # the kernel's count for this socket, since it opened
                     pipe.counters["bus/socket_drops"] = dropped_before + drops
     finally:
+        notifier.stopping("flushing the recording")
         sink.close()
         b = holder["bus"]
         if b is not None:
@@ -207,6 +221,17 @@ def run_live(args: argparse.Namespace) -> int:
               f"{sum(v for k, v in c.items() if k.startswith('rejected/'))} rejected, "
               f"{c.get('publish/sent', 0)} diagnosis frames sent", file=sys.stderr)
     return 0
+
+
+def _status_line(pipe: MonitorPipeline, bus_up: bool) -> str:
+    """One line for systemctl status: traffic, rejections and each node's state."""
+    c = pipe.counters
+    rejected = sum(v for k, v in c.items() if k.startswith("rejected/"))
+    nodes = " ".join(f"{n}={nm.state.label}" for n, nm in sorted(pipe.nodes.items()))
+    return (f"{'bus up' if bus_up else 'bus DOWN, reconnecting'}; "
+            f"{c.get('frames/received', 0)} frames, {c.get('samples/estimated', 0)} estimated, "
+            f"{rejected} rejected, {c.get('e2e/lost_frames', 0)} lost, "
+            f"{c.get('bus/error_frames', 0)} error frames; nodes {nodes or 'none yet'}")
 
 
 def read_log(path: Path) -> Iterator[can.Message]:

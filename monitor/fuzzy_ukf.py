@@ -47,8 +47,10 @@ voltage, which is what the ECU does, and the covariance grows accordingly.
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Sequence
+import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numba
@@ -62,7 +64,9 @@ from .ukf import sigma_weights, spd_inverse, ukf_predict, ukf_update
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["EstimatorOutput", "FuzzyUKF", "FuzzyUKFConfig"]
+__all__ = ["EstimatorOutput", "FuzzyUKF", "FuzzyUKFConfig", "select_kernel"]
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -328,6 +332,31 @@ def _fuzzy_ukf_step(
     stats[2] += rep
 
 
+def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
+    """The step kernel to run: ("jit" | "aot" | "python", function).
+
+    MOTOR_MONITOR_KERNEL=jit|aot|python forces one; by default the numba JIT is used
+    unless NUMBA_DISABLE_JIT is set (the hardened service forbids W+X memory), in which
+    case the ahead-of-time build (`python -m monitor.kernels_aot`) is used if present, and
+    the same code interpreted (about 40x slower) otherwise.
+    """
+    want = (choice or os.environ.get("MOTOR_MONITOR_KERNEL", "auto")).strip().lower()
+    jit_off = os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0")
+    if want in ("aot", "auto") and (want == "aot" or jit_off):
+        try:
+            from . import _fuzzy_ukf_aot  # type: ignore[attr-defined]
+
+            return "aot", _fuzzy_ukf_aot.fuzzy_ukf_step
+        except ImportError:
+            if want == "aot":
+                raise
+            _log.warning("JIT disabled and no AOT kernel built (python -m monitor.kernels_aot):"
+                         " the estimator runs interpreted")
+    if want == "python":
+        return "python", getattr(_fuzzy_ukf_step, "py_func", _fuzzy_ukf_step)
+    return ("python" if jit_off else "jit"), _fuzzy_ukf_step
+
+
 def _work_size(n: int, m: int, p: int) -> int:
     return 2 * m + 5 * n + 5 * p + 5 * n * n + 5 * p * p + 2 * n * p + n * m + p * m + n * n
 
@@ -392,6 +421,7 @@ class FuzzyUKF:
         self._u = np.zeros(m)
         self._y = np.zeros(p)
         self._blocks: dict[float, tuple[Array, float]] = {}
+        self.kernel_name, self._kernel = _KERNEL
         self._time = 0.0
         self._last_event = -math.inf
         self.steps = 0
@@ -437,8 +467,8 @@ class FuzzyUKF:
         prm[5] = blk[1]
         fz = self.fuzzy
         n, m, p = self._dims
-        _fuzzy_ukf_step(blk[0], uu, yy, prm, self._st, fz.centres, fz.counts, fz.cons, fz.var,
-                        fz.rule_idx, fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf)
+        self._kernel(blk[0], uu, yy, prm, self._st, fz.centres, fz.counts, fz.cons, fz.var,
+                     fz.rule_idx, fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf)
         self._time += dt
         self.steps += 1
         out = self.out
@@ -488,3 +518,6 @@ class FuzzyUKF:
         np.maximum(fz.var, cfg.var_reopen, out=fz.var)
         v = int(np.argmax(np.abs(self.z)))
         fz.insert(v, float(self.z[v]), cfg.var_reopen)
+
+
+_KERNEL = select_kernel()
