@@ -6,11 +6,12 @@
 #   kmod             insmod, used inside the User-Mode Linux guest
 #   can-utils        candump, cansend, cangen, canplayer
 #   iproute2         ip link add/set/del
-#   systemd          systemd-analyze (unit file checks)
+#   systemd          systemd-analyze (unit file checks), systemd-networkd (vcan0 at boot)
+#   gcc, libc6-dev   build the ahead-of-time estimator kernel (python -m monitor.kernels_aot)
 # Run as root, or as a user with sudo.  Packages already installed are skipped.
 set -euo pipefail
 
-PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd)
+PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev)
 
 if [[ "$(id -u)" -eq 0 ]]; then
     SUDO=()

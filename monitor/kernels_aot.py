@@ -5,7 +5,9 @@ The hardened service forbids memory that is both writable and executable
 `pycc` into an ordinary extension module (`monitor/_fuzzy_ukf_aot.*.so`, loaded by the
 dynamic linker like any other), the same kernel runs at full speed without W+X memory.
 Build it once at install time (it needs a C compiler and the Python headers); the estimator
-picks it up when the JIT is off (see `monitor.fuzzy_ukf.select_kernel`).
+picks it up when the JIT is off (see `monitor.fuzzy_ukf.select_kernel`). numba 0.68 marks
+pycc "pending deprecation" with its replacement still in development; without the AOT
+module the service falls back to the interpreted kernel (correct, about 40x slower).
 """
 
 from __future__ import annotations
@@ -27,7 +29,10 @@ SIGNATURE = (
 
 def build(out_dir: Path | None = None) -> Path:
     """Compile the kernel into `out_dir` (default: the monitor package) and return the file."""
-    from numba.pycc import CC
+    with warnings.catch_warnings():
+        # pycc is "pending deprecation" in numba 0.68 with no replacement released yet
+        warnings.simplefilter("ignore")
+        from numba.pycc import CC
 
     from .fuzzy_ukf import _fuzzy_ukf_step
 
