@@ -109,6 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .diagnosis import DiagnosisError
     from .model import ModelError
     from .scenario import ScenarioError
+    from .secoc import SecOCError
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -118,7 +119,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return int(args.func(args))
-    except (UsageError, BusError, CodecError, DiagnosisError, ModelError, ScenarioError) as exc:
+    except (UsageError, BusError, CodecError, DiagnosisError, ModelError, ScenarioError,
+            SecOCError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"motor-monitor: error: {msg}", file=sys.stderr)
         return 2

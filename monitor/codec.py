@@ -10,9 +10,11 @@ Bus layout (standard 11-bit ids, DLC 8, Intel byte order; node 0..15 = id & 0xF;
 message names carry the node as ``_N<node>``, e.g. ``MotorCurrent_N3``):
 
 * ``current``   MotorCurrent_N<n>, 0x110 + n, 10 ms, MotorECU -> Monitor:
-  ArmatureCurrent (A, 0.01, +-300), E2E.
+  ArmatureCurrent (A, 0.01, +-300), E2E, SecOC (FreshnessValue bits 32-39, Authenticator
+  bits 40-63).
 * ``voltage``   MotorVoltage_N<n>, 0x120 + n, 50 ms, MotorECU -> Monitor:
-  VoltageCommand (V, 0.01, +-400), E2E.
+  VoltageCommand (V, 0.01, +-400), E2E, SecOC (FreshnessValue bits 12-15, Authenticator
+  bits 40-63).
 * ``truth``     SimTruth_N<n>, 0x7E0 + n, 10 ms, virtual MotorECU only, no E2E:
   TrueGamma (0..1, 1e-4), TrueCurrent (A, 0.01, +-300), TrueSpeed (rad/s, 0.01, +-3000).
 * ``diagnosis`` MonitorDiagnosis_N<n>, 0x180 + n, 100 ms, Monitor: HealthState (bits
@@ -33,18 +35,32 @@ pairwise distinct, which is the property that matters: a frame received under th
 (masquerade, mis-routing, a node-number mix-up) fails the CRC for every counter value.
 `load_database` checks the DBC attribute against this rule and attaches the list.
 
+Optional SecOC-style authentication (`monitor.secoc`: truncated AES-CMAC over SecOC data
+ID, payload and a 64-bit freshness counter) on current and voltage frames: with a key
+(``load_database(secoc_key=...)``) the database signs what it encodes and rejects, inside
+`MotorDatabase.decode`, every current or voltage frame whose MAC does not verify
+(``bad_mac``: forged, or unsigned) or whose freshness is not newer than the last accepted
+one of its stream or too far ahead (``stale_freshness``: replayed), so such a frame never
+reaches the estimator. The MAC is written before the E2E CRC, which covers it (E2E over
+SecOC). Without a key the FreshnessValue and Authenticator signals are sent as 0 and not
+checked: a monitor without the key cannot verify, so it decodes signed frames as before.
+Diagnosis frames stay unauthenticated (8 spare bits cannot hold a useful MAC).
+
 Decoding never raises: every frame yields `Decoded` or `Rejected` with a reason from
 `RejectReason`. Checks run cheapest-first: error/remote/extended flags, id lookup, length,
 CRC, reserved bits (unused bits must be 0 -- a non-zero one means the sender uses another
-DBC revision, reported as ``malformed``), then the DBC min/max of every signal (NaN fails).
+DBC revision, reported as ``malformed``), the SecOC MAC and freshness (with a key), then
+the DBC min/max of every signal (NaN fails). An authentic frame consumes its freshness
+value even if a range check then rejects it.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 from collections import Counter as _Tally
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from importlib import resources
@@ -59,6 +75,16 @@ from cantools.database.can.formats.arxml import (
     AutosarMessageSpecifics,
 )
 
+from .secoc import (
+    AUTHENTICATOR_SIGNAL,
+    DEFAULT_WINDOW,
+    FRESHNESS_SIGNAL,
+    SecOC,
+    SecOCError,
+    SecOCLayout,
+    Verdict,
+)
+
 if TYPE_CHECKING:
     import can
 
@@ -66,6 +92,7 @@ __all__ = [
     "HEALTH_STATES",
     "KINDS",
     "N_NODES",
+    "SECOC_KINDS",
     "CodecError",
     "CounterCheck",
     "CounterOutcome",
@@ -97,14 +124,17 @@ class _KindSpec:
     base_id: int  # frame id of node 0
     value_signal: str  # the "main physical value" reported as Decoded.value
     e2e: bool  # CRC in byte 0, counter in the low nibble of byte 1
+    secoc: bool = False  # may carry FreshnessValue + Authenticator (monitor.secoc)
 
 
 _SPECS: Final[Mapping[Kind, _KindSpec]] = {
-    "current": _KindSpec("MotorCurrent", 0x110, "ArmatureCurrent", True),
-    "voltage": _KindSpec("MotorVoltage", 0x120, "VoltageCommand", True),
+    "current": _KindSpec("MotorCurrent", 0x110, "ArmatureCurrent", True, True),
+    "voltage": _KindSpec("MotorVoltage", 0x120, "VoltageCommand", True, True),
     "truth": _KindSpec("SimTruth", 0x7E0, "TrueGamma", False),
     "diagnosis": _KindSpec("MonitorDiagnosis", 0x180, "GammaEstimate", True),
 }
+SECOC_KINDS: Final[tuple[Kind, ...]] = tuple(k for k, s in _SPECS.items() if s.secoc)
+"""Kinds authenticated when the database has a SecOC key."""
 _NAME_RE: Final = re.compile(r"^(?P<prefix>[A-Za-z]+)_N(?P<node>\d{1,2})$")
 
 
@@ -144,6 +174,14 @@ class RejectReason(StrEnum):
     REMOTE_FRAME = "remote_frame"
     ERROR_FRAME = "error_frame"
     EXTENDED_ID = "extended_id"
+    BAD_MAC = "bad_mac"  # SecOC: the authenticator does not verify (forged or unsigned)
+    STALE_FRESHNESS = "stale_freshness"  # SecOC: authentic, but replayed or too far ahead
+
+
+_VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {
+    Verdict.BAD_MAC: RejectReason.BAD_MAC,
+    Verdict.STALE_FRESHNESS: RejectReason.STALE_FRESHNESS,
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -184,21 +222,66 @@ class _Route:
     reserved_mask: int  # bits of int.from_bytes(payload, "little") no signal uses
     limits: tuple[tuple[str, float, float], ...]  # (signal, min, max) physical
     value_signal: str
+    secoc: SecOCLayout | None = None  # None: the DBC gives this message no SecOC signals
 
 
 # ----------------------------------------------------------------------------- database
 
 
 class MotorDatabase:
-    """The motor bus DBC plus a pre-built frame-id routing table for the hot decode path."""
+    """The motor bus DBC plus a pre-built frame-id routing table for the hot decode path.
 
-    def __init__(self, db: Database, source: str) -> None:
+    With `secoc_key` (16 or 32 bytes) current and voltage frames are signed on encoding
+    and verified on decoding; the object then keeps the freshness counters of every
+    (kind, node) stream it sends and receives (see `monitor.secoc`; sending and receiving
+    counters are separate), so keep one object for the whole life of a bus connection.
+    """
+
+    def __init__(self, db: Database, source: str, secoc_key: bytes | None = None, *,
+                 secoc_window: int = DEFAULT_WINDOW) -> None:
         self._db = db
         self.source = source
         self._routes: dict[int, _Route] = _build_routes(db, source)
         self._by_kind: dict[tuple[Kind, int], _Route] = {
             (r.kind, r.node): r for r in self._routes.values()
         }
+        self._secoc: SecOC | None = None
+        if secoc_key is not None:
+            self._secoc = self._new_secoc(secoc_key, secoc_window)
+
+    def _new_secoc(self, key: bytes, window: int) -> SecOC:
+        missing = sorted({r.message.name.split("_N")[0] for r in self._routes.values()
+                          if r.kind in SECOC_KINDS and r.secoc is None})
+        if missing:
+            raise CodecError(f"{Path(self.source).name}: {', '.join(missing)} carry no "
+                             f"{FRESHNESS_SIGNAL}/{AUTHENTICATOR_SIGNAL}: this DBC cannot "
+                             "authenticate (SecOC)")
+        try:
+            return SecOC(key, window=window)
+        except SecOCError as exc:
+            raise CodecError(str(exc)) from None
+
+    def with_secoc_key(self, key: bytes | None, *,
+                       window: int = DEFAULT_WINDOW) -> MotorDatabase:
+        """A database on the same DBC with its own SecOC key and fresh counters (None: off)."""
+        clone = copy.copy(self)
+        clone._secoc = None if key is None else self._new_secoc(key, window)
+        return clone
+
+    # -- SecOC ------------------------------------------------------------------------
+
+    @property
+    def secoc(self) -> SecOC | None:
+        """The SecOC signer/verifier (key and freshness counters), None without a key."""
+        return self._secoc
+
+    @property
+    def secoc_enabled(self) -> bool:
+        return self._secoc is not None
+
+    def secoc_layout(self, kind: Kind, node: int) -> SecOCLayout | None:
+        """Where the message of `kind` for `node` carries freshness and MAC (None: nowhere)."""
+        return self._route(kind, node).secoc
 
     # -- lookup ---------------------------------------------------------------------
 
@@ -284,10 +367,19 @@ class MotorDatabase:
                 raise CodecError(f"{name}: counter must be an int in 0..15, got {counter!r}")
             signals["CRC"] = 0
             signals["Counter"] = counter
+        if route.secoc is not None:
+            signals[FRESHNESS_SIGNAL] = 0
+            signals[AUTHENTICATOR_SIGNAL] = 0
         try:
             payload = route.message.encode(signals, scaling=True, padding=False, strict=True)
         except (cantools.database.EncodeError, ValueError, OverflowError) as exc:
             raise CodecError(f"{name}: {exc}") from None
+        if route.secoc is not None and self._secoc is not None:
+            # SecOC first (the MAC sees the CRC byte as 0), then the E2E CRC over all.
+            try:
+                payload = self._secoc.sign(route.secoc, (kind, node), payload)
+            except SecOCError as exc:
+                raise CodecError(str(exc)) from None
         if route.data_id is None:
             return payload
         protected = apply_profile2_crc(payload, route.message)
@@ -339,6 +431,11 @@ class MotorDatabase:
         if int.from_bytes(data, "little") & route.reserved_mask:
             return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, route.node,
                             route.kind, "reserved bits set")
+        if route.secoc is not None and self._secoc is not None:
+            failed = self._secoc.verify(route.secoc, (route.kind, route.node), data)
+            if failed is not None:
+                return Rejected(_VERDICT_REASON[failed[0]], arbitration_id, timestamp,
+                                route.node, route.kind, failed[1])
         try:
             signals = cast(
                 "dict[str, float]",
@@ -373,8 +470,18 @@ def default_dbc_path() -> Path:
     return Path(str(resources.files("monitor") / "data" / DEFAULT_DBC_NAME))
 
 
-def load_database(path: str | Path | None = None) -> MotorDatabase:
-    """Load and validate the motor DBC; any problem is one `CodecError` line."""
+def load_database(
+    path: str | Path | None = None,
+    *,
+    secoc_key: bytes | None = None,
+    secoc_window: int = DEFAULT_WINDOW,
+) -> MotorDatabase:
+    """Load and validate the motor DBC; any problem is one `CodecError` line.
+
+    `secoc_key` (16 or 32 bytes, e.g. from `monitor.secoc.load_key`) turns on SecOC
+    authentication of current and voltage frames: signed when encoded, verified when
+    decoded, with freshness values accepted up to `secoc_window` ahead of the last one.
+    """
     p = default_dbc_path() if path is None else Path(path)
     try:
         db = cantools.database.load_file(p, database_format="dbc", strict=True)
@@ -386,7 +493,7 @@ def load_database(path: str | Path | None = None) -> MotorDatabase:
         raise CodecError(f"{p}: not a valid DBC: {_one_line(exc)}") from None
     if not isinstance(db, Database):
         raise CodecError(f"{p}: not a CAN database")
-    return MotorDatabase(db, str(p))
+    return MotorDatabase(db, str(p), secoc_key, secoc_window=secoc_window)
 
 
 def _one_line(exc: BaseException, limit: int = 200) -> str:
@@ -443,6 +550,7 @@ def _build_routes(db: Database, source: str) -> dict[int, _Route]:
             specifics = AutosarMessageSpecifics()
             specifics.e2e = e2e
             msg.autosar = specifics
+        secoc = _secoc_layout(msg, spec, fail)
         if kind == "diagnosis":
             choices = sigs["HealthState"].choices if "HealthState" in sigs else None
             names = {int(k): str(v) for k, v in (choices or {}).items()}
@@ -455,13 +563,38 @@ def _build_routes(db: Database, source: str) -> dict[int, _Route]:
             if s.minimum is not None and s.maximum is not None and not _covers_raw(s)
         )
         routes[msg.frame_id] = _Route(msg, kind, node, data_id, _reserved_mask(msg), limits,
-                                      spec.value_signal)
+                                      spec.value_signal, secoc)
     for kind, spec in _SPECS.items():
         for node in range(N_NODES):
             if spec.base_id + node not in routes:
                 raise fail(f"missing message {spec.prefix}_N{node} "
                            f"(0x{spec.base_id + node:X}, {kind})")
     return routes
+
+
+def _secoc_layout(
+    msg: Message, spec: _KindSpec, fail: Callable[[str], CodecError]
+) -> SecOCLayout | None:
+    """The SecOC layout of `msg` (attached as ``msg.autosar.secoc``), None if it has none.
+
+    A DBC without the two SecOC signals (an older revision) still loads; it only cannot
+    be used with a key. Half a layout, or SecOC signals on other kinds, is an error.
+    """
+    names = {s.name for s in msg.signals} & {FRESHNESS_SIGNAL, AUTHENTICATOR_SIGNAL}
+    if not names:
+        return None
+    if not spec.secoc:
+        raise fail(f"{msg.name}: {' and '.join(sorted(names))} only belong to "
+                   f"{' and '.join(s.prefix for s in _SPECS.values() if s.secoc)}")
+    try:
+        layout = SecOCLayout.from_message(msg)
+    except SecOCError as exc:
+        raise fail(str(exc)) from None
+    if msg.autosar is None:  # cannot happen: SecOC kinds are E2E kinds
+        msg.autosar = AutosarMessageSpecifics()
+    # cantools has no setter for it (ARXML fills it); set what its SecOC helpers read.
+    msg.autosar._secoc = layout.properties()
+    return layout
 
 
 def _covers_raw(signal: Signal) -> bool:

@@ -29,11 +29,12 @@ from typing import IO, Any
 import can
 
 from .busfaults import socket_drops
-from .codec import load_database
+from .codec import MotorDatabase, load_database
 from .diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
 from .notify import Notifier
 from .pipeline import BUS_EVENTS, DiagnosisEvent, MonitorConfig, MonitorPipeline
 from .rerun_sink import NullSink, RerunSink, Sink
+from .secoc import load_key
 
 __all__ = ["BusError", "add_commands", "open_bus", "read_log"]
 
@@ -128,8 +129,14 @@ class _Stop:
         self.event.set()
 
 
+def _database(args: argparse.Namespace) -> MotorDatabase:
+    """The DBC, with SecOC verification when --key is given (a key file only we can read)."""
+    key = load_key(args.key) if args.key else None
+    return load_database(args.dbc, secoc_key=key)
+
+
 def run_live(args: argparse.Namespace) -> int:
-    db = load_database(args.dbc)
+    db = _database(args)
     cfg = _config(args)
     stop = _Stop()
     stop.install()
@@ -262,7 +269,7 @@ def _frames(path: Path, reader: can.io.generic.MessageReader) -> Iterator[can.Me
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    db = load_database(args.dbc)
+    db = _database(args)
     cfg = _config(args)
     path = Path(args.log)
     frames = read_log(path)
@@ -298,12 +305,14 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="nodes to monitor, e.g. 0,3 (default: all that send)")
     p.add_argument("--rate", type=float, default=100.0, help="ECU current-sample rate, Hz")
     p.add_argument("--thresholds", default=None, help="thresholds TOML (motor-monitor calibrate)")
+    p.add_argument("--key", default=None, metavar="FILE",
+                   help="SecOC key (32 or 64 hex digits, mode 0600): reject unauthenticated frames")
     p.add_argument("--rrd", default=None, help="record to this .rrd file")
     p.add_argument("--connect", default=None, metavar="URL",
                    help="stream to a Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
 
 
-def add_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_commands(sub: argparse._SubParsersAction[Any]) -> None:
     r = sub.add_parser("run", help="monitor a live CAN bus")
     r.add_argument("--interface", default=None, help="python-can interface (e.g. socketcan)")
     r.add_argument("--channel", default=None, help="channel (e.g. vcan0)")

@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -171,7 +172,7 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_command(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     d = sub.add_parser("demo", help="virtual ECU + monitor in one process, no CAN hardware")
     d.add_argument("--out", default="out/demo", help="output directory")
     d.add_argument("--scenario", default="fault-outage-recovery",

@@ -23,6 +23,7 @@ import can
 
 from monitor.codec import N_NODES, CodecError, load_database
 from monitor.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario
+from monitor.secoc import SecOCError, load_key
 
 from .ecu import ECUError, ECUStats, VirtualECU, load_motor_parameters
 
@@ -84,6 +85,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--no-truth", action="store_true", help="do not send SimTruth frames")
     p.add_argument("--dbc", metavar="PATH", help="DBC file (default: the packaged motor.dbc)")
+    p.add_argument(
+        "--key",
+        metavar="FILE",
+        help="sign MotorCurrent and MotorVoltage with SecOC (truncated AES-CMAC and freshness "
+        "counter) under the AES-128/256 key in FILE: 32 or 64 hex digits or 16/32 raw "
+        "bytes, accessible by its owner only (chmod 600)",
+    )
     p.add_argument("--bitrate", type=int, help="bitrate passed to the interface")
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     return p
@@ -259,8 +267,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             duration = _check_args(args)
             scenario = load_scenario(args.scenario)
             motor = load_motor_parameters(args.scenario)
-            db = load_database(args.dbc)
-        except (UsageError, ScenarioError, ECUError, CodecError) as exc:
+            key = None if args.key is None else load_key(args.key)
+            db = load_database(args.dbc, secoc_key=key)
+        except (UsageError, ScenarioError, ECUError, CodecError, SecOCError) as exc:
             print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
             return EXIT_USAGE
         try:
@@ -288,8 +297,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"{scenario.duration if duration is None else duration:g} s"
             )
             log.info(
-                "running node %d, scenario %s, %g Hz (voltage %g Hz), seed %d, %s",
+                "running node %d, scenario %s, %g Hz (voltage %g Hz), seed %d, %s%s",
                 args.node, scenario.name, ecu.rate, ecu.voltage_rate, args.seed, length,
+                "" if db.secoc is None else f", SecOC AES-{db.secoc.key_bits}-CMAC",
             )
             try:
                 stats = _run_in_worker(ecu, duration, stop)

@@ -18,6 +18,12 @@ does, and draws its noise in the same order, so for equal seeds the current fram
 
 After the scenario's duration the inputs of its last sample hold (gamma and u frozen; the
 plant and its noise keep running), so a run may be longer than its scenario.
+
+With a SecOC key (``VirtualECU(..., key=...)``, or a database loaded with ``secoc_key``)
+current and voltage frames carry a freshness value and a truncated AES-CMAC
+(`monitor.secoc`). The freshness counters live in the ECU's database and never go back:
+a second `VirtualECU.frames` call continues them (a freshness value is never reused under
+a key), so its frames equal the first call's except for freshness, MAC and CRC.
 """
 
 from __future__ import annotations
@@ -308,7 +314,10 @@ class VirtualECU:
     every sample). `motor` overrides the Table 1 parameters; when None, a ``motor`` mapping
     in ``scenario.extra`` is used if present. `send_timeout` (default a quarter period) is
     passed to ``bus.send``; `max_catch_up` is how many late samples `run` may send back to
-    back before it skips ahead instead. Raises `ECUError` (one line) on a bad configuration.
+    back before it skips ahead instead. `key` (16 or 32 bytes, e.g. from
+    `monitor.secoc.load_key`) signs the current and voltage frames with SecOC on a copy of
+    `db` of the ECU's own (None: sign only if `db` has a key). Raises `ECUError` (one line)
+    on a bad configuration.
     """
 
     def __init__(
@@ -325,6 +334,7 @@ class VirtualECU:
         motor: DCMotorParameters | None = None,
         send_timeout: float | None = None,
         max_catch_up: int = DEFAULT_MAX_CATCH_UP,
+        key: bytes | None = None,
     ) -> None:
         if isinstance(node, bool) or not isinstance(node, int) or not 0 <= node < N_NODES:
             raise ECUError(f"node must be an integer in 0..{N_NODES - 1}, got {node!r}")
@@ -337,6 +347,11 @@ class VirtualECU:
             )
         if not isinstance(max_catch_up, int) or max_catch_up < 1:
             raise ECUError(f"max_catch_up must be a positive integer, got {max_catch_up!r}")
+        if key is not None:
+            try:
+                db = db.with_secoc_key(key)
+            except CodecError as exc:
+                raise ECUError(f"SecOC: {exc}") from None
         self.bus = bus
         self.db = db
         self.node = node

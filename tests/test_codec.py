@@ -56,8 +56,13 @@ def _valid(mdb: MotorDatabase, kind: Kind, node: int, counter: int = 3) -> bytes
 
 
 def _raw_frame(mdb: MotorDatabase, kind: Kind, node: int, raw: dict[str, int]) -> bytes:
-    """A frame with arbitrary raw signal values (cantools encodes, cantools adds the CRC)."""
+    """A frame with arbitrary raw signal values (cantools encodes, cantools adds the CRC).
+
+    SecOC signals not given are 0 (an unsigned frame).
+    """
     msg = mdb.message(kind, node)
+    names = {s.name for s in msg.signals}
+    raw = {**{n: 0 for n in ("FreshnessValue", "Authenticator") if n in names}, **raw}
     payload = msg.encode(raw, scaling=False, strict=False)
     if kind == "truth":
         return payload
@@ -262,9 +267,12 @@ def test_masquerade_is_bad_crc(mdb: MotorDatabase) -> None:
 def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
     good = mdb.encode_current(3, 1.0, 0)
     reserved = bytearray(good)
-    reserved[7] = 0x80  # a bit no signal uses; CRC recomputed so only the layout is wrong
+    reserved[1] |= 0x80  # a bit no signal uses; CRC recomputed so only the layout is wrong
     protected = apply_profile2_crc(bytes(reserved), mdb.message("current", 3))
     assert protected is not None
+    keyed = mdb.with_secoc_key(bytes(range(16)))
+    signed = mdb.with_secoc_key(bytes(range(16))).encode_current(3, 1.0, 0)
+    assert isinstance(_decode(keyed, 0x113, signed), Decoded)
     cases: dict[RejectReason, Decoded | Rejected] = {
         RejectReason.UNKNOWN_ID: _decode(mdb, 0x100, good),
         RejectReason.WRONG_LENGTH: _decode(mdb, 0x113, good[:7]),
@@ -276,6 +284,8 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
         RejectReason.REMOTE_FRAME: mdb.decode(0x113, b"", False, True, False, 0.0),
         RejectReason.ERROR_FRAME: mdb.decode(0x20000004, bytes(8), True, False, True, 0.0),
         RejectReason.EXTENDED_ID: mdb.decode(0x113, good, True, False, False, 0.0),
+        RejectReason.BAD_MAC: _decode(keyed, 0x113, good),  # unsigned frame, keyed monitor
+        RejectReason.STALE_FRESHNESS: _decode(keyed, 0x113, signed),  # replayed
     }
     assert set(cases) == set(RejectReason)
     for reason, result in cases.items():
@@ -284,7 +294,8 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
         assert result.reason == reason.value
         assert "\n" not in result.detail
     for reason in (RejectReason.WRONG_LENGTH, RejectReason.BAD_CRC,
-                   RejectReason.OUT_OF_RANGE, RejectReason.MALFORMED):
+                   RejectReason.OUT_OF_RANGE, RejectReason.MALFORMED, RejectReason.BAD_MAC,
+                   RejectReason.STALE_FRESHNESS):
         assert (cases[reason].node, cases[reason].kind) == (3, "current")
     assert cases[RejectReason.UNKNOWN_ID].node is None
 
@@ -292,7 +303,7 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
 def test_reject_reason_values() -> None:
     assert {r.value for r in RejectReason} == {
         "unknown_id", "wrong_length", "bad_crc", "out_of_range", "malformed",
-        "remote_frame", "error_frame", "extended_id",
+        "remote_frame", "error_frame", "extended_id", "bad_mac", "stale_freshness",
     }
 
 

@@ -107,3 +107,51 @@ def test_every_mistake_is_one_clear_line(tmp_path: Path, argv: list[str], expect
     assert lines[0].startswith("motor-monitor"), lines
     assert expect in lines[0], lines
     assert "Traceback" not in r.stderr
+
+
+def test_replay_with_secoc_key_rejects_forged_and_replayed_frames(tmp_path: Path) -> None:
+    import json
+
+    import can
+
+    from monitor.codec import load_database
+    from monitor.scenario import load_scenario
+    from sim_ecu.ecu import VirtualECU
+
+    key = bytes(range(16))
+    keyfile = tmp_path / "secoc.key"
+    keyfile.write_text(key.hex())
+    keyfile.chmod(0o600)
+    db = load_database()
+    ecu = VirtualECU(None, db, 0, load_scenario("fault-outage-recovery"), seed=2, key=key)
+    frames = list(ecu.frames(duration=6.0, start_time=1.7e9))
+    # an attacker without the key: a forged current frame with a valid E2E CRC (built by
+    # an unkeyed database) and a replay of an authentic frame
+    forged = can.Message(arbitration_id=0x110, is_extended_id=False, timestamp=0.0,
+                         data=db.encode_current(0, 0.0, 0))
+    replayed = next(m for m in frames if m.arbitration_id == 0x110)
+    mixed: list[can.Message] = []
+    for i, m in enumerate(frames):
+        mixed.append(m)
+        if i % 200 == 100:
+            mixed.append(can.Message(arbitration_id=0x110, is_extended_id=False,
+                                     timestamp=m.timestamp, data=forged.data))
+            mixed.append(can.Message(arbitration_id=0x110, is_extended_id=False,
+                                     timestamp=m.timestamp, data=replayed.data))
+    log = tmp_path / "signed.log"
+    with can.io.CanutilsLogWriter(str(log), channel="vcan0") as w:
+        for m in mixed:
+            w.on_message_received(m)
+    r = subprocess.run([MONITOR, "replay", str(log), "--key", str(keyfile)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    states = [json.loads(ln)["state"] for ln in r.stdout.splitlines()]
+    assert states[:2] == ["fault_free", "fault"], states
+    assert "rejected" in r.stderr and "Traceback" not in r.stderr
+    n_injected = sum(1 for i in range(len(frames)) if i % 200 == 100)
+    rejected = int(r.stderr.rsplit(", ", 1)[1].split()[0])
+    assert rejected == 2 * n_injected, r.stderr
+    keyfile.chmod(0o644)  # a key others can read is refused, in one line
+    r = subprocess.run([MONITOR, "replay", str(log), "--key", str(keyfile)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "chmod 600" in r.stderr

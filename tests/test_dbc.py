@@ -154,3 +154,52 @@ def test_cantools_decode_reads_our_frames() -> None:
     assert sig["GammaEstimate"] == "0.987"
     assert sig["FaultEstimate"] == "-400.0 V"
     assert sig["RuleCount"] == "12" and sig["Counter"] == "0"
+
+
+SECOC_LAYOUT = {  # kind: ((FreshnessValue start, length), (Authenticator start, length))
+    "current": ((32, 8), (40, 24)),
+    "voltage": ((12, 4), (40, 24)),
+}
+
+
+def test_secoc_signals_and_attributes(db: Database) -> None:
+    for kind, (prefix, base, _sender, _cycle, _e2e) in LAYOUT.items():
+        for node in range(N_NODES):
+            msg = db.get_message_by_name(f"{prefix}_N{node}")
+            assert msg.dbc is not None
+            names = {s.name for s in msg.signals}
+            if kind not in SECOC_LAYOUT:
+                assert not names & {"FreshnessValue", "Authenticator"}
+                assert "SecOCDataID" not in msg.dbc.attributes
+                continue
+            (fv_start, fv_len), (auth_start, auth_len) = SECOC_LAYOUT[kind]
+            fv = msg.get_signal_by_name("FreshnessValue")
+            auth = msg.get_signal_by_name("Authenticator")
+            assert (fv.start, fv.length, fv.is_signed) == (fv_start, fv_len, False)
+            assert (auth.start, auth.length, auth.is_signed) == (auth_start, auth_len, False)
+            assert (fv.minimum, fv.maximum) == (0, (1 << fv_len) - 1)
+            assert (auth.minimum, auth.maximum) == (0, (1 << auth_len) - 1)
+            assert msg.dbc.attributes["SecOCDataID"].value == base + node
+            assert msg.dbc.attributes["SecOCFreshnessValueLength"].value == 64
+            assert "SecOC" in (msg.comment or "")
+            assert "AES-CMAC" in (auth.comment or "")
+            assert "CRC" in (auth.comment or "")  # the E2E CRC comes after and covers it
+
+
+def test_secoc_uses_the_spare_bits_only(db: Database) -> None:
+    # Without SecOC the new signals are 0, so an unsigned frame is the old frame: the old
+    # signals keep their bits; MotorCurrent keeps 4 reserved bits (12..15), MotorVoltage
+    # none.
+    for kind, expected_free in (("current", set(range(12, 16))), ("voltage", set())):
+        prefix = LAYOUT[kind][0]
+        msg = db.get_message_by_name(f"{prefix}_N0")
+        used: set[int] = set()
+        for sig in msg.signals:
+            bits = set(range(sig.start, sig.start + sig.length))
+            assert not used & bits, sig.name
+            used |= bits
+        assert set(range(64)) - used == expected_free
+    old = {("current", "ArmatureCurrent"): (16, 16), ("voltage", "VoltageCommand"): (16, 24)}
+    for (kind, name), (start, length) in old.items():
+        sig = db.get_message_by_name(f"{LAYOUT[kind][0]}_N0").get_signal_by_name(name)
+        assert (sig.start, sig.length) == (start, length)

@@ -414,6 +414,69 @@ def test_cli_in_process_frames_reach_a_receiver(
     assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # handlers restored
 
 
+def _key_file(path: Path, content: bytes, mode: int) -> Path:
+    path.write_bytes(content)
+    path.chmod(mode)
+    return path
+
+
+SECOC_KEY = bytes(range(0x40, 0x50))
+
+
+def test_cli_with_a_key_sends_signed_frames(
+    channel: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    key = _key_file(tmp_path / "ecu.key", SECOC_KEY.hex().encode() + b"\n", 0o600)
+    rx = can.Bus(interface="virtual", channel=channel)
+    try:
+        rc = main(["--interface", "virtual", "--channel", channel, "--node", "4",
+                   "--scenario", "healthy", "--duration", "0.2", "--seed", "9",
+                   "--key", str(key)])
+        frames = _drain(rx)
+    finally:
+        rx.shutdown()
+    assert rc == 0, capsys.readouterr().err
+    keyed = load_database(secoc_key=SECOC_KEY)
+    decoded = _decode_all(keyed, frames)  # every frame verifies: authentic and fresh
+    assert {d.kind for d in decoded} == {"current", "voltage", "truth"}
+    signed = [d for d in decoded if d.kind != "truth"]
+    assert signed and all(d.raw["FreshnessValue"] == (i + 1) % (256 if d.kind == "current" else 16)
+                          for kind in ("current", "voltage")
+                          for i, d in enumerate(_by_kind(signed, kind)))
+    wrong = load_database(secoc_key=bytes(16))
+    reasons = {getattr(wrong.decode_can(m), "reason", None) for m in frames
+               if m.arbitration_id != 0x7E4}
+    assert reasons == {"bad_mac"}
+    assert "sim-ecu: done:" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("content", "mode", "needle"),
+    [
+        (SECOC_KEY.hex().encode(), 0o644, "chmod 600"),
+        (SECOC_KEY.hex().encode(), 0o640, "group or others"),
+        (b"0123", 0o600, "not an AES key"),
+        (None, 0o600, "key file not found"),
+    ],
+    ids=["world-readable", "group-readable", "wrong-length", "missing"],
+)
+def test_cli_key_file_errors_are_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes | None, mode: int,
+    needle: str,
+) -> None:
+    path = tmp_path / "ecu.key"
+    if content is not None:
+        _key_file(path, content, mode)
+    rc = main(["--interface", "virtual", "--channel", "x", "--node", "0",
+               "--scenario", "healthy", "--key", str(path)])
+    err = capsys.readouterr().err
+    assert rc == 2
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("sim-ecu: error: ") and needle in lines[0]
+    assert str(path) in lines[0] and SECOC_KEY.hex() not in err
+
+
 class _StderrLines:
     """Collects a subprocess's stderr lines in a thread (no select on a buffered pipe)."""
 
