@@ -5,7 +5,8 @@
    one run: rounds of a fixed block of samples, methods interleaved, the median per
    method; reported as ratios to filterpy (machine noise hits all alike).
 2. The same fuzzy UKF code interpreted (NUMBA_DISABLE_JIT=1, in a subprocess): what the
-   JIT buys.
+   JIT buys; and the ahead-of-time build the hardened service runs (if built:
+   `python -m monitor.kernels_aot`).
 3. filterpy with the paper's alpha = 1e-4: how often it fails (non-PSD covariance).
 4. A soak: random motors (also La = 0), random scenarios, rates 100 Hz - 1 kHz, missed
    samples (dt = k T) and random voltage commands; every step checks for NaN and every
@@ -57,8 +58,10 @@ def _timing(rounds: int) -> dict[str, float]:
     return {name: statistics.median(v) for name, v in times.items()}
 
 
-def _interpreted_cost() -> float | None:
-    """Per-step cost of the fuzzy UKF with numba disabled (subprocess)."""
+def _kernel_cost(kernel: str) -> float | None:
+    """Per-step cost of the fuzzy UKF with another kernel (subprocess, JIT switched off):
+    "python" runs the same code interpreted, "aot" the ahead-of-time build (None if absent).
+    """
     code = (
         "import time, numpy as np\n"
         "from monitor.model import dc_motor\n"
@@ -70,7 +73,7 @@ def _interpreted_cost() -> float | None:
         "for _ in range(1000): e.step(u, y, 0.01)\n"
         "print((time.perf_counter() - t) / 1000)\n"
     )
-    env = dict(os.environ, NUMBA_DISABLE_JIT="1")
+    env = dict(os.environ, NUMBA_DISABLE_JIT="1", MOTOR_MONITOR_KERNEL=kernel)
     try:
         out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                              text=True, timeout=300, check=True)
@@ -182,13 +185,16 @@ def main() -> None:
     ap.add_argument("--filterpy-alpha-steps", type=int, default=20_000)
     args = ap.parse_args()
     cost = _timing(args.rounds)
-    interp = _interpreted_cost()
+    interp = _kernel_cost("python")
+    aot = _kernel_cost("aot")
     base = cost["filterpy_ukf"]
     print(f"{'method':28s} {'us/step':>10s} {'filterpy / method':>18s}")
     for name, c in cost.items():
         print(f"{name:28s} {1e6 * c:10.2f} {base / c:18.1f}")
     if interp is not None:
-        print(f"{'fuzzy_ukf, numba disabled':28s} {1e6 * interp:10.2f} {base / interp:18.1f}")
+        print(f"{'fuzzy_ukf, interpreted':28s} {1e6 * interp:10.2f} {base / interp:18.1f}")
+    if aot is not None:
+        print(f"{'fuzzy_ukf, AOT build (W^X)':28s} {1e6 * aot:10.2f} {base / aot:18.1f}")
     fp = _filterpy_paper_alpha(args.filterpy_alpha_steps)
     print(f"filterpy UKF with the paper's alpha = 1e-4: {fp['failures']} failures in "
           f"{fp['steps']} steps ({fp['first_failure']})")
@@ -201,6 +207,7 @@ def main() -> None:
         "us_per_step": {k: 1e6 * v for k, v in cost.items()},
         "speedup_vs_filterpy": {k: base / v for k, v in cost.items()},
         "fuzzy_ukf_interpreted_us_per_step": None if interp is None else 1e6 * interp,
+        "fuzzy_ukf_aot_us_per_step": None if aot is None else 1e6 * aot,
         "filterpy_paper_alpha": fp,
         "soak": sk,
     }))
