@@ -33,7 +33,7 @@ from .codec import MotorDatabase, load_database
 from .diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
 from .notify import Notifier
 from .pipeline import BUS_EVENTS, DiagnosisEvent, MonitorConfig, MonitorPipeline
-from .rerun_sink import NullSink, RerunSink, Sink
+from .rerun_sink import NullSink, RerunSink, RotatingRerunSink, Sink
 from .secoc import load_key
 
 __all__ = ["BusError", "add_commands", "open_bus", "read_log"]
@@ -64,6 +64,16 @@ def open_bus(interface: str | None, channel: str | None, bitrate: int | None = N
         raise BusError(f"cannot open CAN interface {where}: {msg}") from None
 
 
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
+    return v
+
+
 def _thresholds(path: str | None) -> Thresholds:
     return load_thresholds(path) if path else DEFAULT_THRESHOLDS
 
@@ -81,16 +91,27 @@ def _nodes(text: str) -> tuple[int, ...] | None:
 
 
 def _make_sink(args: argparse.Namespace, cfg: MonitorConfig) -> Sink:
-    if not (args.rrd or args.connect):
+    """Where the live streams go: rotating files (--record-dir), one file (--rrd) and/or a
+    live viewer (--connect), or nowhere."""
+    record_dir = getattr(args, "record_dir", None)
+    if args.rrd and record_dir:
+        raise BusError("--rrd and --record-dir exclude each other (one file, or rotating files)")
+    if not (args.rrd or args.connect or record_dir):
         return NullSink()
     if args.rrd:
         parent = Path(args.rrd).parent
         if not parent.is_dir():
             raise BusError(f"--rrd: directory {parent} does not exist")
+    common: dict[str, Any] = {"nodes": cfg.nodes or (), "f1": cfg.thresholds.f1,
+                              "f2": cfg.thresholds.f2, "connect_url": args.connect}
     try:
-        return RerunSink(rrd_path=args.rrd, connect_url=args.connect, nodes=cfg.nodes or (),
-                         f1=cfg.thresholds.f1, f2=cfg.thresholds.f2,
-                         recording_id=getattr(args, "recording_id", None))
+        if record_dir:
+            if not Path(record_dir).is_dir():
+                raise BusError(f"--record-dir: directory {record_dir} does not exist")
+            return RotatingRerunSink(record_dir, max_bytes=int(args.rotate_mb * 2**20),
+                                     max_age_s=args.rotate_minutes * 60.0, keep=args.keep,
+                                     max_total_bytes=int(args.max_total_gb * 2**30), **common)
+        return RerunSink(rrd_path=args.rrd, **common)
     except (ValueError, RuntimeError, OSError) as exc:
         raise BusError(f"cannot start the Rerun recording: {exc}") from None
 
@@ -318,6 +339,16 @@ def add_commands(sub: argparse._SubParsersAction[Any]) -> None:
     r.add_argument("--channel", default=None, help="channel (e.g. vcan0)")
     r.add_argument("--bitrate", type=int, default=None)
     r.add_argument("--events", default=None, help="append diagnosis events as JSON lines")
+    r.add_argument("--record-dir", default=None, metavar="DIR",
+                   help="record to rotating .rrd files in DIR (for unattended runs)")
+    r.add_argument("--rotate-mb", type=_positive, default=256.0,
+                   help="start a new file past this size, MiB (default 256)")
+    r.add_argument("--rotate-minutes", type=_positive, default=60.0,
+                   help="start a new file after this long, minutes (default 60)")
+    r.add_argument("--keep", type=int, default=168,
+                   help="recordings kept in DIR, oldest deleted first (default 168)")
+    r.add_argument("--max-total-gb", type=_positive, default=20.0,
+                   help="recordings in DIR never exceed this, GiB (default 20)")
     _common(r)
     r.set_defaults(func=run_live)
 

@@ -24,7 +24,13 @@ import pytest
 from numpy.typing import NDArray
 from rerun.chunk import Chunk, RrdReader
 
-from monitor.rerun_sink import NullSink, RerunSink, Sink
+from monitor.rerun_sink import (
+    DEFAULT_FLUSH_INTERVAL_S,
+    NullSink,
+    RerunSink,
+    RotatingRerunSink,
+    Sink,
+)
 
 T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
 DT = 1e-3
@@ -366,3 +372,139 @@ def test_live_stream_to_headless_server_and_file_at_once(tmp_path: Path) -> None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert {r.recording_id for r in RrdReader(received).recordings()} == {rec_id}
+
+
+# -- durability: the flush interval, switching files, rotation with a live stream ---------------
+
+
+def test_maybe_flush_reaches_the_disk_without_waiting(tmp_path: Path) -> None:
+    """No `recording.flush` here: `send_columns` bypasses the SDK's batcher and its file writer
+    does not buffer, so what `maybe_flush` sends is in the file within milliseconds."""
+    assert DEFAULT_FLUSH_INTERVAL_S <= 0.2
+    path = tmp_path / "fast.rrd"
+    sink = RerunSink(rrd_path=path, nodes=(0,))  # the default flush interval
+    start = time.monotonic()
+    for k in range(5):
+        sink.add_sample(0, T0 + k * DT, 1.0, 1.0, 0.1 * k, 1, 0, 1.0)
+    sink.maybe_flush(start + DEFAULT_FLUSH_INTERVAL_S)
+    sent = time.monotonic()
+    got: NDArray[np.float64] = np.zeros(0)
+    while time.monotonic() - sent < 0.1 and len(got) < 5:
+        with contextlib.suppress(Exception):  # maybe in the middle of a write
+            _, got = _series(_read(path).get("/motor/0/gamma/estimate", []))
+        time.sleep(0.002)
+    latency = time.monotonic() - sent
+    sink.close()
+    np.testing.assert_array_equal(got, 0.1 * np.arange(5))
+    assert latency < 0.1, latency
+
+
+def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: Path) -> None:
+    first, second = tmp_path / "a.rrd", tmp_path / "b.rrd"
+    sink = RerunSink(rrd_path=first, nodes=(0,), recording_id="sw", f1=0.1, f2=0.9)
+    for k in range(300):
+        sink.add_sample(0, T0 + k * DT, 1.0, 1.0, float(k), 1, 0, 1.0, true_gamma=0.5)
+    sink.log_counters(T0, {"frames_ok": 1})
+    sink.set_thresholds(0.2, 0.8)
+    sink.add_sample(5, T0 + 300 * DT, 1.0, 1.0, 300.0, 1, 0, 1.0)  # a new node
+    sink.switch_file(second)
+    assert sink.rrd_path == second
+    # the old file is finished when switch_file returns
+    proc = subprocess.run([str(RERUN_EXE), "rrd", "verify", str(first)], capture_output=True)
+    assert proc.returncode == 0, proc.stderr
+    for k in range(301, 400):
+        sink.add_sample(0, T0 + k * DT, 1.0, 1.0, float(k), 1, 0, 1.0, true_gamma=0.5)
+    sink.log_counters(T0 + 1, {"frames_ok": 2})
+    sink.close()
+    _, a = _series(_read(first)["/motor/0/gamma/estimate"])
+    _, b = _series(_read(second)["/motor/0/gamma/estimate"])
+    np.testing.assert_array_equal(a, np.arange(300))  # everything before the switch
+    np.testing.assert_array_equal(b, np.arange(301, 400))  # everything after
+    # self-contained: recording, start time, styles, blueprint with every node, thresholds
+    reader = RrdReader(second)
+    (rec,) = reader.recordings()
+    assert rec.recording_id == "sw"
+    assert {
+        "/__properties",
+        "/motor/0/gamma/F1",
+        "/motor/0/gamma/true",
+        "/motor/5/nis",
+        "/monitor/counters/frames_ok",
+    } <= _static_entities(second)
+    (bp,) = reader.blueprints()
+    names = {
+        x
+        for chunk in reader.stream(store=bp)
+        for col in chunk.to_record_batch().schema.names
+        if col.endswith("Blueprint:display_name")
+        for row in chunk.to_record_batch().column(col).to_pylist()
+        if row
+        for x in row
+    }
+    assert {"motor 0", "motor 5"} <= names
+    _, f1 = _series(_read(second)["/motor/0/gamma/F1"])
+    assert np.all(f1 == 0.2)
+
+
+def test_switch_file_does_not_leak_threads(tmp_path: Path) -> None:
+    """`RecordingStream.send_blueprint` would leave a blueprint stream (two threads, ~1 MB)
+    behind per call; the sink reuses one."""
+    sink = RerunSink(rrd_path=tmp_path / "0.rrd", nodes=(0, 1))
+    sink.switch_file(tmp_path / "1.rrd")
+    threads = len(os.listdir("/proc/self/task"))
+    for i in range(2, 22):
+        sink.add_sample(0, T0 + i, 1.0, 1.0, 0.5, 1, 0, 1.0)
+        sink.switch_file(tmp_path / f"{i}.rrd")
+    assert len(os.listdir("/proc/self/task")) <= threads
+    sink.close()
+    proc = subprocess.run(
+        [str(RERUN_EXE), "rrd", "verify", *(str(tmp_path / f"{i}.rrd") for i in range(22))],
+        capture_output=True,
+    )
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_switch_file_refuses_live_and_closed_sinks(tmp_path: Path) -> None:
+    with _headless_receiver(tmp_path / "received.rrd") as url:
+        sink = RerunSink(rrd_path=tmp_path / "a.rrd", connect_url=url)
+        with pytest.raises(ValueError):
+            sink.switch_file(tmp_path / "b.rrd")
+        sink.close()
+    sink = RerunSink(rrd_path=tmp_path / "c.rrd")
+    sink.close()
+    with pytest.raises(RuntimeError):
+        sink.switch_file(tmp_path / "d.rrd")
+
+
+def test_rotating_sink_streams_live_across_rotations(tmp_path: Path) -> None:
+    received = tmp_path / "received.rrd"
+    out = tmp_path / "files"
+    n = 3000
+    with _headless_receiver(received) as url:
+        sink = RotatingRerunSink(
+            out, max_bytes=50_000, max_age_s=None, keep=None, connect_url=url, nodes=(0,),
+            batch_size=128,
+        )  # fmt: skip
+        assert isinstance(sink, Sink)
+        for k in range(n):
+            sink.add_sample(0, T0 + k * DT, 1.0, 2.0, float(k), 1, 0, 1.0)
+            if k % 100 == 99:
+                sink.recording.flush(timeout_sec=10)
+                sink.flush()
+        sink.close()
+        assert sink.rotations >= 3
+        deadline = time.monotonic() + 30
+        got: NDArray[np.float64] = np.zeros(0)
+        while time.monotonic() < deadline and len(got) < n:
+            with contextlib.suppress(Exception):  # the file may end in a partial message
+                if received.exists():
+                    _, got = _series(_read(received).get("/motor/0/gamma/estimate", []))
+            time.sleep(0.1)
+    np.testing.assert_array_equal(got, np.arange(n))  # one connection, nothing lost
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert {r.recording_id for r in RrdReader(received).recordings()} == {sink.recording_id}
+    files = sink.files()
+    parts = [_series(_read(p)["/motor/0/gamma/estimate"])[1] for p in files]
+    np.testing.assert_array_equal(np.concatenate(parts), np.arange(n))
+    assert {RrdReader(p).recordings()[0].recording_id for p in files} == {sink.recording_id}
