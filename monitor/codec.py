@@ -20,6 +20,10 @@ message names carry the node as ``_N<node>``, e.g. ``MotorCurrent_N3``):
 * ``diagnosis`` MonitorDiagnosis_N<n>, 0x180 + n, 100 ms, Monitor: HealthState (bits
   12-15, VAL_ `HEALTH_STATES`), GammaEstimate (0.001, -0.5..1.5: signed because estimator
   transients undershoot 0), FaultEstimate (gamma*u, V, 0.1, +-1000), RuleCount (0..255), E2E.
+* ``sync``      SecOCSync_N<n>, 0x1F0 + n, 1 s per stream, MotorECU -> Monitor, only with
+  SecOC on: SyncKind (bits 0-3, VAL_ 0 current, 1 voltage: `SECOC_KINDS`), SyncFreshness
+  (bits 8-39, the low 32 bits of that stream's freshness value), SyncAuthenticator (bits
+  40-63); no E2E (the MAC covers every bit). `Decoded.value` is SyncFreshness.
 
 E2E protection (AUTOSAR profile 2) on current, voltage and diagnosis frames: byte 0 is the
 CRC-8/AUTOSAR (polynomial 0x2F) over bytes 1..7 followed by one data-ID byte, and
@@ -45,6 +49,15 @@ reaches the estimator. The MAC is written before the E2E CRC, which covers it (E
 SecOC). Without a key the FreshnessValue and Authenticator signals are sent as 0 and not
 checked: a monitor without the key cannot verify, so it decodes signed frames as before.
 Diagnosis frames stay unauthenticated (8 spare bits cannot hold a useful MAC).
+
+Freshness synchronisation (`monitor.secoc`, "Resynchronisation"): with a key the database
+verifies ``SecOCSync`` frames (``bad_mac``; ``stale_freshness`` for a sync older than the
+stream's last accepted value, i.e. a replayed one) and an accepted one sets that stream's
+freshness, so a monitor that starts late, restarts, or lost more than the window recovers
+at the next sync. A stream not yet synchronised (no sync, no saved state) rejects its data
+frames as ``unsynced``. `encode_sync` builds sync frames (sender side, key required);
+``db.secoc.save_state`` / ``load_state`` persist the counters across restarts. Without a
+key sync frames decode as plain ``sync`` samples, nothing checked.
 
 Decoding never raises: every frame yields `Decoded` or `Rejected` with a reason from
 `RejectReason`. Checks run cheapest-first: error/remote/extended flags, id lookup, length,
@@ -82,6 +95,7 @@ from .secoc import (
     SecOC,
     SecOCError,
     SecOCLayout,
+    SyncLayout,
     Verdict,
 )
 
@@ -108,7 +122,7 @@ __all__ = [
     "load_database",
 ]
 
-Kind = Literal["current", "voltage", "truth", "diagnosis"]
+Kind = Literal["current", "voltage", "truth", "diagnosis", "sync"]
 KINDS: Final[tuple[Kind, ...]] = get_args(Kind)
 N_NODES: Final = 16
 HEALTH_STATES: Final[tuple[str, ...]] = ("fault_free", "fault", "outage", "no_data")
@@ -125,6 +139,7 @@ class _KindSpec:
     value_signal: str  # the "main physical value" reported as Decoded.value
     e2e: bool  # CRC in byte 0, counter in the low nibble of byte 1
     secoc: bool = False  # may carry FreshnessValue + Authenticator (monitor.secoc)
+    sync: bool = False  # SecOC freshness synchronisation of the secoc kinds (optional)
 
 
 _SPECS: Final[Mapping[Kind, _KindSpec]] = {
@@ -132,9 +147,10 @@ _SPECS: Final[Mapping[Kind, _KindSpec]] = {
     "voltage": _KindSpec("MotorVoltage", 0x120, "VoltageCommand", True, True),
     "truth": _KindSpec("SimTruth", 0x7E0, "TrueGamma", False),
     "diagnosis": _KindSpec("MonitorDiagnosis", 0x180, "GammaEstimate", True),
+    "sync": _KindSpec("SecOCSync", 0x1F0, "SyncFreshness", False, sync=True),
 }
 SECOC_KINDS: Final[tuple[Kind, ...]] = tuple(k for k, s in _SPECS.items() if s.secoc)
-"""Kinds authenticated when the database has a SecOC key."""
+"""Kinds authenticated when the database has a SecOC key; SyncKind is the index here."""
 _NAME_RE: Final = re.compile(r"^(?P<prefix>[A-Za-z]+)_N(?P<node>\d{1,2})$")
 
 
@@ -176,11 +192,13 @@ class RejectReason(StrEnum):
     EXTENDED_ID = "extended_id"
     BAD_MAC = "bad_mac"  # SecOC: the authenticator does not verify (forged or unsigned)
     STALE_FRESHNESS = "stale_freshness"  # SecOC: authentic, but replayed or too far ahead
+    UNSYNCED = "unsynced"  # SecOC: the stream's freshness is unknown until a sync frame
 
 
 _VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {
     Verdict.BAD_MAC: RejectReason.BAD_MAC,
     Verdict.STALE_FRESHNESS: RejectReason.STALE_FRESHNESS,
+    Verdict.UNSYNCED: RejectReason.UNSYNCED,
 }
 
 
@@ -189,8 +207,9 @@ class Decoded:
     """A valid frame as a typed sample.
 
     `value` is the kind's main physical value: ArmatureCurrent (A), VoltageCommand (V),
-    TrueGamma, GammaEstimate. `counter` is the alive counter (None for truth frames),
-    `raw` all signals of the frame, physical (scaled) values, choices as ints.
+    TrueGamma, GammaEstimate, SyncFreshness (low 32 bits; the stream in raw["SyncKind"]).
+    `counter` is the alive counter (None for truth and sync frames), `raw` all signals of
+    the frame, physical (scaled) values, choices as ints.
     """
 
     kind: Kind
@@ -223,6 +242,7 @@ class _Route:
     limits: tuple[tuple[str, float, float], ...]  # (signal, min, max) physical
     value_signal: str
     secoc: SecOCLayout | None = None  # None: the DBC gives this message no SecOC signals
+    sync: SyncLayout | None = None  # sync frames only
 
 
 # ----------------------------------------------------------------------------- database
@@ -256,6 +276,9 @@ class MotorDatabase:
             raise CodecError(f"{Path(self.source).name}: {', '.join(missing)} carry no "
                              f"{FRESHNESS_SIGNAL}/{AUTHENTICATOR_SIGNAL}: this DBC cannot "
                              "authenticate (SecOC)")
+        if not any(r.kind == "sync" for r in self._routes.values()):
+            raise CodecError(f"{Path(self.source).name}: no {_SPECS['sync'].prefix}_N<node> "
+                             "messages: this DBC cannot resynchronise SecOC freshness")
         try:
             return SecOC(key, window=window)
         except SecOCError as exc:
@@ -282,6 +305,12 @@ class MotorDatabase:
     def secoc_layout(self, kind: Kind, node: int) -> SecOCLayout | None:
         """Where the message of `kind` for `node` carries freshness and MAC (None: nowhere)."""
         return self._route(kind, node).secoc
+
+    def sync_layout(self, node: int) -> SyncLayout:
+        """The layout of `node`'s SecOC sync frame (`CodecError` if the DBC has none)."""
+        layout = self._route("sync", node).sync
+        assert layout is not None  # every sync route has one (_build_routes)
+        return layout
 
     # -- lookup ---------------------------------------------------------------------
 
@@ -352,6 +381,24 @@ class MotorDatabase:
             "RuleCount": rules,
         }
         return self._encode("diagnosis", node, signals, counter)
+
+    def encode_sync(self, node: int, kind: Kind) -> bytes:
+        """SecOCSync payload announcing the freshness of `node`'s `kind` stream (key needed).
+
+        Carries the low 32 bits of the freshness value of the last frame this database
+        signed on the stream (0 before the first) and its MAC; consumes no freshness value.
+        """
+        if kind not in SECOC_KINDS:
+            raise CodecError(f"sync frames are for {' and '.join(SECOC_KINDS)}, not {kind!r}")
+        route = self._route("sync", node)
+        if self._secoc is None:
+            raise CodecError(f"{route.message.name}: sync frames need a SecOC key")
+        layout = route.sync
+        assert layout is not None
+        payload = route.message.encode({"SyncKind": SECOC_KINDS.index(kind),
+                                        "SyncFreshness": 0, "SyncAuthenticator": 0},
+                                       scaling=False, padding=False, strict=True)
+        return self._secoc.sign_sync(layout, (kind, node), payload)
 
     def _encode(
         self, kind: Kind, node: int, values: dict[str, float], counter: int | None
@@ -436,6 +483,14 @@ class MotorDatabase:
             if failed is not None:
                 return Rejected(_VERDICT_REASON[failed[0]], arbitration_id, timestamp,
                                 route.node, route.kind, failed[1])
+        elif route.sync is not None and self._secoc is not None:
+            index = route.sync.kind_index(data)
+            if index < len(SECOC_KINDS):  # otherwise out_of_range below, nothing verified
+                failed = self._secoc.verify_sync(route.sync, (SECOC_KINDS[index], route.node),
+                                                 data)
+                if failed is not None:
+                    return Rejected(_VERDICT_REASON[failed[0]], arbitration_id, timestamp,
+                                    route.node, route.kind, failed[1])
         try:
             signals = cast(
                 "dict[str, float]",
@@ -551,6 +606,16 @@ def _build_routes(db: Database, source: str) -> dict[int, _Route]:
             specifics.e2e = e2e
             msg.autosar = specifics
         secoc = _secoc_layout(msg, spec, fail)
+        sync: SyncLayout | None = None
+        if spec.sync:
+            try:
+                sync = SyncLayout.from_message(msg)
+            except SecOCError as exc:
+                raise fail(str(exc)) from None
+            choices = sigs["SyncKind"].choices
+            names = {int(k): str(v) for k, v in (choices or {}).items()}
+            if names != dict(enumerate(SECOC_KINDS)):
+                raise fail(f"{msg.name}: SyncKind VAL_ must be {dict(enumerate(SECOC_KINDS))}")
         if kind == "diagnosis":
             choices = sigs["HealthState"].choices if "HealthState" in sigs else None
             names = {int(k): str(v) for k, v in (choices or {}).items()}
@@ -563,8 +628,11 @@ def _build_routes(db: Database, source: str) -> dict[int, _Route]:
             if s.minimum is not None and s.maximum is not None and not _covers_raw(s)
         )
         routes[msg.frame_id] = _Route(msg, kind, node, data_id, _reserved_mask(msg), limits,
-                                      spec.value_signal, secoc)
+                                      spec.value_signal, secoc, sync)
+    present = {r.kind for r in routes.values()}
     for kind, spec in _SPECS.items():
+        if spec.sync and kind not in present:
+            continue  # an older DBC without sync frames: loads, but cannot take a key
         for node in range(N_NODES):
             if spec.base_id + node not in routes:
                 raise fail(f"missing message {spec.prefix}_N{node} "

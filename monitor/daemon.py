@@ -156,8 +156,39 @@ def _database(args: argparse.Namespace) -> MotorDatabase:
     return load_database(args.dbc, secoc_key=key)
 
 
+class _FreshnessStore:
+    """SecOC freshness persisted to --secoc-state, so a restarted monitor resumes verification
+    at once and an old recorded sync cannot roll its freshness back."""
+
+    PERIOD_S = 5.0
+
+    def __init__(self, db: MotorDatabase, path: str | None) -> None:
+        self.secoc = db.secoc
+        self.path = path
+        self.last = time.monotonic()
+        if path is None:
+            return
+        if self.secoc is None:
+            raise BusError("--secoc-state needs --key (there is no freshness without SecOC)")
+        restored = self.secoc.load_state(path)
+        log.warning("SecOC freshness: %s", "fresh start, first sync trusted" if restored is None
+                    else f"{restored} counters restored from {path}")
+
+    def maybe_save(self, now_monotonic: float, force: bool = False) -> None:
+        if self.path is None or self.secoc is None:
+            return
+        if not force and now_monotonic - self.last < self.PERIOD_S:
+            return
+        self.last = now_monotonic
+        try:
+            self.secoc.save_state(self.path)
+        except ValueError as exc:  # SecOCError: logged, the monitor keeps running
+            log.error("cannot save SecOC freshness: %s", exc)
+
+
 def run_live(args: argparse.Namespace) -> int:
     db = _database(args)
+    fresh = _FreshnessStore(db, args.secoc_state)
     cfg = _config(args)
     stop = _Stop()
     stop.install()
@@ -230,11 +261,13 @@ def run_live(args: argparse.Namespace) -> int:
                 last_tick = now
                 pipe.tick(now)
                 sink.maybe_flush(time.monotonic())
+                fresh.maybe_save(time.monotonic())
                 drops = socket_drops(b)
                 if drops is not None:  # the kernel's count for this socket, since it opened
                     pipe.counters["bus/socket_drops"] = dropped_before + drops
     finally:
         notifier.stopping("flushing the recording")
+        fresh.maybe_save(time.monotonic(), force=True)
         sink.close()
         b = holder["bus"]
         if b is not None:
@@ -347,6 +380,8 @@ def add_commands(sub: argparse._SubParsersAction[Any]) -> None:
                    help="start a new file after this long, minutes (default 60)")
     r.add_argument("--keep", type=int, default=168,
                    help="recordings kept in DIR, oldest deleted first (default 168)")
+    r.add_argument("--secoc-state", default=None, metavar="FILE",
+                   help="persist SecOC freshness here (with --key): restarts resume at once")
     r.add_argument("--max-total-gb", type=_positive, default=20.0,
                    help="recordings in DIR never exceed this, GiB (default 20)")
     _common(r)

@@ -225,6 +225,10 @@ class MonitorPipeline:
         if kind == "diagnosis":
             self.counters.inc("ignored/diagnosis")
             return
+        if kind == "sync":  # SecOC freshness sync: the codec has applied it (with a key)
+            self.counters.inc("samples/secoc_sync" if self.db.secoc_enabled
+                              else "ignored/secoc_sync")
+            return
         wanted = self.cfg.nodes
         if wanted is not None and d.node not in wanted:
             self.counters.inc("ignored/node")

@@ -3,6 +3,14 @@
 Every configuration mistake is one ``sim-ecu: error: ...`` line on stderr and exit code 2;
 a run that ends (its duration, SIGINT or SIGTERM) prints a one-line summary on stderr and
 exits 0.
+
+With ``--key`` the ECU signs its frames and sends SecOC sync frames (at start and once per
+second). ``--secoc-state FILE`` keeps its freshness counters across runs: loaded at start
+(a missing file starts at 0) and skipped ahead by `STATE_MARGIN_S` seconds of frames (it
+may have signed that many after its last save before a crash: no freshness value is ever
+reused), saved every second and at exit. Without it every run restarts its counters, and a
+monitor that already accepted higher values rejects the new run's frames and syncs as
+replays until the counters pass them (or the monitor starts without state).
 """
 
 from __future__ import annotations
@@ -15,7 +23,8 @@ import math
 import signal
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
 from types import FrameType
 from typing import Any, NoReturn
 
@@ -23,7 +32,7 @@ import can
 
 from monitor.codec import N_NODES, CodecError, load_database
 from monitor.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario
-from monitor.secoc import SecOCError, load_key
+from monitor.secoc import SecOC, SecOCError, load_key
 
 from .ecu import ECUError, ECUStats, VirtualECU, load_motor_parameters
 
@@ -31,6 +40,9 @@ __all__ = ["build_parser", "main", "open_bus"]
 
 PROG = "sim-ecu"
 EXIT_USAGE = 2
+STATE_MARGIN_S = 60.0
+"""A restarted ECU continues its freshness this many seconds of frames past its saved state."""
+STATE_SAVE_PERIOD_S = 1.0
 
 log = logging.getLogger("sim_ecu")
 
@@ -91,6 +103,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="sign MotorCurrent and MotorVoltage with SecOC (truncated AES-CMAC and freshness "
         "counter) under the AES-128/256 key in FILE: 32 or 64 hex digits or 16/32 raw "
         "bytes, accessible by its owner only (chmod 600)",
+    )
+    p.add_argument(
+        "--secoc-state",
+        metavar="FILE",
+        help="with --key: keep the SecOC freshness counters in FILE (written atomically, mode "
+        "0600): loaded at start (missing: start at 0), saved every second and at exit, so "
+        "a restarted ECU never reuses a freshness value",
     )
     p.add_argument("--bitrate", type=int, help="bitrate passed to the interface")
     p.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -196,6 +215,8 @@ def _check_args(args: argparse.Namespace) -> float | None:
         raise UsageError(f"--seed must be >= 0, got {args.seed}")
     if args.bitrate is not None and args.bitrate <= 0:
         raise UsageError(f"--bitrate must be positive, got {args.bitrate}")
+    if args.secoc_state is not None and args.key is None:
+        raise UsageError("--secoc-state needs --key (the counters of SecOC-signed frames)")
     if args.duration is None:
         return None
     if not (math.isfinite(args.duration) and args.duration >= 0):
@@ -226,11 +247,43 @@ class _StopOnSignals:
             signal.signal(sig, old)
 
 
-def _run_in_worker(ecu: VirtualECU, duration: float | None, stop: threading.Event) -> ECUStats:
+class _StateSaver:
+    """Saves the SecOC counters to a file; failures are logged once per burst."""
+
+    def __init__(self, secoc: SecOC, path: str) -> None:
+        self.secoc = secoc
+        self.path = path
+        self.failing = False
+
+    def save(self) -> None:
+        """Periodic save: a failure is logged (once per burst) and retried next time."""
+        try:
+            self.secoc.save_state(self.path)
+        except SecOCError as exc:
+            if not self.failing:
+                log.warning("%s (retrying every second)", exc)
+            self.failing = True
+        else:
+            if self.failing:
+                log.warning("SecOC state saved again to %s", self.path)
+            self.failing = False
+
+    def final(self) -> str | None:
+        """The save at exit: None, or the one-line error."""
+        try:
+            self.secoc.save_state(self.path)
+        except SecOCError as exc:
+            return str(exc)
+        return None
+
+
+def _run_in_worker(ecu: VirtualECU, duration: float | None, stop: threading.Event,
+                   every_second: Callable[[], None] | None = None) -> ECUStats:
     """ecu.run in a worker thread; the main thread stays free to run signal handlers.
 
     (Setting an Event from a signal handler that interrupted the same thread inside
     Event.wait can deadlock on the Event's internal lock, so the waiting happens elsewhere.)
+    `every_second`, if given, runs in the calling thread about once per second meanwhile.
     """
     result: list[ECUStats] = []
     failure: list[BaseException] = []
@@ -243,8 +296,12 @@ def _run_in_worker(ecu: VirtualECU, duration: float | None, stop: threading.Even
 
     worker = threading.Thread(target=target, name="sim-ecu-run", daemon=True)
     worker.start()
+    next_call = time.monotonic() + STATE_SAVE_PERIOD_S
     while worker.is_alive():
         worker.join(0.25)
+        if every_second is not None and time.monotonic() >= next_call:
+            next_call += STATE_SAVE_PERIOD_S
+            every_second()
     if failure:
         raise failure[0]
     return result[0]
@@ -262,6 +319,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stream=sys.stderr,
     )
     stop = threading.Event()
+    saver: _StateSaver | None = None
     with _StopOnSignals(stop) as signals:
         try:
             duration = _check_args(args)
@@ -269,6 +327,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             motor = load_motor_parameters(args.scenario)
             key = None if args.key is None else load_key(args.key)
             db = load_database(args.dbc, secoc_key=key)
+            if args.secoc_state is not None and db.secoc is not None:
+                margin = math.ceil(STATE_MARGIN_S * max(args.rate, args.voltage_rate))
+                restored = db.secoc.load_state(args.secoc_state, tx_margin=margin)
+                log.info("SecOC state %s: %s", args.secoc_state,
+                         "none yet, counters start at 0" if restored is None
+                         else f"{restored} counter(s) restored, {margin} ahead")
+                # the skipped-ahead counters are on disk before the first frame is signed
+                db.secoc.save_state(args.secoc_state)
+                saver = _StateSaver(db.secoc, args.secoc_state)
         except (UsageError, ScenarioError, ECUError, CodecError, SecOCError) as exc:
             print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
             return EXIT_USAGE
@@ -302,13 +369,20 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "" if db.secoc is None else f", SecOC AES-{db.secoc.key_bits}-CMAC",
             )
             try:
-                stats = _run_in_worker(ecu, duration, stop)
+                stats = _run_in_worker(ecu, duration, stop,
+                                       None if saver is None else saver.save)
             except Exception as exc:
                 log.debug("run failed", exc_info=True)
                 print(f"{PROG}: error: run failed: {_one_line(exc)}", file=sys.stderr)
+                if saver is not None:
+                    saver.final()  # best effort; the run's failure is the error reported
                 return 1
         finally:
             bus.shutdown()
+        failed = None if saver is None else saver.final()
+        if failed is not None:
+            print(f"{PROG}: error: {failed}", file=sys.stderr)
+            return 1
     how = f"stopped by {signals.received}" if signals.received else "done"
     print(
         f"{PROG}: {how}: node {args.node}, scenario {scenario.name}: {stats.summary()}",

@@ -23,7 +23,12 @@ With a SecOC key (``VirtualECU(..., key=...)``, or a database loaded with ``seco
 current and voltage frames carry a freshness value and a truncated AES-CMAC
 (`monitor.secoc`). The freshness counters live in the ECU's database and never go back:
 a second `VirtualECU.frames` call continues them (a freshness value is never reused under
-a key), so its frames equal the first call's except for freshness, MAC and CRC.
+a key), so its frames equal the first call's except for freshness, MAC and CRC. A keyed
+ECU also sends one ``SecOCSync`` frame per stream (current, then voltage) at sample 0,
+before the first data frame, and then once per second of scenario time (a sync that
+falls on a skipped sample goes out with the next sent one), so a monitor that starts
+late, restarts or lost frames resynchronises by itself; they count as kind ``sync`` in
+`ECUStats`. Without a key none are sent.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.codec import N_NODES, CodecError, Kind, MotorDatabase
+from monitor.codec import N_NODES, SECOC_KINDS, CodecError, Kind, MotorDatabase
 from monitor.model import DCMotorParameters, ModelError, dc_motor
 from monitor.plant import PlantSimulator
 from monitor.scenario import BUILTIN_SCENARIOS, Scenario
@@ -62,7 +67,7 @@ log = logging.getLogger(__name__)
 Array = NDArray[np.float64]
 
 ECU_KINDS: Final[tuple[Kind, ...]] = ("current", "voltage", "truth")
-"""The message kinds a virtual ECU sends."""
+"""The message kinds a virtual ECU sends (and ``sync`` with a SecOC key)."""
 
 MOTOR_KEYS: Final[tuple[str, ...]] = tuple(f.name for f in fields(DCMotorParameters))
 
@@ -219,6 +224,7 @@ class _Simulation:
         self.counters: dict[Kind, int] = {"current": 0, "voltage": 0}
         self.last_u: float | None = None  # command of the previous sample
         self.voltage_pending = False  # a change fell on a skipped sample
+        self.sync_pending = False  # a SecOC sync fell on a skipped sample
 
     def _scheduled(self, k: int) -> bool:
         """Whether sample k is a regular voltage-frame sample."""
@@ -229,6 +235,13 @@ class _Simulation:
         # integer ratios, evenly spread otherwise (eps guards exact multiples against
         # round-off in k * ratio).
         return math.floor(k * ratio + 1e-9) != math.floor((k - 1) * ratio + 1e-9)
+
+    def _sync_due(self, k: int) -> bool:
+        """Whether sample k starts a second of scenario time (SecOC sync frames due)."""
+        if not self.ecu.sync:
+            return False
+        rate = self.ecu.rate
+        return k == 0 or math.floor(k / rate + 1e-9) != math.floor((k - 1) / rate + 1e-9)
 
     def _counter(self, kind: Kind) -> int:
         c = self.counters[kind]
@@ -254,19 +267,32 @@ class _Simulation:
         changed = u_cmd != self.last_u
         self.last_u = u_cmd
         voltage_due = changed or self._scheduled(k)
+        sync_due = self._sync_due(k)
         msgs: list[can.Message] = []
         if emit:
             voltage_due = voltage_due or self.voltage_pending
             self.voltage_pending = False
-            msgs = self._encode(time_base + t, y, u_cmd, g, voltage_due, u, gamma)
+            if sync_due or self.sync_pending:
+                self.sync_pending = False
+                msgs = self._sync(time_base + t)
+            msgs += self._encode(time_base + t, y, u_cmd, g, voltage_due, u, gamma)
         else:
             self.voltage_pending = self.voltage_pending or changed
+            self.sync_pending = self.sync_pending or sync_due
             self._counter("current")
             if voltage_due:
                 self._counter("voltage")
         plant.advance(u, gamma)
         self.k += 1
         stats.samples += 1
+        return msgs
+
+    def _sync(self, ts: float) -> list[can.Message]:
+        """One SecOCSync frame per authenticated stream, at the freshness signed so far."""
+        ecu = self.ecu
+        msgs = [ecu._message("sync", ecu.db.encode_sync(ecu.node, kind), ts)
+                for kind in SECOC_KINDS]
+        self.stats.produced["sync"] += len(msgs)
         return msgs
 
     def _encode(
@@ -355,6 +381,8 @@ class VirtualECU:
         self.bus = bus
         self.db = db
         self.node = node
+        self.sync = db.secoc_enabled  # keyed: SecOC sync frames at start and every second
+        self.kinds: tuple[Kind, ...] = (*ECU_KINDS, "sync") if self.sync else ECU_KINDS
         self.scenario = scenario
         self.rate = _positive("rate", rate)
         self.voltage_rate = _positive("voltage rate", voltage_rate)
@@ -378,7 +406,7 @@ class VirtualECU:
         n_scn = self.samples_for(scenario.duration)
         self.last_scenario_time = (max(n_scn, 1) - 1) / self.rate
         try:
-            self.frame_ids: dict[Kind, int] = {k: db.frame_id(k, node) for k in ECU_KINDS}
+            self.frame_ids: dict[Kind, int] = {k: db.frame_id(k, node) for k in self.kinds}
             signals: tuple[tuple[Kind, str], ...] = (
                 ("current", "ArmatureCurrent"),
                 ("voltage", "VoltageCommand"),
@@ -390,7 +418,12 @@ class VirtualECU:
         except (CodecError, KeyError) as exc:
             raise ECUError(f"DBC {db.source}: {exc}") from None
         self.kind_of: dict[int, Kind] = {fid: k for k, fid in self.frame_ids.items()}
-        self.stats = ECUStats()
+        self.stats = self._new_stats()
+
+    def _new_stats(self) -> ECUStats:
+        """Stats with a ``sync`` entry when this ECU sends SecOC sync frames."""
+        return ECUStats(produced=dict.fromkeys(self.kinds, 0),
+                        sent=dict.fromkeys(self.kinds, 0))
 
     def _limits(self, kind: Kind, signal: str) -> _Limits:
         sig = self.db.message(kind, self.node).get_signal_by_name(signal)
@@ -429,14 +462,15 @@ class VirtualECU:
     ) -> Iterator[can.Message]:
         """All frames of a fresh run of `duration` seconds (None: the scenario's duration).
 
-        Sample k's frames (current, voltage when due, truth) carry timestamp
-        ``start_time + k / rate``; the scenario always starts at its t = 0. Each call starts
-        from the steady state with the ECU's seed, so equal seeds give equal frames.
+        Sample k's frames (SecOC syncs when due, current, voltage when due, truth) carry
+        timestamp ``start_time + k / rate``; the scenario always starts at its t = 0. Each
+        call starts from the steady state with the ECU's seed, so equal seeds give equal
+        frames.
         `self.stats` is reset and counts what has been produced so far. ``duration=inf``
         never ends.
         """
         n = self._n_samples(duration)  # validated now, not at the first next()
-        self.stats = ECUStats()
+        self.stats = self._new_stats()
         return self._frames(_Simulation(self, self.stats), n, start_time)
 
     @staticmethod
@@ -465,7 +499,7 @@ class VirtualECU:
             raise ECUError("run() needs a bus; use frames() offline")
         n = self._n_samples(duration)
         stop = stop if stop is not None else threading.Event()
-        self.stats = stats = ECUStats()
+        self.stats = stats = self._new_stats()
         sim = _Simulation(self, stats)
         rate = self.rate
         failing = 0  # consecutive failed sends (the current burst)

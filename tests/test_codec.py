@@ -145,7 +145,7 @@ def test_directory_instead_of_file(tmp_path: Path) -> None:
 
 def test_frame_ids_and_data_ids(mdb: MotorDatabase) -> None:
     bases: dict[Kind, int] = {"current": 0x110, "voltage": 0x120, "truth": 0x7E0,
-                              "diagnosis": 0x180}
+                              "diagnosis": 0x180, "sync": 0x1F0}
     for kind, base in bases.items():
         for node in range(N_NODES):
             assert frame_id(kind, node) == mdb.frame_id(kind, node) == base + node
@@ -271,7 +271,10 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
     protected = apply_profile2_crc(bytes(reserved), mdb.message("current", 3))
     assert protected is not None
     keyed = mdb.with_secoc_key(bytes(range(16)))
-    signed = mdb.with_secoc_key(bytes(range(16))).encode_current(3, 1.0, 0)
+    sender = mdb.with_secoc_key(bytes(range(16)))
+    unsynced = _decode(keyed, 0x113, good)  # nothing to verify against before a sync
+    assert isinstance(_decode(keyed, 0x1F3, sender.encode_sync(3, "current")), Decoded)
+    signed = sender.encode_current(3, 1.0, 0)
     assert isinstance(_decode(keyed, 0x113, signed), Decoded)
     cases: dict[RejectReason, Decoded | Rejected] = {
         RejectReason.UNKNOWN_ID: _decode(mdb, 0x100, good),
@@ -286,6 +289,7 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
         RejectReason.EXTENDED_ID: mdb.decode(0x113, good, True, False, False, 0.0),
         RejectReason.BAD_MAC: _decode(keyed, 0x113, good),  # unsigned frame, keyed monitor
         RejectReason.STALE_FRESHNESS: _decode(keyed, 0x113, signed),  # replayed
+        RejectReason.UNSYNCED: unsynced,
     }
     assert set(cases) == set(RejectReason)
     for reason, result in cases.items():
@@ -295,7 +299,7 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
         assert "\n" not in result.detail
     for reason in (RejectReason.WRONG_LENGTH, RejectReason.BAD_CRC,
                    RejectReason.OUT_OF_RANGE, RejectReason.MALFORMED, RejectReason.BAD_MAC,
-                   RejectReason.STALE_FRESHNESS):
+                   RejectReason.STALE_FRESHNESS, RejectReason.UNSYNCED):
         assert (cases[reason].node, cases[reason].kind) == (3, "current")
     assert cases[RejectReason.UNKNOWN_ID].node is None
 
@@ -304,6 +308,7 @@ def test_reject_reason_values() -> None:
     assert {r.value for r in RejectReason} == {
         "unknown_id", "wrong_length", "bad_crc", "out_of_range", "malformed",
         "remote_frame", "error_frame", "extended_id", "bad_mac", "stale_freshness",
+        "unsynced",
     }
 
 
@@ -405,7 +410,7 @@ def test_random_payload_on_known_ids(mdb: MotorDatabase, kind: Kind, node: int,
         for name, value in result.raw.items():
             lo, hi = lo_hi[name]
             assert lo is not None and hi is not None and lo <= value <= hi
-        if kind != "truth":
+        if kind not in ("truth", "sync"):  # no E2E on these
             assert check_profile2_crc(data, mdb.message(kind, node)) is True
     else:
         assert (result.node, result.kind) == (node, kind)

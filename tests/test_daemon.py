@@ -155,3 +155,24 @@ def test_replay_with_secoc_key_rejects_forged_and_replayed_frames(tmp_path: Path
     r = subprocess.run([MONITOR, "replay", str(log), "--key", str(keyfile)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "chmod 600" in r.stderr
+
+
+def test_secoc_state_is_saved_on_exit_and_needs_a_key(tmp_path: Path) -> None:
+    import json
+
+    keyfile = tmp_path / "k"
+    keyfile.write_text(bytes(range(16)).hex())
+    keyfile.chmod(0o600)
+    state = tmp_path / "fresh.json"
+    r = subprocess.run([MONITOR, "run", "--interface", "virtual", "--secoc-state", str(state)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "needs --key" in r.stderr and r.stderr.count("\n") == 1
+    proc = subprocess.Popen([MONITOR, "run", "--interface", "virtual", "--channel", "st",
+                             "--key", str(keyfile), "--secoc-state", str(state)],
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(8)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert state.stat().st_mode & 0o777 == 0o600
+    assert isinstance(json.loads(state.read_text()), dict)

@@ -22,6 +22,7 @@ LAYOUT = {  # kind: (message prefix, base id, sender, cycle time ms, E2E protect
     "voltage": ("MotorVoltage", 0x120, "MotorECU", 50, True),
     "truth": ("SimTruth", 0x7E0, "MotorECU", 10, False),
     "diagnosis": ("MonitorDiagnosis", 0x180, "Monitor", 100, True),
+    "sync": ("SecOCSync", 0x1F0, "MotorECU", 1000, False),
 }
 
 
@@ -170,7 +171,8 @@ def test_secoc_signals_and_attributes(db: Database) -> None:
             names = {s.name for s in msg.signals}
             if kind not in SECOC_LAYOUT:
                 assert not names & {"FreshnessValue", "Authenticator"}
-                assert "SecOCDataID" not in msg.dbc.attributes
+                if kind != "sync":  # the sync frame has its own MAC (test below)
+                    assert "SecOCDataID" not in msg.dbc.attributes
                 continue
             (fv_start, fv_len), (auth_start, auth_len) = SECOC_LAYOUT[kind]
             fv = msg.get_signal_by_name("FreshnessValue")
@@ -203,3 +205,41 @@ def test_secoc_uses_the_spare_bits_only(db: Database) -> None:
     for (kind, name), (start, length) in old.items():
         sig = db.get_message_by_name(f"{LAYOUT[kind][0]}_N0").get_signal_by_name(name)
         assert (sig.start, sig.length) == (start, length)
+
+
+def test_sync_frames_layout(db: Database) -> None:
+    # SyncKind 0-3 | reserved 4-7 | SyncFreshness 8-39 | SyncAuthenticator 40-63; no E2E.
+    ids = {m.frame_id for m in db.messages}
+    sync_ids = set(range(0x1F0, 0x200))
+    assert sync_ids <= ids
+    assert not sync_ids & {m.frame_id for m in db.messages
+                           if not m.name.startswith("SecOCSync_")}  # collides with nothing
+    for node in range(N_NODES):
+        msg = db.get_message_by_name(f"SecOCSync_N{node}")
+        assert msg.dbc is not None
+        layout = {s.name: (s.start, s.length, s.is_signed) for s in msg.signals}
+        assert layout == {"SyncKind": (0, 4, False), "SyncFreshness": (8, 32, False),
+                          "SyncAuthenticator": (40, 24, False)}
+        kind = msg.get_signal_by_name("SyncKind")
+        assert (kind.minimum, kind.maximum) == (0, 1)
+        assert kind.choices is not None
+        assert {int(k): str(v) for k, v in kind.choices.items()} == {0: "current", 1: "voltage"}
+        assert msg.get_signal_by_name("SyncFreshness").maximum == 2**32 - 1
+        assert msg.dbc.attributes["SecOCDataID"].value == 0x1F0 + node
+        assert msg.dbc.attributes["SecOCFreshnessValueLength"].value == 64
+        assert "E2EDataID" not in msg.dbc.attributes
+        assert "AES-CMAC" in (msg.get_signal_by_name("SyncAuthenticator").comment or "")
+        assert "497 days" in (msg.get_signal_by_name("SyncFreshness").comment or "")
+
+
+def test_cantools_decode_reads_a_sync_frame() -> None:
+    tx = load_database(REPO_DBC, secoc_key=bytes(range(16)))
+    for _ in range(300):
+        tx.encode_voltage(5, 1.0, 0)
+    data = tx.encode_sync(5, "voltage")
+    log = f"(1700000000.000000) vcan0 1F5#{data.hex().upper()}\n"
+    proc = subprocess.run([*_cantools_cli(), "decode", "--single-line", str(REPO_DBC)],
+                          input=log, capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "SecOCSync_N5(SyncKind: voltage, SyncFreshness: 300, SyncAuthenticator: " \
+        in proc.stdout, proc.stdout

@@ -7,6 +7,7 @@ the reference for the layout, and the monitor pipeline fed by the virtual ECU.
 from __future__ import annotations
 
 import os
+import re
 import stat
 from pathlib import Path
 from typing import cast
@@ -43,6 +44,7 @@ from monitor.secoc import (
     SecOCLayout,
     aes_cmac,
     load_key,
+    nearest_freshness,
     parse_key,
 )
 from sim_ecu.ecu import ECUError, VirtualECU
@@ -90,10 +92,30 @@ def _reason(result: Decoded | Rejected) -> RejectReason | None:
     return result.reason if isinstance(result, Rejected) else None
 
 
+def _sync_all(tx: MotorDatabase, rx: MotorDatabase) -> None:
+    """Every stream of `rx` synchronised to `tx` by real sync frames (as at an ECU's start)."""
+    for node in range(N_NODES):
+        for kind in SECOC_KINDS:
+            d = _decode(rx, frame_id("sync", node), tx.encode_sync(node, kind))
+            assert isinstance(d, Decoded) and d.kind == "sync", d
+
+
+def _synced(rx: MotorDatabase) -> MotorDatabase:
+    """`rx` with every stream synchronised at 0 (a monitor that saw the ECUs start)."""
+    assert rx.secoc is not None
+    for node in range(N_NODES):
+        for kind in SECOC_KINDS:
+            rx.secoc.set_rx_freshness((kind, node), 0)
+    return rx
+
+
 @pytest.fixture
 def pair() -> tuple[MotorDatabase, MotorDatabase]:
-    """(sender, receiver): two databases with the same key and their own counters."""
-    return load_database(secoc_key=KEY), load_database(secoc_key=KEY)
+    """(sender, receiver): two databases with the same key and their own counters, the
+    receiver synchronised to the sender by its sync frames."""
+    tx, rx = load_database(secoc_key=KEY), load_database(secoc_key=KEY)
+    _sync_all(tx, rx)
+    return tx, rx
 
 
 def _forge(db: MotorDatabase, kind: Kind, node: int, frame: bytes, mac: bytes,
@@ -247,11 +269,14 @@ def test_sign_verify_every_node(pair: tuple[MotorDatabase, MotorDatabase], kind:
 def test_streams_and_keys_are_separate(pair: tuple[MotorDatabase, MotorDatabase]) -> None:
     tx, rx = pair
     frame = tx.encode_current(2, 5.0, 0)
-    # another key: bad MAC
+    sync = tx.encode_sync(2, "current")
+    # another key: bad MAC (not even the sync verifies: that stream stays unsynced)
     other = load_database(secoc_key=OTHER_KEY)
-    assert _reason(_decode(other, 0x112, frame)) is RejectReason.BAD_MAC
+    assert _reason(_decode(other, 0x1F2, sync)) is RejectReason.BAD_MAC
+    assert _reason(_decode(other, 0x112, frame)) is RejectReason.UNSYNCED
+    assert _reason(_decode(_synced(other), 0x112, frame)) is RejectReason.BAD_MAC
     # the same key, AES-256 length: another key too
-    assert _reason(_decode(load_database(secoc_key=KEY + KEY), 0x112, frame)) is \
+    assert _reason(_decode(_synced(load_database(secoc_key=KEY + KEY)), 0x112, frame)) is \
         RejectReason.BAD_MAC
     # a frame of node 2 is not valid for node 3 (data ID in the MAC; CRC also catches it)
     assert _reason(_decode(rx, 0x113, frame)) is RejectReason.BAD_CRC
@@ -275,6 +300,10 @@ def test_keyless_monitor_decodes_signed_frames_and_unsigned_are_the_old_frames()
 def test_keyed_monitor_rejects_unsigned_frames() -> None:
     rx = load_database(secoc_key=KEY)
     plain = load_database()
+    for kind in SECOC_KINDS:  # not synchronised yet: nothing to verify against
+        r = _decode(rx, frame_id(kind, 0), _encode(plain, kind, 0, 1.0, 0))
+        assert isinstance(r, Rejected) and r.reason is RejectReason.UNSYNCED
+    _synced(rx)
     for kind in SECOC_KINDS:
         r = _decode(rx, frame_id(kind, 0), _encode(plain, kind, 0, 1.0, 0))
         assert isinstance(r, Rejected) and r.reason is RejectReason.BAD_MAC
@@ -419,7 +448,7 @@ def test_counter_exhaustion_is_an_error() -> None:
 def test_random_frames_never_verify(kind: Kind, node: int, data: bytes) -> None:
     # Random content with a correct CRC and no reserved bit set reaches the MAC check;
     # a random 24-bit MAC passes with probability 2^-24 per candidate (ignored here).
-    rx = _BASE.with_secoc_key(KEY)
+    rx = _synced(_BASE.with_secoc_key(KEY))
     payload = bytearray(data)
     if kind == "current":
         payload[1] &= 0x0F  # MotorCurrent's reserved high nibble
@@ -436,7 +465,7 @@ def test_random_frames_never_verify(kind: Kind, node: int, data: bytes) -> None:
        value=st.floats(-300, 300), mac=st.binary(min_size=3, max_size=3))
 def test_changed_payload_with_any_mac_never_verifies(kind: Kind, node: int, value: float,
                                                      mac: bytes) -> None:
-    tx, rx = _BASE.with_secoc_key(KEY), _BASE.with_secoc_key(KEY)
+    tx, rx = _BASE.with_secoc_key(KEY), _synced(_BASE.with_secoc_key(KEY))
     genuine = _encode(tx, kind, node, 1.0, 0)
     forged = _forge(tx, kind, node, genuine, mac, value=value)
     if forged[2:5] == genuine[2:5] and mac == genuine[5:8]:
@@ -515,9 +544,10 @@ def test_database_and_ecu_key_errors_are_one_line(tmp_path: Path) -> None:
     assert "\n" not in str(info.value)
     with pytest.raises(ECUError, match="16 or 32 bytes"):
         VirtualECU(None, load_database(), 0, load_scenario("healthy"), key=bytes(8))
-    # an older DBC without the SecOC signals loads, but cannot authenticate
-    text = REPO_DBC.read_text()
-    old = "\n".join(line for line in text.splitlines()
+    # an older DBC without the SecOC signals (and sync frames) loads, but cannot
+    # authenticate
+    no_sync = _without_sync_frames(REPO_DBC.read_text())
+    old = "\n".join(line for line in no_sync.splitlines()
                     if "FreshnessValue" not in line and "Authenticator" not in line)
     path = tmp_path / "old.dbc"
     path.write_text(old + "\n")
@@ -528,6 +558,28 @@ def test_database_and_ecu_key_errors_are_one_line(tmp_path: Path) -> None:
     assert "\n" not in str(info.value)
     with pytest.raises(CodecError, match="cannot authenticate"):
         plain.with_secoc_key(KEY)
+    # the SecOC signals without the sync frames: loads, but a key needs the syncs
+    path.write_text(no_sync)
+    plain = load_database(path)
+    assert plain.secoc_layout("current", 0) is not None
+    with pytest.raises(CodecError, match="cannot resynchronise") as info:
+        load_database(path, secoc_key=KEY)
+    assert "\n" not in str(info.value)
+    # half of them missing is a broken DBC
+    half = re.sub(r"BO_ 511 SecOCSync_N15: 8 MotorECU\n( SG_ .*\n)+", "",
+                  REPO_DBC.read_text())
+    path.write_text("\n".join(ln for ln in half.splitlines()
+                              if not re.search(r"(BO_|SG_|VAL_) 511 ", ln)) + "\n")
+    with pytest.raises(CodecError, match="missing message SecOCSync_N15"):
+        load_database(path)
+
+
+def _without_sync_frames(text: str) -> str:
+    """The DBC as it was before the SecOCSync messages (0x1F0..0x1FF)."""
+    text = re.sub(r"BO_ (49[6-9]|50\d|51[01]) SecOCSync_N\d+: 8 MotorECU\n( SG_ .*\n)+\n?",
+                  "", text)
+    return "\n".join(ln for ln in text.splitlines()
+                     if not re.search(r"(BO_|SG_|VAL_) (49[6-9]|50\d|51[01]) ", ln)) + "\n"
 
 
 @pytest.mark.parametrize(
@@ -575,7 +627,9 @@ def test_virtual_ecu_with_a_key_signs_and_continues_its_counters() -> None:
     for frames in (first, second):
         decoded = [rx.decode_can(m) for m in frames]
         assert all(isinstance(d, Decoded) for d in decoded), decoded[:3]
-        values = [d.value for d in decoded if isinstance(d, Decoded)]
+        # each run starts with one sync per stream, before its first data frame
+        assert [d.kind for d in decoded[:3]] == ["sync", "sync", "current"]
+        values = [d.value for d in decoded if isinstance(d, Decoded) and d.kind != "sync"]
         assert values == [d.value for d in map(plain.decode_can, unsigned)
                           if isinstance(d, Decoded)]
     assert ecu.db.secoc is not None
@@ -583,6 +637,7 @@ def test_virtual_ecu_with_a_key_signs_and_continues_its_counters() -> None:
     assert ecu.db.secoc.tx_freshness(("voltage", 3)) == 20
     assert all(isinstance(_decode(rx, m.arbitration_id, bytes(m.data)), Rejected)
                for m in first if m.arbitration_id != 0x7E3)  # replays of the first run
+    assert not any(m.arbitration_id == 0x1F3 for m in unsigned)  # no key, no syncs
 
 
 def _current(pipe: MonitorPipeline) -> int:
@@ -637,5 +692,410 @@ def test_pipeline_with_a_key_rejects_an_unsigned_ecu() -> None:
     pipe = MonitorPipeline(load_database(secoc_key=KEY), MonitorConfig())
     pipe.feed_many(frames)
     assert _current(pipe) == 0
-    assert pipe.counters["rejected/bad_mac"] == 100 + 20  # every current and voltage frame
+    # an unsigned ECU sends no sync either: its streams are never synchronised
+    assert pipe.counters["rejected/unsynced"] == 100 + 20  # every current and voltage frame
     assert pipe.counters["samples/truth"] == 100  # SimTruth is not authenticated
+    _synced(pipe.db)  # synchronised by hand, its frames are plainly unauthentic
+    pipe.feed_many(VirtualECU(None, load_database(), 1, load_scenario("healthy"), seed=2)
+                   .frames(1.0, start_time=T0 + 1.0))
+    assert _current(pipe) == 0
+    assert pipe.counters["rejected/bad_mac"] == 100 + 20
+
+
+# ----------------------------------------------------------------------------- resynchronisation
+
+SYNC_IDS = range(0x1F0, 0x200)
+
+
+def _ecu_frames(seconds: float, node: int = 0, seed: int = 5) -> list[can.Message]:
+    """A keyed virtual ECU's frames (syncs at sample 0 and every 100 samples)."""
+    ecu = VirtualECU(None, load_database(), node, load_scenario("fault-outage-recovery"),
+                     seed=seed, key=KEY)
+    return list(ecu.frames(seconds, start_time=T0))
+
+
+def _k(m: can.Message) -> int:
+    """The sample index of a virtual-ECU frame (100 Hz, from T0)."""
+    return round((m.timestamp - T0) * 100)
+
+
+def _rejected(pipe: MonitorPipeline) -> dict[str, int]:
+    return {k: v for k, v in pipe.counters.items() if k.startswith("rejected/")}
+
+
+def _keyed_pipe(db: MotorDatabase | None = None) -> MonitorPipeline:
+    return MonitorPipeline(db if db is not None else load_database(secoc_key=KEY),
+                           MonitorConfig())
+
+
+def _sync_of(frames: list[can.Message], k: int, kind: Kind = "current") -> can.Message:
+    index = SECOC_KINDS.index(kind)
+    return next(m for m in frames if m.arbitration_id in SYNC_IDS and _k(m) == k
+                and m.data[0] & 0xF == index)
+
+
+def _with_data(m: can.Message, data: bytes, timestamp: float | None = None) -> can.Message:
+    return can.Message(arbitration_id=m.arbitration_id, data=data, is_extended_id=False,
+                       timestamp=m.timestamp if timestamp is None else timestamp)
+
+
+def test_sync_frame_bytes_by_hand() -> None:
+    tx = load_database(secoc_key=KEY)
+    assert tx.secoc is not None
+    tx.secoc.set_tx_freshness(("voltage", 9), 0x1_2345_6789)
+    frame = tx.encode_sync(9, "voltage")
+    assert frame[0] == 1  # SyncKind voltage, reserved nibble 0
+    assert int.from_bytes(frame[1:5], "little") == 0x2345_6789  # low 32 bits
+    auth_data = (0x1F9).to_bytes(2, "big") + frame[:5] + (0x1_2345_6789).to_bytes(8, "big")
+    assert frame[5:8] == aes_cmac(KEY, auth_data)[:3]
+    assert tx.secoc.tx_freshness(("voltage", 9)) == 0x1_2345_6789  # a sync consumes nothing
+    layout = tx.sync_layout(9)
+    assert (layout.data_id, layout.payload_length, layout.kind_start, layout.kind_bits,
+            layout.fv_start, layout.fv_bits, layout.auth_start, layout.auth_bytes,
+            layout.freshness_bits) == (0x1F9, 5, 0, 4, 8, 32, 5, 3, 64)
+    with pytest.raises(CodecError, match="need a SecOC key"):
+        load_database().encode_sync(9, "current")
+    with pytest.raises(CodecError, match="not 'truth'"):
+        tx.encode_sync(9, "truth")
+    # without a key a sync frame is a plain sample, ignored by the pipeline
+    d = _decode(load_database(), 0x1F9, frame)
+    assert isinstance(d, Decoded) and (d.kind, d.node, d.counter) == ("sync", 9, None)
+    assert d.value == 0x2345_6789 and d.raw["SyncKind"] == 1
+
+
+def test_sync_sets_freshness_and_never_moves_it_back() -> None:
+    tx, rx = load_database(secoc_key=KEY), load_database(secoc_key=KEY)
+    assert tx.secoc is not None and rx.secoc is not None
+    stream = ("current", 2)
+    for _ in range(1000):  # the ECU ran before the monitor started
+        tx.encode_current(2, 1.0, 0)
+    late = tx.encode_current(2, 1.0, 0)
+    r = _decode(rx, 0x112, late)
+    assert isinstance(r, Rejected) and r.reason is RejectReason.UNSYNCED
+    assert "\n" not in r.detail and not rx.secoc.is_synchronised(stream)
+    sync = tx.encode_sync(2, "current")  # freshness 1001
+    assert isinstance(_decode(rx, 0x1F2, sync), Decoded)
+    assert rx.secoc.rx_freshness(stream) == 1001 and rx.secoc.is_synchronised(stream)
+    assert _reason(_decode(rx, 0x112, late)) is RejectReason.STALE_FRESHNESS  # 1001 itself
+    assert _reason(_decode(rx, 0x112, tx.encode_current(2, 2.0, 1))) is None  # 1002
+    assert _reason(_decode(rx, 0x1F2, sync)) is RejectReason.STALE_FRESHNESS  # replayed sync
+    assert rx.secoc.rx_freshness(stream) == 1002
+    now = tx.encode_sync(2, "current")
+    assert _reason(_decode(rx, 0x1F2, now)) is None  # equal: accepted, changes nothing
+    assert _reason(_decode(rx, 0x1F2, now)) is None
+    assert rx.secoc.rx_freshness(stream) == 1002
+    # the other stream of the node is still unsynchronised
+    assert _reason(_decode(rx, 0x122, tx.encode_voltage(2, 1.0, 0))) is RejectReason.UNSYNCED
+
+
+def test_forged_syncs_are_bad_mac() -> None:
+    tx, rx = load_database(secoc_key=KEY), load_database(secoc_key=KEY)
+    assert rx.secoc is not None
+    for _ in range(10):
+        tx.encode_current(4, 1.0, 0)
+    genuine = tx.encode_sync(4, "current")
+    assert _reason(_decode(rx, 0x1F4, genuine)) is None
+    msg = rx.message("sync", 4)
+
+    def forge(kind: int, fresh: int, mac: bytes) -> bytes:
+        return bytes(msg.encode({"SyncKind": kind, "SyncFreshness": fresh,
+                                 "SyncAuthenticator": int.from_bytes(mac, "little")},
+                                scaling=False))
+
+    data_frame = tx.encode_current(4, 1.0, 0)
+    forged = [
+        forge(0, 2**32 - 1, os.urandom(3)),  # far ahead: would stall the stream
+        forge(0, 5000, genuine[5:8]),  # another value under the genuine MAC
+        forge(1, 10, genuine[5:8]),  # the genuine sync relabelled as the voltage stream
+        forge(0, 10, bytes(3)),  # unsigned
+        genuine[:5] + data_frame[5:8],  # a data frame's MAC
+    ]
+    for frame in forged:
+        r = _decode(rx, 0x1F4, frame)
+        assert isinstance(r, Rejected) and r.reason is RejectReason.BAD_MAC, frame.hex()
+        assert (r.kind, r.node) == ("sync", 4) and "\n" not in r.detail
+    # a sync of node 4 on node 5's id: the data ID is in the MAC
+    assert _reason(_decode(rx, 0x1F5, genuine)) is RejectReason.BAD_MAC
+    assert rx.secoc.rx_freshness(("current", 4)) == 10  # nothing moved
+    assert rx.secoc.rx_freshness(("voltage", 4)) == 0
+    assert not rx.secoc.is_synchronised(("voltage", 4))
+    # a SyncKind no stream has: out of range, nothing verified; a reserved bit: malformed
+    assert _reason(_decode(rx, 0x1F4, bytes([2]) + genuine[1:])) is RejectReason.OUT_OF_RANGE
+    assert _reason(_decode(rx, 0x1F4, bytes([0x10]) + genuine[1:])) is RejectReason.MALFORMED
+    assert _reason(_decode(rx, 0x114, data_frame)) is None  # the stream goes on
+
+
+@pytest.mark.parametrize("kind", SECOC_KINDS)
+def test_sync_low_bits_wrap(kind: Kind) -> None:
+    tx, rx = load_database(secoc_key=KEY), load_database(secoc_key=KEY)
+    assert tx.secoc is not None and rx.secoc is not None
+    stream, fid, sid = (kind, 6), frame_id(kind, 6), frame_id("sync", 6)
+    tx.secoc.set_tx_freshness(stream, 2**32 - 3)
+    assert _reason(_decode(rx, sid, tx.encode_sync(6, kind))) is None  # fresh: high part 0
+    assert rx.secoc.rx_freshness(stream) == 2**32 - 3
+    old = tx.encode_sync(6, kind)
+    for _ in range(500):  # low 32 bits wrap to 497
+        _encode(tx, kind, 6, 1.0, 0)
+    wrapped = tx.encode_sync(6, kind)
+    assert int.from_bytes(wrapped[1:5], "little") == 497
+    assert _reason(_decode(rx, sid, wrapped)) is None  # 497 < low part: one more on top
+    assert rx.secoc.rx_freshness(stream) == 2**32 + 497
+    assert isinstance(_decode(rx, fid, _encode(tx, kind, 6, 2.0, 0)), Decoded)
+    r = _decode(rx, sid, old)  # from before the wrap: resolves into the past, a replay
+    assert isinstance(r, Rejected) and r.reason is RejectReason.STALE_FRESHNESS
+    assert str(2**32 - 3) in r.detail
+
+
+def test_nearest_freshness() -> None:
+    m = 2**32
+    assert nearest_freshness(0, 5, 32) == 5
+    assert nearest_freshness(0, m - 1, 32) == m - 1  # nothing below 0
+    assert nearest_freshness(7 * m + 10, 20, 32) == 7 * m + 20
+    assert nearest_freshness(7 * m + 10, 5, 32) == 7 * m + 5  # older: same high part
+    assert nearest_freshness(7 * m + m - 10, 5, 32) == 8 * m + 5  # wrapped
+    assert nearest_freshness(8 * m + 5, m - 10, 32) == 7 * m + m - 10  # from before a wrap
+    assert nearest_freshness(2**64 - 1, 0, 32) == 2**64 - m  # never beyond 64 bits
+    for ref in (0, 1, m // 2, m, 5 * m + 123):
+        for delta in (-m // 2, -1, 0, 1, m // 2 - 1):
+            if ref + delta >= 0:
+                assert nearest_freshness(ref, (ref + delta) % m, 32) == ref + delta
+
+
+def test_monitor_started_after_500_frames_recovers_at_the_first_sync() -> None:
+    frames = _ecu_frames(9.0)
+    late = [m for m in frames if _k(m) >= 510]  # the ECU has sent 510 current frames
+    pipe = _keyed_pipe()
+    before = [m for m in late if _k(m) < 600]  # the next syncs come at sample 600
+    pipe.feed_many(before)
+    n_data = sum(1 for m in before if m.arbitration_id in (0x110, 0x120))
+    assert _rejected(pipe) == {"rejected/unsynced": n_data}
+    assert n_data == 90 + 18 and _current(pipe) == 0
+    pipe.feed_many(m for m in late if _k(m) >= 600)
+    assert _rejected(pipe) == {"rejected/unsynced": n_data}  # none after the sync
+    assert pipe.counters["samples/secoc_sync"] == 2 * 3  # samples 600, 700, 800
+    assert pipe.db.secoc is not None and pipe.db.secoc.rx_freshness(("current", 0)) == 900
+    # from the sync on it estimates exactly as a monitor that started there
+    reference = _keyed_pipe()
+    reference.feed_many(m for m in frames if _k(m) >= 600)
+    assert _current(pipe) == _current(reference) > 250
+    assert pipe.summary()["nodes"] == reference.summary()["nodes"]
+    # a keyless monitor ignores the syncs and estimates from the start
+    plain = MonitorPipeline(load_database(), MonitorConfig())
+    plain.feed_many(late)
+    assert plain.counters["ignored/secoc_sync"] == 6 and not _rejected(plain)
+
+
+def test_restart_with_saved_state(tmp_path: Path) -> None:
+    frames = _ecu_frames(6.0)
+    state = tmp_path / "secoc.state"
+    first = _keyed_pipe()
+    first.feed_many(m for m in frames if _k(m) < 250)
+    assert first.db.secoc is not None and not _rejected(first)
+    first.db.secoc.save_state(state)
+    assert first.db.secoc.rx_freshness(("current", 0)) == 250
+
+    # a quick restart (20 samples lost): continues at once, before the next sync (300)
+    db = load_database(secoc_key=KEY)
+    assert db.secoc is not None and db.secoc.load_state(state) == 2
+    assert not db.secoc.is_synchronised(("current", 0))
+    quick = _keyed_pipe(db)
+    quick.feed_many(m for m in frames if 270 <= _k(m) < 300)
+    assert not _rejected(quick) and _current(quick) == 30 - 1  # the first waits for a voltage
+    assert db.secoc.is_synchronised(("current", 0))
+
+    # a longer outage (2 s, beyond the window): unsynced until the next sync, then normal
+    db = load_database(secoc_key=KEY)
+    assert db.secoc is not None and db.secoc.load_state(state) == 2
+    slow = _keyed_pipe(db)
+    slow.feed_many(m for m in frames if 450 <= _k(m) < 500)
+    # 200 current frames on: unsynced; 40 voltage frames on: still in the window
+    assert _rejected(slow) == {"rejected/unsynced": 50} and _current(slow) == 0
+    assert slow.counters["samples/voltage"] == 10
+    slow.feed_many(m for m in frames if _k(m) >= 500)
+    assert _rejected(slow) == {"rejected/unsynced": 50}
+    assert _current(slow) == 100
+    assert db.secoc.rx_freshness(("current", 0)) == 600
+
+
+def test_replayed_old_sync_after_a_restart_cannot_roll_back(tmp_path: Path) -> None:
+    frames = _ecu_frames(5.0)
+    old_sync = _sync_of(frames, 100)  # captured by an attacker in the first seconds
+    old_current = [m for m in frames if m.arbitration_id == 0x110 and 100 <= _k(m) < 110]
+    recent_current = next(m for m in frames if m.arbitration_id == 0x110 and _k(m) == 340)
+    state = tmp_path / "state.json"
+    first = _keyed_pipe()
+    first.feed_many(m for m in frames if _k(m) < 350)
+    assert first.db.secoc is not None
+    first.db.secoc.save_state(state)
+
+    db = load_database(secoc_key=KEY)
+    assert db.secoc is not None and db.secoc.load_state(state) == 2
+    stream = ("current", 0)
+    assert db.secoc.rx_freshness(stream) == 350
+    t = frames[-1].timestamp + 1.0
+    r = db.decode_can(_with_data(old_sync, bytes(old_sync.data), t))
+    assert isinstance(r, Rejected) and r.reason is RejectReason.STALE_FRESHNESS
+    assert "replayed sync" in r.detail and "350" in r.detail
+    assert db.secoc.rx_freshness(stream) == 350  # not rolled back
+    for m in old_current:  # the frames after the old sync are still replays
+        r = db.decode_can(_with_data(m, bytes(m.data), t))
+        assert isinstance(r, Rejected) and r.reason in (RejectReason.STALE_FRESHNESS,
+                                                        RejectReason.UNSYNCED), r
+    r = db.decode_can(_with_data(recent_current, bytes(recent_current.data), t))
+    assert isinstance(r, Rejected) and r.reason is RejectReason.STALE_FRESHNESS  # a replay
+    assert db.secoc.rx_freshness(stream) == 350
+    # the genuine stream continues within the window, and the replays stay dead
+    pipe = _keyed_pipe(db)
+    pipe.feed_many(m for m in frames if _k(m) >= 355)
+    assert not _rejected(pipe) and _current(pipe) > 100
+    pipe.feed_many(_with_data(m, bytes(m.data), frames[-1].timestamp + 2.0)
+                   for m in [old_sync, *old_current])
+    assert _rejected(pipe) == {"rejected/stale_freshness": 1, "rejected/bad_mac": 10}
+
+
+def test_without_state_the_first_sync_is_trusted_on_first_use() -> None:
+    # The documented limit: a monitor with no state believes the first authentic sync,
+    # even an old one replayed; the ECU's next genuine sync moves it past all of them.
+    frames = _ecu_frames(3.0)
+    old_sync = _sync_of(frames, 100)
+    old_current = next(m for m in frames if m.arbitration_id == 0x110 and _k(m) == 100)
+    db = load_database(secoc_key=KEY)
+    t = frames[-1].timestamp
+    assert isinstance(db.decode_can(_with_data(old_sync, bytes(old_sync.data), t)), Decoded)
+    assert isinstance(db.decode_can(_with_data(old_current, bytes(old_current.data), t)),
+                      Decoded)
+    new_sync = _sync_of(frames, 200)
+    assert isinstance(db.decode_can(new_sync), Decoded)
+    assert _reason(db.decode_can(_with_data(old_sync, bytes(old_sync.data), t))) is \
+        RejectReason.STALE_FRESHNESS
+
+
+def test_more_than_a_window_of_lost_frames_recovers_at_the_next_sync() -> None:
+    frames = _ecu_frames(5.0)
+    outage = [m for m in frames if 150 <= _k(m) < 250]  # 1 s lost, the sync at 200 too
+    assert sum(m.arbitration_id == 0x110 for m in outage) == 100 > DEFAULT_WINDOW
+    pipe = _keyed_pipe()
+    pipe.feed_many(m for m in frames if _k(m) < 150 or 250 <= _k(m) < 300)
+    # after the gap the current stream is beyond the window until the sync at 300 (its
+    # 8 freshness bits place the frames exactly: authentic, but too far ahead)
+    rejected = _rejected(pipe)
+    assert rejected == {"rejected/stale_freshness": 50}  # samples 250..299
+    assert pipe.counters["samples/voltage"] == 40  # 20 voltage frames lost: in the window
+    pipe.feed_many(m for m in frames if _k(m) >= 300)
+    assert _rejected(pipe) == rejected  # recovered at the sync
+    assert pipe.db.secoc is not None and pipe.db.secoc.rx_freshness(("current", 0)) == 500
+    assert _current(pipe) == 150 + 200 - 1
+
+
+# ----------------------------------------------------------------------------- state files
+
+
+def test_state_round_trip_and_file_mode(tmp_path: Path) -> None:
+    tx, rx = load_database(secoc_key=KEY), load_database(secoc_key=KEY)
+    assert tx.secoc is not None and rx.secoc is not None
+    _sync_all(tx, rx)
+    for k in range(70):
+        _decode(rx, 0x113, tx.encode_current(3, 1.0, k % 16))
+    for k in range(5):
+        _decode(rx, 0x12F, tx.encode_voltage(15, 1.0, k % 16))
+    state = rx.secoc.export_state()
+    assert state["rx/current/3"] == 70 and state["rx/voltage/15"] == 5
+    assert state["rx/current/0"] == 0 and len(state) == 2 * N_NODES
+    assert tx.secoc.export_state() == {"tx/current/3": 70, "tx/voltage/15": 5}
+    path = tmp_path / "sub" / "secoc.state"
+    with pytest.raises(SecOCError, match="cannot save") as info:
+        rx.secoc.save_state(path)  # no such directory
+    assert "\n" not in str(info.value)
+    path.parent.mkdir()
+    rx.secoc.save_state(path)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert [p.name for p in path.parent.iterdir()] == ["secoc.state"]  # no temp file left
+    again = SecOC(KEY)
+    assert again.load_state(path) == 2 * N_NODES
+    assert again.export_state() == state
+    assert not again.is_synchronised(("current", 3))  # a floor, not a synchronisation
+    path.chmod(0o644)  # others may read it (freshness values are public on the bus)
+    rx.secoc.save_state(path)  # replaced atomically, owner-only again
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert SecOC(KEY).load_state(tmp_path / "missing") is None  # fresh start
+    # the sender's counters, restored past what it may have signed after the save
+    tx.secoc.save_state(tmp_path / "tx")
+    sender = load_database(secoc_key=KEY)
+    assert sender.secoc is not None
+    assert sender.secoc.load_state(tmp_path / "tx", tx_margin=1000) == 2
+    assert sender.secoc.tx_freshness(("current", 3)) == 1070
+    frame = sender.encode_current(3, 1.0, 0)  # 1071: beyond the window...
+    assert _reason(_decode(rx, 0x113, frame)) is RejectReason.BAD_MAC  # (8 bits can't tell)
+    assert _reason(_decode(rx, 0x1F3, sender.encode_sync(3, "current"))) is None  # ...synced
+    assert _reason(_decode(rx, 0x113, sender.encode_current(3, 1.0, 1))) is None
+
+
+def test_import_state_only_moves_forward() -> None:
+    secoc = SecOC(KEY)
+    secoc.set_rx_freshness(("current", 1), 500)
+    secoc.import_state({"rx/current/1": 400, "rx/voltage/1": 30, "tx/current/1": 9})
+    assert secoc.rx_freshness(("current", 1)) == 500 and secoc.is_synchronised(("current", 1))
+    assert secoc.rx_freshness(("voltage", 1)) == 30
+    assert not secoc.is_synchronised(("voltage", 1))
+    assert secoc.tx_freshness(("current", 1)) == 9
+    secoc.import_state({"tx/current/1": 5}, tx_margin=2)
+    assert secoc.tx_freshness(("current", 1)) == 9
+    with pytest.raises(SecOCError, match="bad stream name"):
+        secoc.import_state({"rx/current/1": 1, "up/current/1": 2})
+    assert secoc.rx_freshness(("current", 1)) == 500  # all or nothing
+    for bad in (-1, 2**64, True, 1.5, "7"):
+        with pytest.raises(SecOCError, match=r"0\.\.2\^64-1"):
+            secoc.import_state({"rx/current/1": bad})  # type: ignore[dict-item]
+    with pytest.raises(SecOCError, match="tx_margin"):
+        secoc.import_state({}, tx_margin=-1)
+    # streams not named (kind, node) are not saved
+    secoc.set_rx_freshness("legacy", 3)
+    assert "legacy" not in str(secoc.export_state())
+
+
+@pytest.mark.parametrize(
+    ("content", "needle"),
+    [
+        (b"", "not a SecOC state file"),
+        (b"{not json", "not a SecOC state file"),
+        (b"\xff\xfe", "not a SecOC state file"),
+        (b"[]", "not a SecOC state file"),
+        (b'{"format": "something else", "version": 1, "freshness": {}}', "format"),
+        (b'{"format": "motor-monitor SecOC freshness state", "version": 9, "freshness": {}}',
+         "version 9"),
+        (b'{"format": "motor-monitor SecOC freshness state", "version": 1}', "freshness"),
+        (b'{"format": "motor-monitor SecOC freshness state", "version": 1,\n'
+         b' "freshness": {"rx/current/0": -5}}', "rx/current/0 must be"),
+        (b'{"format": "motor-monitor SecOC freshness state", "version": 1,\n'
+         b' "freshness": {"rx/current": 5}}', "bad stream name"),
+        (b'{"format": "motor-monitor SecOC freshness state", "version": 1,\n'
+         b' "freshness": {"rx/current/0": 1e3}}', "must be an int"),
+    ],
+    ids=["empty", "json", "utf8", "list", "format", "version", "no-freshness", "negative",
+         "name", "float"],
+)
+def test_malformed_state_file_is_one_line(tmp_path: Path, content: bytes, needle: str) -> None:
+    path = tmp_path / "state"
+    path.write_bytes(content)
+    path.chmod(0o600)
+    secoc = SecOC(KEY)
+    with pytest.raises(SecOCError, match=needle) as info:
+        secoc.load_state(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
+    assert secoc.export_state() == {}  # nothing restored
+
+
+def test_state_file_permissions_and_type(tmp_path: Path) -> None:
+    secoc = SecOC(KEY)
+    secoc.set_rx_freshness(("current", 0), 7)
+    path = tmp_path / "state"
+    secoc.save_state(path)
+    for mode in (0o620, 0o602, 0o666):
+        path.chmod(mode)
+        with pytest.raises(SecOCError, match="writable by group or others") as info:
+            SecOC(KEY).load_state(path)
+        assert "\n" not in str(info.value) and "chmod 600" in str(info.value)
+    path.chmod(0o644)  # readable is fine: freshness values are no secret
+    assert SecOC(KEY).load_state(path) == 1
+    with pytest.raises(SecOCError, match="not a regular file"):
+        SecOC(KEY).load_state(tmp_path)

@@ -8,6 +8,7 @@ runs it on a real SocketCAN vcan (natively or in User-Mode Linux).
 from __future__ import annotations
 
 import itertools
+import json
 import logging
 import math
 import os
@@ -103,6 +104,39 @@ def test_frames_two_seconds_of_fault_outage_recovery(mdb: MotorDatabase) -> None
     # Frame order within a sample: current, voltage (when due), truth.
     assert [mdb.decode_can(m).kind for m in frames[:4]] == ["current", "voltage", "truth",
                                                             "current"]
+
+
+def test_keyed_ecu_sends_secoc_syncs_at_start_and_every_second(mdb: MotorDatabase) -> None:
+    key = bytes(range(16))
+    ecu = VirtualECU(None, mdb, 5, load_scenario("healthy"), rate=100.0, key=key)
+    frames = list(ecu.frames(2.5))
+    rx = load_database(secoc_key=key)
+    decoded = _decode_all(rx, frames)  # the syncs make a fresh monitor accept the rest
+    syncs = _by_kind(decoded, "sync")
+    assert [(d.timestamp, d.raw["SyncKind"], d.value) for d in syncs] == [
+        (0.0, 0, 0), (0.0, 1, 0), (1.0, 0, 100), (1.0, 1, 20), (2.0, 0, 200), (2.0, 1, 40)]
+    assert [d.kind for d in decoded[:3]] == ["sync", "sync", "current"]  # before the data
+    assert ecu.stats.produced == {"current": 250, "voltage": 50, "truth": 250, "sync": 6}
+    assert all(m.arbitration_id == 0x1F5 for m in frames if mdb.decode_can(m).kind == "sync")
+    # without a key: no syncs, and the stats look as they always did
+    plain = VirtualECU(None, mdb, 5, load_scenario("healthy"), rate=100.0)
+    assert not any(d.kind == "sync" for d in _decode_all(mdb, list(plain.frames(2.5))))
+    assert "sync" not in plain.stats.produced and "sync" not in plain.stats.summary()
+
+
+def test_a_sync_on_a_skipped_sample_goes_out_with_the_next_one(mdb: MotorDatabase) -> None:
+    from sim_ecu.ecu import _Simulation
+
+    key = bytes(range(16))
+    ecu = VirtualECU(None, mdb, 2, load_scenario("healthy"), rate=100.0, key=key)
+    sim = _Simulation(ecu, ecu.stats)
+    kinds = [[mdb.decode_can(m).kind for m in sim.step(True, 0.0)] for _ in range(99)]
+    assert kinds[0][:2] == ["sync", "sync"] and all("sync" not in k for k in kinds[1:])
+    sim.step(False, 0.0)  # sample 100, a sync sample, skipped (an overrun)
+    sim.step(False, 0.0)
+    late = _decode_all(mdb, sim.step(True, 0.0))
+    assert [d.kind for d in late[:3]] == ["sync", "sync", "current"]
+    assert late[0].value == 99  # the freshness signed so far: samples 100, 101 unsigned
 
 
 def test_truth_follows_the_whole_scenario(mdb: MotorDatabase) -> None:
@@ -438,16 +472,22 @@ def test_cli_with_a_key_sends_signed_frames(
     assert rc == 0, capsys.readouterr().err
     keyed = load_database(secoc_key=SECOC_KEY)
     decoded = _decode_all(keyed, frames)  # every frame verifies: authentic and fresh
-    assert {d.kind for d in decoded} == {"current", "voltage", "truth"}
-    signed = [d for d in decoded if d.kind != "truth"]
+    assert {d.kind for d in decoded} == {"current", "voltage", "truth", "sync"}
+    # one sync per stream before the first data frame (the run is shorter than a second)
+    assert [(d.kind, d.raw.get("SyncKind"), d.value) for d in decoded[:2]] == [
+        ("sync", 0, 0.0), ("sync", 1, 0.0)]
+    assert len(_by_kind(decoded, "sync")) == 2
+    signed = [d for d in decoded if d.kind in ("current", "voltage")]
     assert signed and all(d.raw["FreshnessValue"] == (i + 1) % (256 if d.kind == "current" else 16)
                           for kind in ("current", "voltage")
                           for i, d in enumerate(_by_kind(signed, kind)))
     wrong = load_database(secoc_key=bytes(16))
-    reasons = {getattr(wrong.decode_can(m), "reason", None) for m in frames
+    reasons = {(m.arbitration_id, getattr(wrong.decode_can(m), "reason", None)) for m in frames
                if m.arbitration_id != 0x7E4}
-    assert reasons == {"bad_mac"}
-    assert "sim-ecu: done:" in capsys.readouterr().err
+    # the syncs do not verify under another key, so its streams are never synchronised
+    assert reasons == {(0x1F4, "bad_mac"), (0x114, "unsynced"), (0x124, "unsynced")}
+    err = capsys.readouterr().err
+    assert "sim-ecu: done:" in err and "sync=2" in err
 
 
 @pytest.mark.parametrize(
@@ -475,6 +515,77 @@ def test_cli_key_file_errors_are_one_line(
     assert len(lines) == 1, err
     assert lines[0].startswith("sim-ecu: error: ") and needle in lines[0]
     assert str(path) in lines[0] and SECOC_KEY.hex() not in err
+
+
+def _cli_run(channel: str, *extra: str) -> list[can.Message]:
+    """One in-process sim-ecu run of node 4 (0.3 s, no truth); the frames it sent."""
+    rx = can.Bus(interface="virtual", channel=channel)
+    try:
+        rc = main(["--interface", "virtual", "--channel", channel, "--node", "4",
+                   "--scenario", "healthy", "--duration", "0.3", "--no-truth", *extra])
+        frames = _drain(rx)
+    finally:
+        rx.shutdown()
+    assert rc == 0
+    return frames
+
+
+def test_cli_secoc_state_keeps_the_counters_across_runs(
+    channel: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    key = _key_file(tmp_path / "ecu.key", SECOC_KEY.hex().encode(), 0o600)
+    state = tmp_path / "ecu.state"
+    monitor = load_database(secoc_key=SECOC_KEY)  # one monitor sees every run
+    assert monitor.secoc is not None
+    args = ("--key", str(key), "--secoc-state", str(state))
+    first = _decode_all(monitor, _cli_run(channel, *args))
+    assert first[0].kind == "sync" and first[0].value == 0
+    assert stat_mode(state) == 0o600
+    saved = json.loads(state.read_text())["freshness"]
+    assert saved == {"tx/current/4": 30, "tx/voltage/4": 6}
+    # a second run continues a minute of frames ahead (it might have crashed after a
+    # save), says so in its first sync, and the monitor goes on without a rejection
+    second = _decode_all(monitor, _cli_run(channel, *args))
+    margin = 60 * 100
+    assert [(d.kind, d.value) for d in second[:2]] == [("sync", 30 + margin),
+                                                       ("sync", 6 + margin)]
+    assert monitor.secoc.rx_freshness(("current", 4)) == 30 + margin + 30
+    assert json.loads(state.read_text())["freshness"]["tx/current/4"] == 60 + margin
+    # without the state a run restarts at 0: the monitor takes it for a replay
+    third = [monitor.decode_can(m) for m in _cli_run(channel, "--key", str(key))]
+    reasons = {getattr(d, "reason", None) for d in third}
+    assert reasons <= {"stale_freshness", "bad_mac"} and "stale_freshness" in reasons
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    ("args", "content", "needle"),
+    [
+        (["--secoc-state", "{state}"], None, "--secoc-state needs --key"),
+        (["--key", "{key}", "--secoc-state", "{state}"], b"{}", "not a SecOC state file"),
+        (["--key", "{key}", "--secoc-state", "{tmp}"], None, "not a regular file"),
+    ],
+)
+def test_cli_secoc_state_errors_are_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str],
+    content: bytes | None, needle: str,
+) -> None:
+    key = _key_file(tmp_path / "ecu.key", SECOC_KEY.hex().encode(), 0o600)
+    state = tmp_path / "ecu.state"
+    if content is not None:
+        _key_file(state, content, 0o600)
+    argv = [a.format(key=key, state=state, tmp=tmp_path) for a in args]
+    rc = main(["--interface", "virtual", "--channel", "x", "--node", "0",
+               "--scenario", "healthy", *argv])
+    err = capsys.readouterr().err
+    assert rc == 2
+    lines = err.splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("sim-ecu: error: ") and needle in lines[0]
+
+
+def stat_mode(path: Path) -> int:
+    return path.stat().st_mode & 0o777
 
 
 class _StderrLines:
