@@ -461,7 +461,7 @@ class MotorDatabase:
         route = self._routes.get(arbitration_id)
         if route is None:
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
-                            detail=f"id 0x{arbitration_id:03X} not in {self.source}")
+                            detail=f"not in {self.source}")
         if type(data) is not bytes:
             try:
                 data = bytes(data)

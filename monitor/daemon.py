@@ -56,12 +56,18 @@ def open_bus(interface: str | None, channel: str | None, bitrate: int | None = N
         kwargs["channel"] = channel
     if bitrate:
         kwargs["bitrate"] = bitrate
+    can_log = logging.getLogger("can")
+    level = can_log.level
+    if not log.isEnabledFor(logging.DEBUG):  # its ERROR record would be a second line
+        can_log.setLevel(logging.CRITICAL + 1)
     try:
         return can.Bus(**kwargs)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
         where = f"{interface or '<config>'}:{channel or '<config>'}"
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise BusError(f"cannot open CAN interface {where}: {msg}") from None
+    finally:
+        can_log.setLevel(level)
 
 
 def _positive(text: str) -> float:
@@ -71,6 +77,16 @@ def _positive(text: str) -> float:
         raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
     if not (v > 0 and math.isfinite(v)):
         raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
+    return v
+
+
+def _rate(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not (math.isfinite(v) and 0.0 < v <= 100_000.0):
+        raise argparse.ArgumentTypeError(f"must be a rate in Hz, 0 < rate <= 100000: {text!r}")
     return v
 
 
@@ -192,13 +208,10 @@ def run_live(args: argparse.Namespace) -> int:
     cfg = _config(args)
     stop = _Stop()
     stop.install()
+    # Load the compiled estimator before the socket opens: frames arriving meanwhile
+    # would pile up in the kernel's buffer and be dropped.
+    MonitorPipeline(db, cfg)
     bus = open_bus(args.interface, args.channel, args.bitrate)
-    try:
-        sink = _make_sink(args, cfg)
-        on_event, events_fh = _event_writer(args.events, None)
-    except BaseException:
-        bus.shutdown()
-        raise
     holder: dict[str, can.BusABC | None] = {"bus": bus}
 
     def publish(msg: can.Message) -> None:
@@ -207,7 +220,13 @@ def run_live(args: argparse.Namespace) -> int:
             raise can.CanOperationError("interface is down")
         b.send(msg, timeout=0.01)
 
-    pipe = MonitorPipeline(db, cfg, sink=sink, publish=publish, on_event=on_event)
+    try:
+        sink = _make_sink(args, cfg)
+        on_event, events_fh = _event_writer(args.events, None)
+        pipe = MonitorPipeline(db, cfg, sink=sink, publish=publish, on_event=on_event)
+    except BaseException:
+        bus.shutdown()
+        raise
     where = f"{args.interface or '<config>'}:{args.channel or '<config>'}"
     log.warning("monitoring %s, nodes %s", where, "all" if cfg.nodes is None else cfg.nodes)
     notifier = Notifier.from_environment()
@@ -233,27 +252,32 @@ def run_live(args: argparse.Namespace) -> int:
                 except BusError as exc:
                     backoff = min(2.0, backoff * 2)
                     log.debug("still down: %s", exc)
-                    continue
-                outage = time.monotonic() - (down_since or time.monotonic())
+                continue  # back only once a receive succeeds (a down link binds fine)
+            try:
+                msg = b.recv(timeout=0.05)
+            except (can.CanError, OSError) as exc:
+                dropped_before = pipe.counters.get("bus/socket_drops", 0)
+                with suppress(Exception):
+                    b.shutdown()
+                holder["bus"] = None
+                if down_since is None:  # a new outage
+                    pipe.counters.inc("bus/outages")
+                    log.warning("CAN interface failed: %s; reconnecting", exc)
+                    sink.log_event(BUS_EVENTS, time.time(), f"CAN interface failed: {exc}",
+                                   "ERROR")
+                    down_since = time.monotonic()
+                else:  # reopened, but still down (e.g. ENETDOWN on a link set down)
+                    backoff = min(2.0, backoff * 2)
+                    log.debug("still down: %s", exc)
+                continue
+            if down_since is not None:
+                outage = time.monotonic() - down_since
                 pipe.counters.inc("bus/reconnects")
                 log.warning("CAN interface back after %.1f s", outage)
                 sink.log_event(BUS_EVENTS, time.time(), f"CAN interface back after {outage:.1f} s",
                                "WARN")
                 backoff = 0.1
                 down_since = None
-                continue
-            try:
-                msg = b.recv(timeout=0.05)
-            except (can.CanError, OSError) as exc:
-                pipe.counters.inc("bus/outages")
-                log.warning("CAN interface failed: %s; reconnecting", exc)
-                sink.log_event(BUS_EVENTS, time.time(), f"CAN interface failed: {exc}", "ERROR")
-                dropped_before = pipe.counters.get("bus/socket_drops", 0)
-                with suppress(Exception):
-                    b.shutdown()
-                holder["bus"] = None
-                down_since = time.monotonic()
-                continue
             if msg is not None:
                 pipe.feed(msg)
             now = time.time()
@@ -268,6 +292,7 @@ def run_live(args: argparse.Namespace) -> int:
     finally:
         notifier.stopping("flushing the recording")
         fresh.maybe_save(time.monotonic(), force=True)
+        pipe.log_counters(time.time())  # the last second's counters, into the recording
         sink.close()
         b = holder["bus"]
         if b is not None:
@@ -357,7 +382,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dbc", default=None, help="DBC file (default: the one shipped)")
     p.add_argument("--nodes", type=_nodes, default=None,
                    help="nodes to monitor, e.g. 0,3 (default: all that send)")
-    p.add_argument("--rate", type=float, default=100.0, help="ECU current-sample rate, Hz")
+    p.add_argument("--rate", type=_rate, default=100.0, help="ECU current-sample rate, Hz")
     p.add_argument("--thresholds", default=None, help="thresholds TOML (motor-monitor calibrate)")
     p.add_argument("--key", default=None, metavar="FILE",
                    help="SecOC key (32 or 64 hex digits, mode 0600): reject unauthenticated frames")

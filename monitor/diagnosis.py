@@ -338,6 +338,10 @@ class Thresholds:
             raise DiagnosisError(f"f1 ({f1!r}) must be less than f2 ({f2!r})")
         if not isinstance(self.quantity, str) or not self.quantity.strip():
             raise DiagnosisError("quantity must be a non-empty string")
+        if self.quantity == "gamma" and not 0.0 < f1 < f2 < 1.0:
+            # gamma^ lies in [0, 1]: outside, a region (76) could never be reported
+            raise DiagnosisError(f"gamma thresholds must satisfy 0 < f1 < f2 < 1, "
+                                 f"got f1 = {f1!r}, f2 = {f2!r}")
         try:
             centres = tuple(_finite_number(f"centres[{i}]", c) for i, c in enumerate(self.centres))
         except TypeError as exc:

@@ -203,7 +203,7 @@ class MonitorPipeline:
         if isinstance(res, Rejected):
             reason = str(res.reason)
             self.counters.inc(f"rejected/{reason}")
-            self._warn.warn(reason, f"frame rejected ({reason}): id 0x{res.arbitration_id:X} "
+            self._warn.warn(reason, f"frame rejected ({reason}, id 0x{res.arbitration_id:X}): "
                                     f"{res.detail}")
             return
         self._dispatch(res)
@@ -302,8 +302,7 @@ class MonitorPipeline:
         self.sink.add_sample(nm.node, t, amps, float(out.y_est[0]), g, out.rules,
                              int(nm.classifier.state), float(out.nis), nm.truth_gamma)
         if t - self._last_counters_t >= self.cfg.counters_period_s:
-            self._last_counters_t = t
-            self.sink.log_counters(t, self.counters)
+            self.log_counters(t)
 
     def _periods(self, dt: float, lost: int) -> int:
         """Sample periods since the previous current sample.
@@ -371,6 +370,15 @@ class MonitorPipeline:
                                  "silence")
             elif silent and now - nm.last_publish >= self.cfg.publish_period_s:
                 self._publish(nm, now)
+        # Counters go with estimated samples (at their time stamps); when none come (a
+        # silent bus, error frames, an outage) they still reach the recording.
+        if now - self._last_counters_t >= 2.0 * self.cfg.counters_period_s:
+            self.log_counters(now)
+
+    def log_counters(self, t: float) -> None:
+        """Log every counter into the sink at time `t` (also called on exit)."""
+        self._last_counters_t = t
+        self.sink.log_counters(t, self.counters)
 
     def summary(self) -> dict[str, Any]:
         return {

@@ -282,8 +282,12 @@ def test_thresholds_validation() -> None:
         Thresholds(True, 0.7)
     with pytest.raises(DiagnosisError, match="increasing"):
         Thresholds(0.2, 0.7, centres=(1.0, 0.4, 0.0))
-    th = Thresholds(0, 1)
+    th = Thresholds(0, 1, quantity="fault_volts")  # other quantities are not bounded
     assert isinstance(th.f1, float)
+    # on gamma^ in [0, 1], f1 = 0 leaves no fault-free region and f2 = 1 no outage region
+    for f1, f2 in ((0.0, 0.5), (0.5, 1.0), (-0.5, 2.0)):
+        with pytest.raises(DiagnosisError, match="0 < f1 < f2 < 1"):
+            Thresholds(f1, f2)
     with pytest.raises(AttributeError):
         th.f1 = 0.3  # type: ignore[misc]
 
@@ -322,8 +326,11 @@ def test_save_load_hand_set_thresholds(tmp_path: Path) -> None:
     path = tmp_path / "t.toml"
     save_thresholds(path, DEFAULT_THRESHOLDS)
     assert load_thresholds(path) == DEFAULT_THRESHOLDS
-    path.write_text('quantity = "gamma"\nf1 = 0\nf2 = 1\n', encoding="utf-8")
-    assert load_thresholds(path) == Thresholds(0.0, 1.0)
+    path.write_text('quantity = "gamma"\nf1 = 0.1\nf2 = 0.9\n', encoding="utf-8")
+    assert load_thresholds(path) == Thresholds(0.1, 0.9)
+    path.write_text('quantity = "gamma"\nf1 = -0.5\nf2 = 2\n', encoding="utf-8")
+    with pytest.raises(DiagnosisError, match="0 < f1 < f2 < 1"):
+        load_thresholds(path)
 
 
 BAD_FILES = {
