@@ -240,6 +240,16 @@ def run_live(args: argparse.Namespace) -> int:
         while not stop.event.is_set():
             mono = time.monotonic()
             notifier.maybe_ping(mono)
+            now = time.time()
+            if now - last_tick >= 0.05:  # also while the bus is down: silence, flushing
+                last_tick = now
+                pipe.tick(now)
+                sink.maybe_flush(mono)
+                fresh.maybe_save(mono)
+                b = holder["bus"]
+                drops = None if b is None else socket_drops(b)
+                if drops is not None:  # the kernel's count for this socket, since it opened
+                    pipe.counters["bus/socket_drops"] = dropped_before + drops
             if mono - last_status >= 1.0:
                 last_status = mono
                 notifier.status(_status_line(pipe, holder["bus"] is not None))
@@ -280,15 +290,6 @@ def run_live(args: argparse.Namespace) -> int:
                 down_since = None
             if msg is not None:
                 pipe.feed(msg)
-            now = time.time()
-            if now - last_tick >= 0.05:
-                last_tick = now
-                pipe.tick(now)
-                sink.maybe_flush(time.monotonic())
-                fresh.maybe_save(time.monotonic())
-                drops = socket_drops(b)
-                if drops is not None:  # the kernel's count for this socket, since it opened
-                    pipe.counters["bus/socket_drops"] = dropped_before + drops
     finally:
         notifier.stopping("flushing the recording")
         fresh.maybe_save(time.monotonic(), force=True)
