@@ -134,7 +134,7 @@ import tempfile
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Any, Final
 
 from cantools.database.can.formats.arxml import AutosarSecOCProperties
 from cryptography.hazmat.primitives.ciphers import algorithms
@@ -180,6 +180,24 @@ _MAX_KEY_FILE: Final = 4096
 _HEX_DIGITS: Final = frozenset(b"0123456789abcdefABCDEF")
 _TEXT: Final = frozenset(range(0x20, 0x7F)) | frozenset(b"\t\n\r")
 
+
+
+def _freshness_length(msg: Any, where: str, truncated_bits: int) -> int:
+    """Check a message's SecOC DBC attributes; return the full freshness length in bits.
+
+    The data ID must be the frame ID, and the freshness value a whole number of bytes no
+    shorter than the truncated value carried on the wire.
+    """
+    attrs = msg.dbc.attributes if msg.dbc is not None else {}
+    if DATA_ID_ATTRIBUTE not in attrs or attrs[DATA_ID_ATTRIBUTE].value != msg.frame_id:
+        raise SecOCError(f"{where}: attribute {DATA_ID_ATTRIBUTE} must be "
+                         f"{msg.frame_id} (the frame id)")
+    n_fresh = attrs[FRESHNESS_LENGTH_ATTRIBUTE].value if (
+        FRESHNESS_LENGTH_ATTRIBUTE in attrs) else None
+    if not isinstance(n_fresh, int) or n_fresh % 8 or not truncated_bits <= n_fresh <= 64:
+        raise SecOCError(f"{where}: attribute {FRESHNESS_LENGTH_ATTRIBUTE} must be a "
+                         f"multiple of 8 in {truncated_bits}..64, got {n_fresh!r}")
+    return n_fresh
 
 class SecOCError(ValueError):
     """A key, key file or SecOC layout that cannot be used; the message is one line."""
@@ -325,15 +343,7 @@ class SecOCLayout:
                 raise SecOCError(f"{where}.{FRESHNESS_SIGNAL}: must lie in bytes 1.."
                                  f"{payload_length - 1} or right before the "
                                  f"{AUTHENTICATOR_SIGNAL}")
-        attrs = msg.dbc.attributes if msg.dbc is not None else {}
-        if DATA_ID_ATTRIBUTE not in attrs or attrs[DATA_ID_ATTRIBUTE].value != msg.frame_id:
-            raise SecOCError(f"{where}: attribute {DATA_ID_ATTRIBUTE} must be "
-                             f"{msg.frame_id} (the frame id)")
-        n_fresh = attrs[FRESHNESS_LENGTH_ATTRIBUTE].value if (
-            FRESHNESS_LENGTH_ATTRIBUTE in attrs) else None
-        if not isinstance(n_fresh, int) or n_fresh % 8 or not fv.length <= n_fresh <= 64:
-            raise SecOCError(f"{where}: attribute {FRESHNESS_LENGTH_ATTRIBUTE} must be a "
-                             f"multiple of 8 in {fv.length}..64, got {n_fresh!r}")
+        n_fresh = _freshness_length(msg, where, fv.length)
         return cls(
             name=msg.name,
             data_id=msg.frame_id,
@@ -416,15 +426,7 @@ class SyncLayout:
             if s.start + s.length > auth.start:
                 raise SecOCError(f"{where}.{s.name}: must lie before the "
                                  f"{SYNC_AUTHENTICATOR_SIGNAL}")
-        attrs = msg.dbc.attributes if msg.dbc is not None else {}
-        if DATA_ID_ATTRIBUTE not in attrs or attrs[DATA_ID_ATTRIBUTE].value != msg.frame_id:
-            raise SecOCError(f"{where}: attribute {DATA_ID_ATTRIBUTE} must be "
-                             f"{msg.frame_id} (the frame id)")
-        n_fresh = attrs[FRESHNESS_LENGTH_ATTRIBUTE].value if (
-            FRESHNESS_LENGTH_ATTRIBUTE in attrs) else None
-        if not isinstance(n_fresh, int) or n_fresh % 8 or not fv.length <= n_fresh <= 64:
-            raise SecOCError(f"{where}: attribute {FRESHNESS_LENGTH_ATTRIBUTE} must be a "
-                             f"multiple of 8 in {fv.length}..64, got {n_fresh!r}")
+        n_fresh = _freshness_length(msg, where, fv.length)
         return cls(
             name=msg.name,
             data_id=msg.frame_id,
