@@ -604,8 +604,28 @@ def logs_tail(out: Path, chars: int = 3000) -> str:
 # ----------------------------------------------------------------------------- boot A
 
 
+class _BootReadback:
+    """What both boots' results offer: script marks, readiness, and the node's series."""
+
+    values: dict[str, str]
+    rrd: dict[str, tuple[Array, Array]]
+
+    def mark(self, name: str) -> float:
+        return float(self.values[f"mark_{name}"])
+
+    @property
+    def ok(self) -> bool:
+        return self.values.get("ready") == "1"
+
+    def gamma(self) -> tuple[Array, Array]:
+        return series(self.rrd, f"/motor/{NODE}/gamma/estimate")
+
+    def measured(self) -> tuple[Array, Array]:
+        return series(self.rrd, f"/motor/{NODE}/current/measured")
+
+
 @dataclass
-class BootA:
+class BootA(_BootReadback):
     """Everything boot A left behind, read back on the host."""
 
     out: Path
@@ -620,21 +640,8 @@ class BootA:
     mon_err: str = ""
     summary: dict[str, int] | None = None
 
-    def mark(self, name: str) -> float:
-        return float(self.values[f"mark_{name}"])
-
     def has(self, name: str) -> bool:
         return f"mark_{name}" in self.values
-
-    @property
-    def ok(self) -> bool:
-        return self.values.get("ready") == "1"
-
-    def gamma(self) -> tuple[Array, Array]:
-        return series(self.rrd, f"/motor/{NODE}/gamma/estimate")
-
-    def measured(self) -> tuple[Array, Array]:
-        return series(self.rrd, f"/motor/{NODE}/current/measured")
 
     def bracket(self, start: float, end: float) -> tuple[int | None, int | None]:
         """Snapshots (last before `start`, first after `end` + 0.2 s: room for frames still
@@ -768,7 +775,7 @@ def load_boot_a(mdb: MotorDatabase, out: Path) -> BootA:
 
 
 @dataclass
-class BootB:
+class BootB(_BootReadback):
     out: Path
     result: VcanResult
     wall_s: float
@@ -779,18 +786,6 @@ class BootB:
     rss: list[tuple[float, float]] = field(default_factory=list)  # (t, MB)
     mon_err: str = ""
 
-    def mark(self, name: str) -> float:
-        return float(self.values[f"mark_{name}"])
-
-    @property
-    def ok(self) -> bool:
-        return self.values.get("ready") == "1"
-
-    def gamma(self) -> tuple[Array, Array]:
-        return series(self.rrd, f"/motor/{NODE}/gamma/estimate")
-
-    def measured(self) -> tuple[Array, Array]:
-        return series(self.rrd, f"/motor/{NODE}/current/measured")
 
     def rss_at(self, t: float) -> float:
         """RSS (MB) of the sample nearest to guest time t."""
