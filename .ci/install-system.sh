@@ -8,10 +8,11 @@
 #   iproute2         ip link add/set/del
 #   systemd          systemd-analyze (unit file checks), systemd-networkd (vcan0 at boot)
 #   gcc, libc6-dev   build the ahead-of-time estimator kernel (python -m monitor.kernels_aot)
+#   mesa-vulkan-drivers  software Vulkan for the headless Rerun viewer (tests/test_viewer.py)
 # Run as root, or as a user with sudo.  Packages already installed are skipped.
 set -euo pipefail
 
-PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev)
+PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev mesa-vulkan-drivers)
 
 if [[ "$(id -u)" -eq 0 ]]; then
     SUDO=()
