@@ -182,6 +182,18 @@ _TEXT: Final = frozenset(range(0x20, 0x7F)) | frozenset(b"\t\n\r")
 
 
 
+
+def _check_signals(where: str, frame_bytes: int, fields: tuple[Any, ...], auth: Any) -> None:
+    """SecOC signals are unsigned little-endian integers; the authenticator fills the last
+    whole bytes of the frame (8..64 bits)."""
+    for s in (*fields, auth):
+        if s.byte_order != "little_endian" or s.is_signed or s.is_float:
+            raise SecOCError(f"{where}.{s.name}: must be an unsigned little-endian integer")
+    if (auth.start % 8 or auth.length % 8 or not 8 <= auth.length <= 64
+            or auth.start + auth.length != 8 * frame_bytes):
+        raise SecOCError(f"{where}.{auth.name}: must be whole bytes (8..64 bits) at the end of "
+                         f"the frame")
+
 def _freshness_length(msg: Any, where: str, truncated_bits: int) -> int:
     """Check a message's SecOC DBC attributes; return the full freshness length in bits.
 
@@ -321,14 +333,7 @@ class SecOCLayout:
         if fv is None or auth is None:
             raise SecOCError(f"{where}: needs signals {FRESHNESS_SIGNAL} and "
                              f"{AUTHENTICATOR_SIGNAL} for SecOC")
-        for s in (fv, auth):
-            if s.byte_order != "little_endian" or s.is_signed or s.is_float:
-                raise SecOCError(f"{where}.{s.name}: must be an unsigned little-endian integer")
-        frame_bits = 8 * msg.length
-        if (auth.start % 8 or auth.length % 8 or not 8 <= auth.length <= 64
-                or auth.start + auth.length != frame_bits):
-            raise SecOCError(f"{where}.{AUTHENTICATOR_SIGNAL}: must be whole bytes (8..64 "
-                             f"bits) at the end of the frame")
+        _check_signals(where, msg.length, (fv,), auth)
         if not 1 <= fv.length <= 16:
             raise SecOCError(f"{where}.{FRESHNESS_SIGNAL}: must be 1..16 bits")
         trailer = fv.start + fv.length == auth.start and fv.start % 8 == 0
@@ -412,14 +417,7 @@ class SyncLayout:
         if any(n not in sigs for n in names):
             raise SecOCError(f"{where}: needs signals {', '.join(names)} for SecOC sync")
         kind, fv, auth = (sigs[n] for n in names)
-        for s in (kind, fv, auth):
-            if s.byte_order != "little_endian" or s.is_signed or s.is_float:
-                raise SecOCError(f"{where}.{s.name}: must be an unsigned little-endian integer")
-        frame_bits = 8 * msg.length
-        if (auth.start % 8 or auth.length % 8 or not 8 <= auth.length <= 64
-                or auth.start + auth.length != frame_bits):
-            raise SecOCError(f"{where}.{SYNC_AUTHENTICATOR_SIGNAL}: must be whole bytes "
-                             f"(8..64 bits) at the end of the frame")
+        _check_signals(where, msg.length, (kind, fv), auth)
         if not 16 <= fv.length <= 64:
             raise SecOCError(f"{where}.{SYNC_FRESHNESS_SIGNAL}: must be 16..64 bits")
         for s in (kind, fv):
