@@ -112,24 +112,6 @@ class Scenario:
                 break
         return v
 
-    def change_times(self) -> list[float]:
-        """Times where gamma changes abruptly (segment edges), for scoring windows."""
-        times: set[float] = set()
-        for seg in self.faults:
-            times.update((seg.start, seg.end))
-            if seg.kind == "intermittent":
-                k = 0
-                while True:
-                    on = seg.start + k * seg.period
-                    if on >= seg.end:
-                        break
-                    times.add(on)
-                    off = on + seg.duty * seg.period
-                    if off < seg.end:
-                        times.add(off)
-                    k += 1
-        return sorted(t for t in times if 0 < t < self.duration)
-
 
 def _number(table: Mapping[str, Any], key: str, where: str, default: float | None = None) -> float:
     if key not in table:
