@@ -3,5 +3,5 @@
 # writing out/demo/demo.rrd and a PNG report. No CAN hardware needed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup-venv.sh
+bash scripts/setup-venv.sh experiments
 .venv/bin/motor-monitor demo --out out/demo "$@"

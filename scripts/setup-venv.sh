@@ -20,4 +20,7 @@ fi
 .venv/bin/python -m pip install -q --upgrade pip
 spec="."
 [[ $# -gt 0 && -n "$1" ]] && spec=".[$1]"
-.venv/bin/python -m pip install -q -c constraints.txt -e "$spec"
+# setuptools announces every editable install with a multi-line notice (a warning category
+# of its own, not a problem): a quiet install should not make a newcomer scroll past it.
+PYTHONWARNINGS="ignore:Editable installation" \
+    .venv/bin/python -m pip install -q -c constraints.txt -e "$spec"

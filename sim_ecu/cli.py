@@ -30,11 +30,11 @@ from typing import Any, NoReturn
 
 import can
 
-from monitor.codec import N_NODES, CodecError, load_database
-from monitor.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario
-from monitor.secoc import SecOC, SecOCError, load_key
+from monitor.bus.codec import N_NODES, CodecError, load_database
+from sim_ecu.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario
+from monitor.bus.secoc import SecOC, SecOCError, load_key
 
-from .ecu import ECUError, ECUStats, VirtualECU, load_motor_parameters
+from sim_ecu.ecu import ECUError, ECUStats, VirtualECU, load_motor_parameters
 
 __all__ = ["build_parser", "main", "open_bus"]
 

@@ -1,4 +1,4 @@
-"""The virtual motor ECU: a seeded DC-motor plant behind the bus layout of `monitor.codec`.
+"""The virtual motor ECU: a seeded DC-motor plant behind the bus layout of `monitor.bus.codec`.
 
 For one node, every sample k at scenario time t = k / rate the ECU
 
@@ -12,7 +12,7 @@ For one node, every sample k at scenario time t = k / rate the ECU
 
 `VirtualECU.frames` produces those frames offline (timestamps ``start_time + k / rate``, no
 bus, no sleeping); `VirtualECU.run` sends the same frames on a python-can bus paced in real
-time. The plant starts at the fault-free steady state of u(0), as `monitor.plant.simulate`
+time. The plant starts at the fault-free steady state of u(0), as `sim_ecu.plant.simulate`
 does, and draws its noise in the same order, so for equal seeds the current frames carry
 ``simulate(...).y`` quantised to the DBC resolution.
 
@@ -21,7 +21,7 @@ plant and its noise keep running), so a run may be longer than its scenario.
 
 With a SecOC key (``VirtualECU(..., key=...)``, or a database loaded with ``secoc_key``)
 current and voltage frames carry a freshness value and a truncated AES-CMAC
-(`monitor.secoc`). The freshness counters live in the ECU's database and never go back:
+(`monitor.bus.secoc`). The freshness counters live in the ECU's database and never go back:
 a second `VirtualECU.frames` call continues them (a freshness value is never reused under
 a key), so its frames equal the first call's except for freshness, MAC and CRC. A keyed
 ECU also sends one ``SecOCSync`` frame per stream (current, then voltage) at sample 0,
@@ -47,10 +47,10 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.codec import N_NODES, SECOC_KINDS, CodecError, Kind, MotorDatabase
-from monitor.model import DCMotorParameters, ModelError, dc_motor
-from monitor.plant import PlantSimulator
-from monitor.scenario import BUILTIN_SCENARIOS, Scenario
+from monitor.bus.codec import N_NODES, SECOC_KINDS, CodecError, Kind, MotorDatabase
+from monitor.estimation.model import DCMotorParameters, ModelError, dc_motor
+from sim_ecu.plant import PlantSimulator
+from sim_ecu.scenario import BUILTIN_SCENARIOS, Scenario
 
 __all__ = [
     "ECU_KINDS",
@@ -147,7 +147,7 @@ def motor_parameters(table: Mapping[str, Any], where: str = "[motor]") -> DCMoto
 def load_motor_parameters(name_or_path: str | Path) -> DCMotorParameters | None:
     """The ``[motor]`` table of a scenario TOML file, or None (built-in name, no table).
 
-    Call after `monitor.scenario.load_scenario` accepted the same argument: a file that
+    Call after `sim_ecu.scenario.load_scenario` accepted the same argument: a file that
     cannot be read or parsed here is reported as an `ECUError` line as well.
     """
     key = str(name_or_path)
@@ -332,7 +332,7 @@ class _Simulation:
 
 
 class VirtualECU:
-    """The virtual motor ECU of one node (m = 1: the DC motor of `monitor.model.dc_motor`).
+    """The virtual motor ECU of one node (m = 1: the DC motor of `monitor.estimation.model.dc_motor`).
 
     `bus` may be None for offline use of `frames`. `rate` is the sample rate (Hz: one
     current and one truth frame per sample), `voltage_rate` the rate of voltage frames (one
@@ -341,7 +341,7 @@ class VirtualECU:
     in ``scenario.extra`` is used if present. `send_timeout` (default a quarter period) is
     passed to ``bus.send``; `max_catch_up` is how many late samples `run` may send back to
     back before it skips ahead instead. `key` (16 or 32 bytes, e.g. from
-    `monitor.secoc.load_key`) signs the current and voltage frames with SecOC on a copy of
+    `monitor.bus.secoc.load_key`) signs the current and voltage frames with SecOC on a copy of
     `db` of the ECU's own (None: sign only if `db` has a key). Raises `ECUError` (one line)
     on a bad configuration.
     """

@@ -52,9 +52,9 @@ from cantools.autosar.end_to_end import apply_profile2_crc
 from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
-from monitor.codec import Decoded, Kind, MotorDatabase, RejectReason
+from monitor.bus.codec import Decoded, Kind, MotorDatabase, RejectReason
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.rerun_sink import salvage_rrd
+from monitor.sinks.rerun import salvage_rrd
 from tests.vcan_harness import PROJECT_ROOT, VcanResult
 
 Array = NDArray[np.float64]

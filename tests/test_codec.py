@@ -1,4 +1,4 @@
-"""monitor.codec: encoding, the never-raising decoder, E2E CRCs and alive counters."""
+"""monitor.bus.codec: encoding, the never-raising decoder, E2E CRCs and alive counters."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.codec import (
+from monitor.bus.codec import (
     HEALTH_STATES,
     KINDS,
     N_NODES,

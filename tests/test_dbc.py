@@ -11,7 +11,7 @@ import cantools
 import pytest
 from cantools.database.can import Database
 
-from monitor.codec import HEALTH_STATES, KINDS, N_NODES, e2e_data_id, load_database
+from monitor.bus.codec import HEALTH_STATES, KINDS, N_NODES, e2e_data_id, load_database
 
 ROOT = Path(__file__).resolve().parents[1]
 REPO_DBC = ROOT / "dbc" / "motor.dbc"

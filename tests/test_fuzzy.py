@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, memberships
+from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, memberships
 
 
 @given(

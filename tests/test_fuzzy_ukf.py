@@ -7,11 +7,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.akf import AugmentedKalmanFilter
-from monitor.fuzzy_ukf import FuzzyUKF
-from monitor.model import ContinuousDescriptor, DCMotorParameters, dc_motor
-from monitor.plant import SimulatedRun, simulate
-from monitor.scenario import load_scenario, scenario_from_dict
+from experiments.akf import AugmentedKalmanFilter
+from monitor.estimation.fuzzy_ukf import FuzzyUKF
+from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, dc_motor
+from sim_ecu.plant import SimulatedRun, simulate
+from sim_ecu.scenario import load_scenario, scenario_from_dict
 
 
 def _run(run: SimulatedRun, est: FuzzyUKF, skip: set[int] | None = None) -> np.ndarray:

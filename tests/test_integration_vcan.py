@@ -43,9 +43,9 @@ import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
 
-from monitor.codec import Decoded, MotorDatabase, load_database
+from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
-from monitor.scenario import Scenario, load_scenario, scenario_from_dict
+from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
 from sim_ecu import VirtualECU
 from tests.vcan_harness import PROJECT_ROOT, VcanResult
 

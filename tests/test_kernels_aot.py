@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from monitor.fuzzy_ukf import FuzzyUKF
-from monitor.kernels_aot import MODULE, build
-from monitor.model import dc_motor
-from monitor.plant import simulate
-from monitor.scenario import load_scenario
+from monitor.estimation.fuzzy_ukf import FuzzyUKF
+from monitor.estimation.kernels_aot import MODULE, build
+from monitor.estimation.model import dc_motor
+from sim_ecu.plant import simulate
+from sim_ecu.scenario import load_scenario
 
 
 def test_aot_kernel_matches_jit_kernel(tmp_path: Path) -> None:

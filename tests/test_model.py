@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from monitor.model import (
+from monitor.estimation.model import (
     ContinuousDescriptor,
     DCMotorParameters,
     ModelError,
     dc_motor,
     van_loan,
 )
-from monitor.plant import simulate
-from monitor.scenario import load_scenario
+from sim_ecu.plant import simulate
+from sim_ecu.scenario import load_scenario
 
 
 def test_dc_motor_continuous_eigenvalues_match_notes() -> None:

@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.codec import MotorDatabase, load_database
+from monitor.bus.codec import MotorDatabase, load_database
 from monitor.diagnosis import HealthState
 from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
-from monitor.scenario import load_scenario
+from sim_ecu.scenario import load_scenario
 from sim_ecu.ecu import VirtualECU
 
 T0 = 1_700_000_000.0

@@ -27,7 +27,7 @@ import pytest
 from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
-from monitor.rerun_sink import (
+from monitor.sinks.rerun import (
     DEFAULT_FLUSH_INTERVAL_S,
     RerunSink,
     RotatingRerunSink,
@@ -48,7 +48,7 @@ import sys
 import time
 from pathlib import Path
 
-from monitor.rerun_sink import RerunSink, RotatingRerunSink
+from monitor.sinks.rerun import RerunSink, RotatingRerunSink
 
 kind, out = sys.argv[1], Path(sys.argv[2])
 if kind == "rotating":

@@ -24,7 +24,7 @@ import pytest
 from numpy.typing import NDArray
 from rerun.chunk import Chunk, RrdReader
 
-from monitor.rerun_sink import (
+from monitor.sinks.rerun import (
     DEFAULT_FLUSH_INTERVAL_S,
     NullSink,
     RerunSink,

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from monitor.codec import MotorDatabase, load_database
+from monitor.bus.codec import MotorDatabase, load_database
 from tests.robustness_helpers import (
     F1,
     KIND_GAP_S,

@@ -1,4 +1,4 @@
-"""monitor.secoc: SecOC-style frame authentication (truncated AES-CMAC, freshness counters).
+"""monitor.bus.secoc: SecOC-style frame authentication (truncated AES-CMAC, freshness counters).
 
 No mocks: real keys, real AES-CMAC (cryptography), cantools' own SecOC and E2E helpers as
 the reference for the layout, and the monitor pipeline fed by the virtual ECU.
@@ -23,7 +23,7 @@ from cantools.autosar.secoc import (
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.codec import (
+from monitor.bus.codec import (
     N_NODES,
     SECOC_KINDS,
     CodecError,
@@ -36,8 +36,8 @@ from monitor.codec import (
     load_database,
 )
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.scenario import load_scenario
-from monitor.secoc import (
+from sim_ecu.scenario import load_scenario
+from monitor.bus.secoc import (
     DEFAULT_WINDOW,
     SecOC,
     SecOCError,

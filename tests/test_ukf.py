@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.ukf import UnscentedKalmanFilter, sigma_points, sigma_weights, unscented_transform
+from monitor.estimation.ukf import UnscentedKalmanFilter, sigma_points, sigma_weights, unscented_transform
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 6])

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from monitor.codec import load_database
+from monitor.bus.codec import load_database
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.rerun_sink import RerunSink
-from monitor.scenario import load_scenario
+from monitor.sinks.rerun import RerunSink
+from sim_ecu.scenario import load_scenario
 from sim_ecu.ecu import VirtualECU
 
 RERUN = str(Path(sys.executable).parent / "rerun")

@@ -24,12 +24,12 @@ from typing import Any
 import numpy as np
 
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier
-from monitor.model import DCMotorParameters, dc_motor
-from monitor.plant import simulate
-from monitor.scenario import Scenario, scenario_from_dict
-from monitor.scoring import score_run
+from monitor.estimation.model import DCMotorParameters, dc_motor
+from sim_ecu.plant import simulate
+from sim_ecu.scenario import Scenario, scenario_from_dict
+from experiments.scoring import score_run
 
-from .common import METHODS
+from tests.bench.common import METHODS
 
 DWELL_S = 0.03
 

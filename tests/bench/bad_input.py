@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monitor.codec import MotorDatabase, load_database
+from monitor.bus.codec import MotorDatabase, load_database
 from tests.robustness_helpers import (
     FLOOD_S,
     MAX_KILL_LOSS_S,

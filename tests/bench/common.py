@@ -8,9 +8,9 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.akf import AugmentedKalmanFilter
-from monitor.fuzzy_ukf import FuzzyUKF
-from monitor.model import DiscreteModel
+from experiments.akf import AugmentedKalmanFilter
+from monitor.estimation.fuzzy_ukf import FuzzyUKF
+from monitor.estimation.model import DiscreteModel
 
 Array = NDArray[np.float64]
 

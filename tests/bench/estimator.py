@@ -6,7 +6,7 @@
    method; reported as ratios to filterpy (machine noise hits all alike).
 2. The same fuzzy UKF code interpreted (NUMBA_DISABLE_JIT=1, in a subprocess): what the
    JIT buys; and the ahead-of-time build the hardened service runs (if built:
-   `python -m monitor.kernels_aot`).
+   `python -m monitor.estimation.kernels_aot`).
 3. filterpy with the paper's alpha = 1e-4: how often it fails (non-PSD covariance).
 4. A soak: random motors (also La = 0), random scenarios, rates 100 Hz - 1 kHz, missed
    samples (dt = k T) and random voltage commands; every step checks for NaN and every
@@ -27,12 +27,12 @@ from typing import Any
 
 import numpy as np
 
-from monitor.fuzzy_ukf import FuzzyUKF
-from monitor.model import DCMotorParameters, dc_motor
-from monitor.plant import simulate
-from monitor.scenario import load_scenario, scenario_from_dict
+from monitor.estimation.fuzzy_ukf import FuzzyUKF
+from monitor.estimation.model import DCMotorParameters, dc_motor
+from sim_ecu.plant import simulate
+from sim_ecu.scenario import load_scenario, scenario_from_dict
 
-from .common import METHODS, FilterpyAugmentedUKF
+from tests.bench.common import METHODS, FilterpyAugmentedUKF
 
 BLOCK = 2000
 
@@ -64,8 +64,8 @@ def _kernel_cost(kernel: str) -> float | None:
     """
     code = (
         "import time, numpy as np\n"
-        "from monitor.model import dc_motor\n"
-        "from monitor.fuzzy_ukf import FuzzyUKF\n"
+        "from monitor.estimation.model import dc_motor\n"
+        "from monitor.estimation.fuzzy_ukf import FuzzyUKF\n"
         "e = FuzzyUKF(dc_motor().discretize(0.01), x0=[67.7, 338.5, 0.0])\n"
         "u = np.array([220.0]); y = np.array([67.7])\n"
         "for _ in range(50): e.step(u, y, 0.01)\n"

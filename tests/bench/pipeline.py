@@ -21,10 +21,10 @@ from pathlib import Path
 
 import can
 
-from monitor.codec import MotorDatabase, load_database
+from monitor.bus.codec import MotorDatabase, load_database
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.rerun_sink import RerunSink
-from monitor.scenario import load_scenario
+from monitor.sinks.rerun import RerunSink
+from sim_ecu.scenario import load_scenario
 from sim_ecu.ecu import VirtualECU
 
 BUS_LIMIT_FPS = 1_000_000 / 111  # 8-byte standard frames, no stuff bits: the upper bound

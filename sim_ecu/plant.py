@@ -16,8 +16,8 @@ import numpy as np
 import scipy.signal
 from numpy.typing import NDArray
 
-from .model import ContinuousDescriptor, ModelError, van_loan
-from .scenario import Scenario
+from monitor.estimation.model import ContinuousDescriptor, ModelError, van_loan
+from sim_ecu.scenario import Scenario
 
 Array = NDArray[np.float64]
 

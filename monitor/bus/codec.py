@@ -39,7 +39,7 @@ pairwise distinct, which is the property that matters: a frame received under th
 (masquerade, mis-routing, a node-number mix-up) fails the CRC for every counter value.
 `load_database` checks the DBC attribute against this rule and attaches the list.
 
-Optional SecOC-style authentication (`monitor.secoc`: truncated AES-CMAC over SecOC data
+Optional SecOC-style authentication (`monitor.bus.secoc`: truncated AES-CMAC over SecOC data
 ID, payload and a 64-bit freshness counter) on current and voltage frames: with a key
 (``load_database(secoc_key=...)``) the database signs what it encodes and rejects, inside
 `MotorDatabase.decode`, every current or voltage frame whose MAC does not verify
@@ -50,7 +50,7 @@ SecOC). Without a key the FreshnessValue and Authenticator signals are sent as 0
 checked: a monitor without the key cannot verify, so it decodes signed frames as before.
 Diagnosis frames stay unauthenticated (8 spare bits cannot hold a useful MAC).
 
-Freshness synchronisation (`monitor.secoc`, "Resynchronisation"): with a key the database
+Freshness synchronisation (`monitor.bus.secoc`, "Resynchronisation"): with a key the database
 verifies ``SecOCSync`` frames (``bad_mac``; ``stale_freshness`` for a sync older than the
 stream's last accepted value, i.e. a replayed one) and an accepted one sets that stream's
 freshness, so a monitor that starts late, restarts, or lost more than the window recovers
@@ -88,7 +88,7 @@ from cantools.database.can.formats.arxml import (
     AutosarMessageSpecifics,
 )
 
-from .secoc import (
+from monitor.bus.secoc import (
     AUTHENTICATOR_SIGNAL,
     DEFAULT_WINDOW,
     FRESHNESS_SIGNAL,
@@ -138,7 +138,7 @@ class _KindSpec:
     base_id: int  # frame id of node 0
     value_signal: str  # the "main physical value" reported as Decoded.value
     e2e: bool  # CRC in byte 0, counter in the low nibble of byte 1
-    secoc: bool = False  # may carry FreshnessValue + Authenticator (monitor.secoc)
+    secoc: bool = False  # may carry FreshnessValue + Authenticator (monitor.bus.secoc)
     sync: bool = False  # SecOC freshness synchronisation of the secoc kinds (optional)
 
 
@@ -253,7 +253,7 @@ class MotorDatabase:
 
     With `secoc_key` (16 or 32 bytes) current and voltage frames are signed on encoding
     and verified on decoding; the object then keeps the freshness counters of every
-    (kind, node) stream it sends and receives (see `monitor.secoc`; sending and receiving
+    (kind, node) stream it sends and receives (see `monitor.bus.secoc`; sending and receiving
     counters are separate), so keep one object for the whole life of a bus connection.
     """
 
@@ -533,7 +533,7 @@ def load_database(
 ) -> MotorDatabase:
     """Load and validate the motor DBC; any problem is one `CodecError` line.
 
-    `secoc_key` (16 or 32 bytes, e.g. from `monitor.secoc.load_key`) turns on SecOC
+    `secoc_key` (16 or 32 bytes, e.g. from `monitor.bus.secoc.load_key`) turns on SecOC
     authentication of current and voltage frames: signed when encoded, verified when
     decoded, with freshness values accepted up to `secoc_window` ahead of the last one.
     """

@@ -41,12 +41,12 @@ from typing import Any
 
 import can
 
-from .busfaults import describe_error_frame
-from .codec import CounterOutcome, CounterTracker, Decoded, MotorDatabase, Rejected
-from .diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier, Thresholds
-from .fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
-from .model import DCMotorParameters, DiscreteModel, dc_motor
-from .rerun_sink import NullSink, Sink
+from monitor.bus.faults import describe_error_frame
+from monitor.bus.codec import CounterOutcome, CounterTracker, Decoded, MotorDatabase, Rejected
+from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier, Thresholds
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
+from monitor.estimation.model import DCMotorParameters, DiscreteModel, dc_motor
+from monitor.sinks.rerun import NullSink, Sink
 
 __all__ = ["BUS_EVENTS", "DiagnosisEvent", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 

@@ -39,7 +39,7 @@ def _positive_float(text: str) -> float:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from .reproduce import reproduce
+    from experiments.reproduce import reproduce
 
     summary = reproduce(Path(args.out), T=args.period, seed=args.seed)
     ours = summary["ours"]
@@ -63,7 +63,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .diagnosis import calibrate, save_thresholds
+    from monitor.diagnosis import calibrate, save_thresholds
 
     path = Path(args.gamma_file)
     try:
@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", default="thresholds.toml")
     c.set_defaults(func=_cmd_calibrate)
 
-    from . import daemon, demo
+    from monitor import daemon, demo
 
     daemon.add_commands(sub)
     demo.add_command(sub)
@@ -104,12 +104,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from .codec import CodecError
-    from .daemon import BusError
-    from .diagnosis import DiagnosisError
-    from .model import ModelError
-    from .scenario import ScenarioError
-    from .secoc import SecOCError
+    from monitor.bus.codec import CodecError
+    from monitor.app.daemon import BusError
+    from monitor.diagnosis import DiagnosisError
+    from monitor.estimation.model import ModelError
+    from sim_ecu.scenario import ScenarioError
+    from monitor.bus.secoc import SecOCError
 
     parser = build_parser()
     args = parser.parse_args(argv)

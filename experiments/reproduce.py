@@ -14,6 +14,7 @@ summary.json with the figures compared point by point with the paper's statement
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from dataclasses import dataclass
@@ -23,11 +24,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .diagnosis import calibrate, fcm_memberships, fuzzy_c_means, save_thresholds
-from .fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
-from .model import dc_motor
-from .plant import simulate
-from .scenario import Scenario, scenario_from_dict
+from monitor.app.options import positive_float
+
+from monitor.diagnosis import calibrate, fcm_memberships, fuzzy_c_means, save_thresholds
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
+from monitor.estimation.model import dc_motor
+from sim_ecu.plant import simulate
+from sim_ecu.scenario import Scenario, scenario_from_dict
 
 Array = NDArray[np.float64]
 
@@ -239,3 +242,32 @@ def reproduce(out: Path, T: float = 0.01, seed: int = 0) -> dict[str, Any]:
     r.summary["files"] = [p.name for p in figs] + ["thresholds.toml"]
     (out / "summary.json").write_text(json.dumps(r.summary, indent=2) + "\n", encoding="utf-8")
     return r.summary
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    summary = reproduce(Path(args.out), T=args.period, seed=args.seed)
+    ours = summary["ours"]
+    print(f"wrote {', '.join(summary['files'])} and summary.json to {args.out}")
+    print(
+        f"thresholds F1 = {ours['F1']:.3f}, F2 = {ours['F2']:.3f} on gamma^ "
+        f"(paper: F1 = 0.3, F2 = 1 in its own units)"
+    )
+    print(
+        f"rules: {ours['rules_at_step_359']} at step 359 (paper: 2), "
+        f"{ours['rules_final']} at the end (paper: 10)"
+    )
+    print(
+        "current error x~ - x^ after step 180: rms "
+        f"{ours['x_e_current_rms_after_step_180']:.3f} A, "
+        f"{100 * ours['x_e_current_fraction_within_0.02_after_step_180']:.0f} % within +-0.02"
+    )
+    return 0
+
+
+def add_command(sub: argparse._SubParsersAction[Any]) -> None:
+    """`motor-monitor reproduce` (registered through the motor_monitor.commands entry point)."""
+    r = sub.add_parser("reproduce", help="the paper's DC-motor experiment, Figs. 1-4")
+    r.add_argument("--out", default="out/reproduce", help="output directory")
+    r.add_argument("--period", type=positive_float, default=0.01, help="sample period, s")
+    r.add_argument("--seed", type=int, default=0)
+    r.set_defaults(func=_cmd_reproduce)

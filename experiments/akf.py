@@ -24,8 +24,8 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from .model import DiscreteModel
-from .ukf import sigma_weights, ukf_predict, ukf_update
+from monitor.estimation.model import DiscreteModel
+from monitor.estimation.ukf import sigma_weights, ukf_predict, ukf_update
 
 Array = NDArray[np.float64]
 

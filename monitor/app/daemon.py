@@ -28,13 +28,13 @@ from typing import IO, Any
 
 import can
 
-from .busfaults import socket_drops
-from .codec import MotorDatabase, load_database
-from .diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
-from .notify import Notifier
-from .pipeline import BUS_EVENTS, DiagnosisEvent, MonitorConfig, MonitorPipeline
-from .rerun_sink import NullSink, RerunSink, RotatingRerunSink, Sink
-from .secoc import load_key
+from monitor.bus.faults import socket_drops
+from monitor.bus.codec import MotorDatabase, load_database
+from monitor.diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
+from monitor.app.notify import Notifier
+from monitor.pipeline import BUS_EVENTS, DiagnosisEvent, MonitorConfig, MonitorPipeline
+from monitor.sinks.rerun import NullSink, RerunSink, RotatingRerunSink, Sink
+from monitor.bus.secoc import load_key
 
 __all__ = ["BusError", "add_commands", "open_bus", "read_log"]
 

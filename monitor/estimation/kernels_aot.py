@@ -1,11 +1,11 @@
-"""Ahead-of-time build of the fuzzy UKF step kernel: `python -m monitor.kernels_aot`.
+"""Ahead-of-time build of the fuzzy UKF step kernel: `python -m monitor.estimation.kernels_aot`.
 
 The hardened service forbids memory that is both writable and executable
 (MemoryDenyWriteExecute=yes), which numba's JIT needs. Compiled ahead of time by numba's
 `pycc` into an ordinary extension module (`monitor/_fuzzy_ukf_aot.*.so`, loaded by the
 dynamic linker like any other), the same kernel runs at full speed without W+X memory.
 Build it once at install time (it needs a C compiler and the Python headers); the estimator
-picks it up when the JIT is off (see `monitor.fuzzy_ukf.select_kernel`). numba 0.68 marks
+picks it up when the JIT is off (see `monitor.estimation.fuzzy_ukf.select_kernel`). numba 0.68 marks
 pycc "pending deprecation" with its replacement still in development; without the AOT
 module the service falls back to the interpreted kernel (correct, about 40x slower).
 """
@@ -34,7 +34,7 @@ def build(out_dir: Path | None = None) -> Path:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from .fuzzy_ukf import _fuzzy_ukf_step
+    from monitor.estimation.fuzzy_ukf import _fuzzy_ukf_step
 
     target = Path(out_dir) if out_dir is not None else Path(__file__).resolve().parent
     target.mkdir(parents=True, exist_ok=True)

@@ -22,12 +22,12 @@ from typing import Any
 import can
 import numpy as np
 
-from .codec import load_database
-from .diagnosis import DEFAULT_THRESHOLDS, HealthState
-from .pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
-from .rerun_sink import RerunSink, Sink
-from .scenario import load_scenario
-from .scoring import match_transitions, true_classes
+from monitor.bus.codec import load_database
+from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState
+from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
+from monitor.sinks.rerun import RerunSink, Sink
+from sim_ecu.scenario import load_scenario
+from experiments.scoring import match_transitions, true_classes
 
 __all__ = ["RecordingSink", "add_command", "run_demo"]
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .diagnosis import HealthState, Thresholds
+from monitor.diagnosis import HealthState, Thresholds
 
 __all__ = ["Score", "TransitionMatch", "match_transitions", "score_run", "true_classes"]
 

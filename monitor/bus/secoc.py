@@ -6,7 +6,7 @@ authenticator (MAC) over ``data ID || authentic PDU || full freshness value``.
 ``message.autosar.secoc`` (`AutosarSecOCProperties`) describes it; a DBC has no such
 properties. So `SecOCLayout.from_message` builds them from the DBC (signals
 ``FreshnessValue`` and ``Authenticator``, attributes ``SecOCDataID`` and
-``SecOCFreshnessValueLength``) and `monitor.codec` attaches them to each protected message
+``SecOCFreshnessValueLength``) and `monitor.bus.codec` attaches them to each protected message
 at load time, as it does with the E2E data IDs.
 
 Layout (dbc/motor.dbc, 8-byte frames, bit numbers of the little-endian payload integer)::

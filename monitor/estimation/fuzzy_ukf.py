@@ -57,9 +57,9 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from .fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, fire, infer
-from .model import DiscreteModel
-from .ukf import sigma_weights, spd_inverse, ukf_predict, ukf_update
+from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, fire, infer
+from monitor.estimation.model import DiscreteModel
+from monitor.estimation.ukf import sigma_weights, spd_inverse, ukf_predict, ukf_update
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -337,20 +337,20 @@ def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
 
     MOTOR_MONITOR_KERNEL=jit|aot|python forces one; by default the numba JIT is used
     unless NUMBA_DISABLE_JIT is set (the hardened service forbids W+X memory), in which
-    case the ahead-of-time build (`python -m monitor.kernels_aot`) is used if present, and
+    case the ahead-of-time build (`python -m monitor.estimation.kernels_aot`) is used if present, and
     the same code interpreted (about 40x slower) otherwise.
     """
     want = (choice or os.environ.get("MOTOR_MONITOR_KERNEL", "auto")).strip().lower()
     jit_off = os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0")
     if want in ("aot", "auto") and (want == "aot" or jit_off):
         try:
-            from . import _fuzzy_ukf_aot  # type: ignore[attr-defined]
+            from monitor.estimation import _fuzzy_ukf_aot  # type: ignore[attr-defined]
 
             return "aot", _fuzzy_ukf_aot.fuzzy_ukf_step
         except ImportError:
             if want == "aot":
                 raise
-            _log.warning("JIT disabled and no AOT kernel built (python -m monitor.kernels_aot):"
+            _log.warning("JIT disabled and no AOT kernel built (python -m monitor.estimation.kernels_aot):"
                          " the estimator runs interpreted")
     if want == "python":
         return "python", getattr(_fuzzy_ukf_step, "py_func", _fuzzy_ukf_step)
