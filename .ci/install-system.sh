@@ -7,7 +7,7 @@
 #   can-utils        candump, cansend, cangen, canplayer
 #   iproute2         ip link add/set/del
 #   systemd          systemd-analyze (unit file checks), systemd-networkd (vcan0 at boot)
-#   gcc, libc6-dev   build the ahead-of-time estimator kernel (python -m monitor.kernels_aot)
+#   gcc, libc6-dev   build the ahead-of-time estimator kernel (python -m monitor.estimation.kernels_aot)
 #   mesa-vulkan-drivers  software Vulkan for the headless Rerun viewer (tests/test_viewer.py)
 # Run as root, or as a user with sudo.  Packages already installed are skipped.
 set -euo pipefail

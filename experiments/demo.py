@@ -15,66 +15,53 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import can
 import numpy as np
 
+from experiments.plotting import pyplot
+from experiments.scoring import match_transitions, true_classes
 from monitor.bus.codec import load_database
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState
-from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
-from monitor.sinks.rerun import RerunSink, Sink
+from monitor.pipeline import Counters, DiagnosisEvent, MonitorConfig, MonitorPipeline, Sample
+from monitor.pipeline import counters as C
+from monitor.sinks.base import FanOut, Sink
+from monitor.sinks.jsonl import JsonLinesSink
+from monitor.sinks.log import LogSink
+from monitor.sinks.publisher import BusPublisher
+from monitor.sinks.rerun import RerunSink
 from sim_ecu.scenario import load_scenario
-from experiments.scoring import match_transitions, true_classes
 
-__all__ = ["RecordingSink", "add_command", "run_demo"]
+__all__ = ["SampleRows", "add_command", "run_demo"]
 
 
-class RecordingSink:
-    """Forwards to another sink and keeps every sample, for the report."""
+class SampleRows(Sink):
+    """Keeps every estimator sample, for the report."""
 
-    def __init__(self, inner: Sink) -> None:
-        self.inner = inner
+    def __init__(self) -> None:
         self.rows: list[tuple[float, float, float, float, float, int, float]] = []
 
-    def add_sample(self, node: int, t: float, measured_current: float,
-                   estimated_current: float, gamma_hat: float, rule_count: int, health: int,
-                   nis: float, true_gamma: float | None = None) -> None:
-        tg = math.nan if true_gamma is None else true_gamma
-        self.rows.append((t, measured_current, estimated_current, gamma_hat, tg, health,
-                          float(rule_count)))
-        self.inner.add_sample(node, t, measured_current, estimated_current, gamma_hat,
-                              rule_count, health, nis, true_gamma)
+    def on_sample(self, sample: Sample) -> None:
+        tg = math.nan if sample.true_gamma is None else sample.true_gamma
+        self.rows.append((sample.t, sample.measured, sample.estimated, sample.gamma, tg,
+                          int(sample.state), float(sample.rules)))
 
-    def add_voltage(self, node: int, t: float, volts: float) -> None:
-        self.inner.add_voltage(node, t, volts)
 
-    def log_event(self, node: int, t: float, text: str, level: str = "INFO") -> None:
-        self.inner.log_event(node, t, text, level)
+class _PrintTransitions(Sink):
+    """Prints each transition as it happens, relative to the start of the demo."""
 
-    def log_counters(self, t: float, counters: Mapping[str, int]) -> None:
-        self.inner.log_counters(t, counters)
+    def __init__(self, t_start: float) -> None:
+        self.t_start = t_start
 
-    def set_thresholds(self, f1: float, f2: float) -> None:
-        self.inner.set_thresholds(f1, f2)
-
-    def maybe_flush(self, now_monotonic: float) -> None:
-        self.inner.maybe_flush(now_monotonic)
-
-    def flush(self) -> None:
-        self.inner.flush()
-
-    def close(self) -> None:
-        self.inner.close()
+    def on_transition(self, event: DiagnosisEvent) -> None:
+        print(f"  t = {event.t - self.t_start:6.2f} s  node {event.node}: {event.previous} -> "
+              f"{event.state}  (gamma^ = {event.gamma:.2f})", flush=True)
 
 
 def _report(rows: np.ndarray, path: Path, f1: float, f2: float) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     t = rows[:, 0] - rows[0, 0]
     fig, (a1, a2, a3) = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
@@ -112,24 +99,21 @@ def run_demo(args: argparse.Namespace) -> int:
     mon_bus = can.Bus(interface="virtual", channel=channel)
     rrd = out / "demo.rrd"
     cfg = MonitorConfig(nodes=(0,), thresholds=DEFAULT_THRESHOLDS)
-    rec = RecordingSink(RerunSink(rrd_path=rrd, nodes=(0,), f1=cfg.thresholds.f1,
-                                  f2=cfg.thresholds.f2))
-    events: list[DiagnosisEvent] = []
-    ev_fh = (out / "events.jsonl").open("w", encoding="utf-8")
-
-    def on_event(ev: DiagnosisEvent) -> None:
-        events.append(ev)
-        ev_fh.write(ev.to_json() + "\n")
-        print(f"  t = {ev.t - t_start:6.2f} s  node {ev.node}: {ev.previous} -> {ev.state}"
-              f"  (gamma^ = {ev.gamma:.2f})", flush=True)
-
-    pipe = MonitorPipeline(db, cfg, sink=rec, publish=lambda m: mon_bus.send(m),
-                           on_event=on_event)
+    rows = SampleRows()
+    t_start = time.time()
+    sink = FanOut([
+        LogSink(),
+        BusPublisher(db, mon_bus.send, counters := Counters()),
+        RerunSink(rrd_path=rrd, nodes=(0,), f1=cfg.thresholds.f1, f2=cfg.thresholds.f2),
+        JsonLinesSink((out / "events.jsonl").open("w", encoding="utf-8"), owned=True),
+        _PrintTransitions(t_start),
+        rows,
+    ])
+    pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)
     ecu = VirtualECU(ecu_bus, db, 0, scenario, rate=100.0, seed=args.seed)
     stop = threading.Event()
     print(f"demo: virtual ECU node 0 runs '{scenario.name}' ({scenario.description}) for "
           f"{scenario.duration:.0f} s in real time; the monitor listens on the same bus")
-    t_start = time.time()
     th = threading.Thread(target=ecu.run, args=(scenario.duration, stop), daemon=True)
     th.start()
     try:
@@ -138,35 +122,34 @@ def run_demo(args: argparse.Namespace) -> int:
             if msg is not None:
                 pipe.feed(msg)
             pipe.tick(time.time())
-            rec.maybe_flush(time.monotonic())
+            sink.maybe_flush(time.monotonic())
         while (msg := mon_bus.recv(timeout=0.1)) is not None:
             pipe.feed(msg)
     except KeyboardInterrupt:
         stop.set()
         th.join()
     finally:
-        rec.close()
-        ev_fh.close()
+        sink.close()
         ecu_bus.shutdown()
         mon_bus.shutdown()
-    rows = np.array(rec.rows)
-    if rows.size == 0:
+    table = np.array(rows.rows)
+    if table.size == 0:
         print("demo: no samples were estimated", file=sys.stderr)
         return 1
-    _report(rows, out / "demo_report.png", cfg.thresholds.f1, cfg.thresholds.f2)
-    t = rows[:, 0] - t_start
-    truth = true_classes(np.nan_to_num(rows[:, 4]), cfg.thresholds)
-    matches = match_transitions(t, truth, rows[:, 5].astype(np.int64))
+    _report(table, out / "demo_report.png", cfg.thresholds.f1, cfg.thresholds.f2)
+    t = table[:, 0] - t_start
+    truth = true_classes(np.nan_to_num(table[:, 4]), cfg.thresholds)
+    matches = match_transitions(t, truth, table[:, 5].astype(np.int64))
     print("\ntrue transition                 at (s)   detected at (s)   delay (s)")
     for m in matches:
         det = "missed" if m.t_detected is None else f"{m.t_detected:8.2f}"
         dl = "" if m.delay is None else f"{m.delay:8.2f}"
         print(f"{m.before.label:>10s} -> {m.after.label:<10s} {m.t_true:9.2f}   {det:>14s}   {dl}")
     c = pipe.counters
-    print(f"\n{c.get('frames/received', 0)} frames received, "
-          f"{c.get('samples/estimated', 0)} samples estimated, "
-          f"{c.get('publish/sent', 0)} MonitorDiagnosis frames sent, "
-          f"{sum(v for k, v in c.items() if k.startswith('rejected/'))} rejected")
+    print(f"\n{c.get(C.FRAMES_RECEIVED, 0)} frames received, "
+          f"{c.get(C.SAMPLES_ESTIMATED, 0)} samples estimated, "
+          f"{c.get(C.PUBLISH_SENT, 0)} MonitorDiagnosis frames sent, "
+          f"{c.rejected_total()} rejected")
     print(f"wrote {rrd} (open it: rerun {rrd}), {out / 'demo_report.png'}, "
           f"{out / 'events.jsonl'}")
     return 0

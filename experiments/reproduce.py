@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from experiments.plotting import pyplot
 from monitor.app.options import positive_float
-
 from monitor.diagnosis import calibrate, fcm_memberships, fuzzy_c_means, save_thresholds
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import dc_motor
@@ -153,10 +153,7 @@ def _summary(r: ReproduceResult, est: FuzzyUKF, T: float, seed: int) -> dict[str
 
 
 def _figures(r: ReproduceResult, out: Path, f1: float, f2: float) -> list[Path]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.ticker import MaxNLocator
 
     paths = []

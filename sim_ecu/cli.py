@@ -16,27 +16,24 @@ replays until the counters pass them (or the monitor starts without state).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import errno
 import logging
 import math
-import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
-from types import FrameType
-from typing import Any, NoReturn
+from collections.abc import Callable, Sequence
 
-import can
+from monitor.app.canbus import open_bus
+from monitor.app.freshness import FreshnessSaver
+from monitor.app.options import OneLineParser
+from monitor.app.signals import StopOnSignals
+from monitor.bus.codec import N_NODES, load_database
+from monitor.bus.secoc import load_key
+from monitor.errors import MonitorError, UsageError, one_line
+from sim_ecu.ecu import ECUStats, VirtualECU, load_motor_parameters
+from sim_ecu.scenario import BUILTIN_SCENARIOS, load_scenario
 
-from monitor.bus.codec import N_NODES, CodecError, load_database
-from sim_ecu.scenario import BUILTIN_SCENARIOS, ScenarioError, load_scenario
-from monitor.bus.secoc import SecOC, SecOCError, load_key
-
-from sim_ecu.ecu import ECUError, ECUStats, VirtualECU, load_motor_parameters
-
-__all__ = ["build_parser", "main", "open_bus"]
+__all__ = ["build_parser", "main"]
 
 PROG = "sim-ecu"
 EXIT_USAGE = 2
@@ -47,19 +44,8 @@ STATE_SAVE_PERIOD_S = 1.0
 log = logging.getLogger("sim_ecu")
 
 
-class UsageError(Exception):
-    """A configuration mistake: reported as one line, exit code 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse, but its errors are a single line (no usage block)."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog=PROG,
         description="Virtual DC-motor ECU: sends MotorCurrent, MotorVoltage and SimTruth "
         "frames of one node for a fault scenario, paced in real time.",
@@ -116,94 +102,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return text or type(exc).__name__
-
-
-@contextlib.contextmanager
-def _quiet_can_logger(quiet: bool) -> Iterator[None]:
-    """Silence python-can's own log records while opening (its error becomes our one line).
-
-    e.g. socketcan logs "Could not access SocketCAN device ..." at ERROR before it raises.
-    """
-    can_log = logging.getLogger("can")
-    old = can_log.level
-    if quiet:
-        can_log.setLevel(logging.CRITICAL + 1)
-    try:
-        yield
-    finally:
-        can_log.setLevel(old)
-
-
-def open_bus(
-    interface: str | None, channel: str | None, bitrate: int | None, quiet: bool = True
-) -> can.BusABC:
-    """``can.Bus`` with python-can's configuration filling in what is None.
-
-    Raises `UsageError` with one line when nothing names an interface (or a channel for
-    socketcan, whose default "" means every interface and cannot send), or the bus cannot
-    be opened. Other missing settings are left to the backend's defaults.
-    """
-    given: dict[str, Any] = {}
-    if interface is not None:
-        given["interface"] = interface
-    if channel is not None:
-        given["channel"] = channel
-    if bitrate is not None:
-        given["bitrate"] = bitrate
-    # Resolve once ourselves for clear messages; can.Bus repeats exactly this lookup.
-    try:
-        resolved = can.util.load_config(config=dict(given))
-    except can.CanInterfaceNotImplementedError:
-        name = _configured_interface(given)
-        if name is None:
-            raise UsageError(
-                "no CAN interface given: use --interface or set CAN_INTERFACE or a "
-                "python-can config file"
-            ) from None
-        known = ", ".join(sorted(can.VALID_INTERFACES))
-        raise UsageError(f"unknown CAN interface {name!r}; python-can knows {known}") from None
-    except Exception as exc:  # malformed CAN_CONFIG JSON, bad config-file values, ...
-        raise UsageError(f"python-can configuration: {_one_line(exc)}") from None
-    shown = "(default)" if resolved["channel"] is None else repr(resolved["channel"])
-    where = f"interface {resolved['interface']!r} channel {shown}"
-    if resolved["channel"] is None and resolved["interface"] == "socketcan":
-        # socketcan's default channel "" binds to every interface and cannot send.
-        raise UsageError(
-            "no CAN channel given for interface 'socketcan': use --channel or set "
-            "CAN_CHANNEL or a python-can config file"
-        )
-    extra: dict[str, Any] = {"bitrate": bitrate} if bitrate is not None else {}
-    try:
-        with _quiet_can_logger(quiet):
-            bus = can.Bus(interface=interface, channel=channel, **extra)
-    except Exception as exc:  # backends raise CanError, OSError, ImportError, ValueError...
-        hint = ""
-        if isinstance(exc, OSError) and exc.errno == errno.EAFNOSUPPORT:
-            hint = " (this kernel has no SocketCAN support)"
-        raise UsageError(f"cannot open CAN {where}: {_one_line(exc)}{hint}") from None
-    log.info("opened %s (%s)", where, bus.channel_info)
-    return bus
-
-
-def _configured_interface(given: dict[str, Any]) -> str | None:
-    """The interface python-can's configuration yields for `given` (None: nowhere set)."""
-    if given.get("interface"):
-        return str(given["interface"])
-    sources: list[dict[str, Any]] = [
-        dict(can.rc),
-        can.util.load_environment_config(),
-        can.util.load_file_config(),
-    ]
-    for cfg in sources:
-        value = cfg.get("interface") or cfg.get("bustype")
-        if value:
-            return str(value)
-    return None
-
-
 def _check_args(args: argparse.Namespace) -> float | None:
     """Validate numbers argparse cannot; returns the run duration (None: scenario's)."""
     if not 0 <= args.node < N_NODES:
@@ -222,59 +120,6 @@ def _check_args(args: argparse.Namespace) -> float | None:
     if not (math.isfinite(args.duration) and args.duration >= 0):
         raise UsageError(f"--duration must be >= 0 seconds (0: forever), got {args.duration:g}")
     return math.inf if args.duration == 0 else float(args.duration)
-
-
-class _StopOnSignals:
-    """SIGINT/SIGTERM set a stop event (main thread only; previous handlers restored)."""
-
-    def __init__(self, stop: threading.Event) -> None:
-        self.stop = stop
-        self.received: str | None = None
-        self._old: dict[int, Any] = {}
-
-    def _handler(self, signum: int, frame: FrameType | None) -> None:
-        self.received = signal.Signals(signum).name
-        self.stop.set()
-
-    def __enter__(self) -> _StopOnSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-
-
-class _StateSaver:
-    """Saves the SecOC counters to a file; failures are logged once per burst."""
-
-    def __init__(self, secoc: SecOC, path: str) -> None:
-        self.secoc = secoc
-        self.path = path
-        self.failing = False
-
-    def save(self) -> None:
-        """Periodic save: a failure is logged (once per burst) and retried next time."""
-        try:
-            self.secoc.save_state(self.path)
-        except SecOCError as exc:
-            if not self.failing:
-                log.warning("%s (retrying every second)", exc)
-            self.failing = True
-        else:
-            if self.failing:
-                log.warning("SecOC state saved again to %s", self.path)
-            self.failing = False
-
-    def final(self) -> str | None:
-        """The save at exit: None, or the one-line error."""
-        try:
-            self.secoc.save_state(self.path)
-        except SecOCError as exc:
-            return str(exc)
-        return None
 
 
 def _run_in_worker(ecu: VirtualECU, duration: float | None, stop: threading.Event,
@@ -319,8 +164,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         stream=sys.stderr,
     )
     stop = threading.Event()
-    saver: _StateSaver | None = None
-    with _StopOnSignals(stop) as signals:
+    saver: FreshnessSaver | None = None
+    with StopOnSignals(stop) as signals:
         try:
             duration = _check_args(args)
             scenario = load_scenario(args.scenario)
@@ -335,14 +180,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                          else f"{restored} counter(s) restored, {margin} ahead")
                 # the skipped-ahead counters are on disk before the first frame is signed
                 db.secoc.save_state(args.secoc_state)
-                saver = _StateSaver(db.secoc, args.secoc_state)
-        except (UsageError, ScenarioError, ECUError, CodecError, SecOCError) as exc:
-            print(f"{PROG}: error: {_one_line(exc)}", file=sys.stderr)
-            return EXIT_USAGE
-        try:
+                saver = FreshnessSaver(db.secoc, args.secoc_state, STATE_SAVE_PERIOD_S)
             bus = open_bus(args.interface, args.channel, args.bitrate, quiet=not args.verbose)
-        except UsageError as exc:
-            print(f"{PROG}: error: {exc}", file=sys.stderr)
+        except MonitorError as exc:
+            print(f"{PROG}: error: {one_line(exc, limit=10_000)}", file=sys.stderr)
             return EXIT_USAGE
         try:
             try:
@@ -357,7 +198,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     truth=not args.no_truth,
                     motor=motor,
                 )
-            except ECUError as exc:
+            except MonitorError as exc:
                 print(f"{PROG}: error: {exc}", file=sys.stderr)
                 return EXIT_USAGE
             length = "until stopped" if duration == math.inf else (
@@ -373,7 +214,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                        None if saver is None else saver.save)
             except Exception as exc:
                 log.debug("run failed", exc_info=True)
-                print(f"{PROG}: error: run failed: {_one_line(exc)}", file=sys.stderr)
+                print(f"{PROG}: error: run failed: {one_line(exc, limit=10_000)}", file=sys.stderr)
                 if saver is not None:
                     saver.final()  # best effort; the run's failure is the error reported
                 return 1

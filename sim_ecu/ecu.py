@@ -48,8 +48,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from monitor.bus.codec import N_NODES, SECOC_KINDS, CodecError, Kind, MotorDatabase
+from monitor.errors import MonitorError
 from monitor.estimation.model import DCMotorParameters, ModelError, dc_motor
-from sim_ecu.plant import PlantSimulator
+from sim_ecu.plant import PlantSimulator, steady_state
 from sim_ecu.scenario import BUILTIN_SCENARIOS, Scenario
 
 __all__ = [
@@ -59,7 +60,6 @@ __all__ = [
     "VirtualECU",
     "load_motor_parameters",
     "motor_parameters",
-    "steady_state",
 ]
 
 log = logging.getLogger(__name__)
@@ -75,7 +75,7 @@ DEFAULT_MAX_CATCH_UP: Final = 3
 """Samples the real-time loop may send back to back when late; further behind, it skips."""
 
 
-class ECUError(ValueError):
+class ECUError(MonitorError, ValueError):
     """A virtual-ECU configuration that cannot run; the message is one line."""
 
 
@@ -163,19 +163,6 @@ def load_motor_parameters(name_or_path: str | Path) -> DCMotorParameters | None:
     if "motor" not in data:
         return None
     return motor_parameters(data["motor"], f"{path} [motor]")
-
-
-def steady_state(plant: PlantSimulator, u0: Array) -> Array:
-    """Fault-free steady state of `plant` under constant input u0 (as `simulate` starts).
-
-    Pure integrators (a zero column in I - A: the angle) feed nothing back and start at 0.
-    """
-    n = plant.A.shape[0]
-    M = np.eye(n) - plant.A
-    settling = [j for j in range(n) if np.linalg.norm(M[:, j]) > 1e-12]
-    xs = np.zeros(n)
-    xs[settling] = np.linalg.solve(M[np.ix_(settling, settling)], (plant.B @ u0)[settling])
-    return xs
 
 
 # ----------------------------------------------------------------------------- ECU
@@ -332,7 +319,8 @@ class _Simulation:
 
 
 class VirtualECU:
-    """The virtual motor ECU of one node (m = 1: the DC motor of `monitor.estimation.model.dc_motor`).
+    """The virtual motor ECU of one node (m = 1: the DC motor of
+    `monitor.estimation.model.dc_motor`).
 
     `bus` may be None for offline use of `frames`. `rate` is the sample rate (Hz: one
     current and one truth frame per sample), `voltage_rate` the rate of voltage frames (one

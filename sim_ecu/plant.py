@@ -21,7 +21,7 @@ from sim_ecu.scenario import Scenario
 
 Array = NDArray[np.float64]
 
-__all__ = ["PlantSimulator", "SimulatedRun", "simulate"]
+__all__ = ["PlantSimulator", "SimulatedRun", "simulate", "steady_state"]
 
 
 class PlantSimulator:
@@ -91,6 +91,19 @@ class SimulatedRun:
     T: float
 
 
+def steady_state(plant: PlantSimulator, u0: Array) -> Array:
+    """Fault-free steady state of `plant` under constant input u0.
+
+    Pure integrators (a zero column in I - A: the angle) feed nothing back and start at 0.
+    """
+    n = plant.A.shape[0]
+    M = np.eye(n) - plant.A
+    settling = [j for j in range(n) if np.linalg.norm(M[:, j]) > 1e-12]
+    xs = np.zeros(n)
+    xs[settling] = np.linalg.solve(M[np.ix_(settling, settling)], (plant.B @ u0)[settling])
+    return xs
+
+
 def simulate(
     model: ContinuousDescriptor,
     scenario: Scenario,
@@ -106,15 +119,7 @@ def simulate(
     )
     m = sim.B.shape[1]
     if settle and x0 is None:
-        u0 = np.full(m, scenario.voltage_at(0.0))
-        n = sim.A.shape[0]
-        # Steady state of the states that settle; pure integrators (a zero column in
-        # I - A: the angle) feed nothing back and start at 0.
-        M = np.eye(n) - sim.A
-        settling = [j for j in range(n) if np.linalg.norm(M[:, j]) > 1e-12]
-        xs = np.zeros(n)
-        xs[settling] = np.linalg.solve(M[np.ix_(settling, settling)], (sim.B @ u0)[settling])
-        sim.x = xs
+        sim.x = steady_state(sim, np.full(m, scenario.voltage_at(0.0)))
     N = round(scenario.duration / T)
     p = sim.C.shape[0]
     t = np.arange(N, dtype=np.float64) * T

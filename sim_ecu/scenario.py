@@ -42,6 +42,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from monitor.errors import MonitorError
+
 __all__ = [
     "BUILTIN_SCENARIOS",
     "FaultSegment",
@@ -51,7 +53,7 @@ __all__ = [
 ]
 
 
-class ScenarioError(ValueError):
+class ScenarioError(MonitorError, ValueError):
     """A scenario that cannot be run; the message is one line naming the problem."""
 
 

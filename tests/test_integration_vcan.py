@@ -44,9 +44,10 @@ import pytest
 from rerun.chunk import RrdReader
 
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
-from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
-from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
+from monitor.pipeline import DiagnosisEvent, MonitorConfig
 from sim_ecu import VirtualECU
+from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
+from tests.support.pipeline import pipeline
 from tests.vcan_harness import PROJECT_ROOT, VcanResult
 
 RunOnVcan = Callable[..., VcanResult]
@@ -323,7 +324,7 @@ def ecu_sent(stderr: str) -> dict[str, int]:
 
 def offline_events(mdb: MotorDatabase, frames: Iterable[can.Message]) -> list[DiagnosisEvent]:
     events: list[DiagnosisEvent] = []
-    pipe = MonitorPipeline(mdb, MonitorConfig(nodes=(0,)), on_event=events.append)
+    pipe = pipeline(mdb, MonitorConfig(nodes=(0,)), events=events)
     last_tick = -np.inf
     for msg in frames:
         pipe.feed(msg)

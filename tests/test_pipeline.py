@@ -13,8 +13,9 @@ from hypothesis import strategies as st
 from monitor.bus.codec import MotorDatabase, load_database
 from monitor.diagnosis import HealthState
 from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
-from sim_ecu.scenario import load_scenario
 from sim_ecu.ecu import VirtualECU
+from sim_ecu.scenario import load_scenario
+from tests.support.pipeline import feed_all, pipeline
 
 T0 = 1_700_000_000.0
 
@@ -35,13 +36,13 @@ def _pipe(db: MotorDatabase, **kw: object) -> tuple[MonitorPipeline, list[Diagno
     events: list[DiagnosisEvent] = []
     sent: list[can.Message] = []
     cfg = MonitorConfig(**kw)  # type: ignore[arg-type]
-    return MonitorPipeline(db, cfg, publish=sent.append, on_event=events.append), events, sent
+    return pipeline(db, cfg, events=events, sent=sent), events, sent
 
 
 def test_fault_outage_recovery_is_diagnosed_and_published(db: MotorDatabase,
                                                           frames: list[can.Message]) -> None:
     pipe, events, sent = _pipe(db)
-    pipe.feed_many(frames)
+    feed_all(pipe, frames)
     states = [(round(e.t - T0, 2), e.state) for e in events]
     assert [s for _, s in states] == ["fault_free", "fault", "outage", "fault", "fault_free"] or \
         [s for _, s in states] == ["fault_free", "fault", "outage", "fault_free"]
@@ -71,7 +72,7 @@ def test_bad_frames_are_counted_and_never_reach_the_estimator(
         db: MotorDatabase, frames: list[can.Message]) -> None:
     pipe, _, _ = _pipe(db)
     good = frames[:400]
-    pipe.feed_many(good)
+    feed_all(pipe, good)
     est_before = pipe.counters["samples/estimated"]
     gamma_before = pipe.nodes[0].estimator.out.gamma.copy()
     cur = next(m for m in good if m.arbitration_id == 0x110)
@@ -85,7 +86,7 @@ def test_bad_frames_are_counted_and_never_reach_the_estimator(
         can.Message(arbitration_id=0x110, is_remote_frame=True, is_extended_id=False,
                     timestamp=t),  # remote frame
     ]
-    pipe.feed_many(bad)
+    feed_all(pipe, bad)
     c = pipe.counters
     for reason in ("unknown_id", "wrong_length", "bad_crc", "extended_id", "remote_frame"):
         assert c[f"rejected/{reason}"] == 1, reason
@@ -99,11 +100,11 @@ def test_replayed_frame_is_dropped_and_lost_frames_are_predicted_through(
     currents = [m for m in frames if m.arbitration_id == 0x110]
     volt = next(m for m in frames if m.arbitration_id == 0x120)
     pipe.feed(volt)
-    pipe.feed_many(currents[:50])
+    feed_all(pipe, currents[:50])
     pipe.feed(currents[49])  # the same frame again: a replay
     assert pipe.counters["e2e/repeated"] == 1
     assert pipe.counters["samples/estimated"] == 50
-    pipe.feed_many(currents[53:60])  # three lost
+    feed_all(pipe, currents[53:60])  # three lost
     assert pipe.counters["e2e/lost_frames"] == 3
     assert pipe.counters["samples/predicted_through"] == 3
     assert pipe.counters["samples/estimated"] == 57
@@ -125,7 +126,7 @@ def test_time_going_backwards_and_missing_voltage(db: MotorDatabase,
 def test_silent_ecu_turns_no_data_and_says_so_on_the_bus(db: MotorDatabase,
                                                          frames: list[can.Message]) -> None:
     pipe, events, sent = _pipe(db, nodes=(0, 5))
-    pipe.feed_many(frames[:300])
+    feed_all(pipe, frames[:300])
     t = frames[299].timestamp
     pipe.tick(t + 0.1)
     assert pipe.nodes[0].state == HealthState.FAULT_FREE
@@ -138,7 +139,7 @@ def test_silent_ecu_turns_no_data_and_says_so_on_the_bus(db: MotorDatabase,
     assert {d.node for d in new} == {0, 5}  # type: ignore[union-attr]
     assert all(d.raw["HealthState"] == 3 for d in new)  # type: ignore[union-attr]
     # the ECU comes back: classification resumes
-    pipe.feed_many(m for m in frames[300:600])
+    feed_all(pipe, frames[300:600])
     assert pipe.nodes[0].state == HealthState.FAULT_FREE
 
 
@@ -207,7 +208,7 @@ def test_late_frames_are_not_mistaken_for_lost_ones(db: MotorDatabase,
         prev = max(m.timestamp + late, prev + 1e-6)
         jittered.append(can.Message(arbitration_id=m.arbitration_id, data=m.data,
                                     is_extended_id=False, timestamp=prev))
-    pipe.feed_many(jittered)
+    feed_all(pipe, jittered)
     assert pipe.counters.get("samples/predicted_through", 0) == 0
     assert [e.state for e in events][:4] == ["fault_free", "fault", "outage", "fault"] or \
         [e.state for e in events][:4] == ["fault_free", "fault", "outage", "fault_free"]
@@ -218,6 +219,6 @@ def test_long_gap_counts_whole_counter_wraps(db: MotorDatabase,
     pipe, _, _ = _pipe(db)
     currents = [m for m in frames if m.arbitration_id == 0x110]
     pipe.feed(next(m for m in frames if m.arbitration_id == 0x120))
-    pipe.feed_many(currents[:10])
-    pipe.feed_many(currents[10 + 37:60])  # 37 lost: 2 wraps of the 4-bit counter + 5
+    feed_all(pipe, currents[:10])
+    feed_all(pipe, currents[10 + 37:60])  # 37 lost: 2 wraps of the 4-bit counter + 5
     assert pipe.counters["samples/predicted_through"] == 37

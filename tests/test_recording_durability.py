@@ -27,13 +27,10 @@ import pytest
 from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
-from monitor.sinks.rerun import (
-    DEFAULT_FLUSH_INTERVAL_S,
-    RerunSink,
-    RotatingRerunSink,
-    Sink,
-    salvage_rrd,
-)
+from monitor.sinks.base import Sink
+from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
+from monitor.sinks.rotation import RotatingRerunSink
+from monitor.sinks.salvage import salvage_rrd
 
 RERUN_EXE = Path(sys.executable).with_name("rerun")
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,7 +45,8 @@ import sys
 import time
 from pathlib import Path
 
-from monitor.sinks.rerun import RerunSink, RotatingRerunSink
+from monitor.sinks.rerun import RerunSink
+from monitor.sinks.rotation import RotatingRerunSink
 
 kind, out = sys.argv[1], Path(sys.argv[2])
 if kind == "rotating":

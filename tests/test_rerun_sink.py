@@ -24,13 +24,11 @@ import pytest
 from numpy.typing import NDArray
 from rerun.chunk import Chunk, RrdReader
 
-from monitor.sinks.rerun import (
-    DEFAULT_FLUSH_INTERVAL_S,
-    NullSink,
-    RerunSink,
-    RotatingRerunSink,
-    Sink,
-)
+from monitor.diagnosis import HealthState
+from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.sinks.base import Sink
+from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
+from monitor.sinks.rotation import RotatingRerunSink
 
 T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
 DT = 1e-3
@@ -252,14 +250,14 @@ def test_needs_a_destination() -> None:
 
 
 def test_null_sink_and_protocol(tmp_path: Path) -> None:
-    null = NullSink()
-    assert isinstance(null, Sink)
+    null = Sink()
     with null as s:
-        s.add_sample(0, T0, 1.0, 1.0, 0.5, 1, 0, 1.0, true_gamma=0.5)
-        s.add_voltage(0, T0, 24.0)
-        s.log_event(0, T0, "x", "ERROR")
-        s.log_counters(T0, {"a": 1})
-        s.set_thresholds(0.1, 0.9)
+        s.on_sample(Sample(0, T0, 1.0, 1.0, 0.5, 1, HealthState.FAULT_FREE, 1.0, 0.5))
+        s.on_voltage(VoltageSample(0, T0, 24.0))
+        s.on_transition(DiagnosisEvent(T0, 0, "fault", "fault_free", 0.5, 12.0, 2, "estimate"))
+        s.on_diagnosis(Diagnosis(0, T0, HealthState.FAULT, 0.5, 12.0, 2))
+        s.on_bus_event(BusEvent(T0, "x", "ERROR"))
+        s.on_counters(T0, {"a": 1})
         s.maybe_flush(time.monotonic())
         s.flush()
     null.close()

@@ -20,8 +20,9 @@ import pytest
 from monitor.bus.codec import load_database
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.sinks.rerun import RerunSink
-from sim_ecu.scenario import load_scenario
 from sim_ecu.ecu import VirtualECU
+from sim_ecu.scenario import load_scenario
+from tests.support.pipeline import feed_all
 
 RERUN = str(Path(sys.executable).parent / "rerun")
 
@@ -43,7 +44,7 @@ def test_viewer_renders_the_recording(tmp_path: Path) -> None:
     sink = RerunSink(rrd_path=rrd, nodes=(0,))
     pipe = MonitorPipeline(db, MonitorConfig(nodes=(0,)), sink=sink)
     ecu = VirtualECU(None, db, 0, load_scenario("fault-outage-recovery"), seed=1)
-    pipe.feed_many(ecu.frames(start_time=1.7e9))
+    feed_all(pipe, ecu.frames(start_time=1.7e9))
     sink.close()
     port = _free_port()
     env = dict(os.environ, CI="1")  # no analytics from the viewer

@@ -1,7 +1,10 @@
-"""`motor-monitor` command line: reproduce, calibrate, run, replay, demo.
+"""`motor-monitor` command line: run, replay, calibrate, and the commands of installed
+extensions (`demo`, `reproduce` from the `experiments` package, found through the
+`motor_monitor.commands` entry-point group: the daemon never imports them).
 
 Every configuration or usage mistake ends in one line `motor-monitor: error: ...` on
-stderr and exit status 2, never a traceback.
+stderr and exit status 2, never a traceback: each stage raises a subclass of
+`monitor.errors.MonitorError`, caught here once.
 """
 
 from __future__ import annotations
@@ -11,53 +14,16 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
+from importlib.metadata import entry_points
 from pathlib import Path
-from typing import NoReturn
 
-__all__ = ["UsageError", "main"]
+from monitor.app import replay, run
+from monitor.app.options import OneLineParser
+from monitor.errors import MonitorError, UsageError
 
+__all__ = ["build_parser", "main"]
 
-class UsageError(Exception):
-    """A mistake in what the user asked for; printed as one line, exit status 2."""
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse prints its usage block before an error: two lines. One is enough."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def _positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
-    return v
-
-
-def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from experiments.reproduce import reproduce
-
-    summary = reproduce(Path(args.out), T=args.period, seed=args.seed)
-    ours = summary["ours"]
-    print(f"wrote {', '.join(summary['files'])} and summary.json to {args.out}")
-    print(
-        f"thresholds F1 = {ours['F1']:.3f}, F2 = {ours['F2']:.3f} on gamma^ "
-        f"(paper: F1 = 0.3, F2 = 1 in its own units)"
-    )
-    print(
-        f"rules: {ours['rules_at_step_359']} at step 359 (paper: 2), "
-        f"{ours['rules_final']} at the end (paper: 10)"
-    )
-    print(
-        "current error x~ - x^ after step 180: rms "
-        f"{ours['x_e_current_rms_after_step_180']:.3f} A, "
-        f"{100 * ours['x_e_current_fraction_within_0.02_after_step_180']:.0f} % within +-0.02"
-    )
-    return 0
+COMMANDS_GROUP = "motor_monitor.commands"
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -77,40 +43,25 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog="motor-monitor",
         description="CAN-bus monitor: fuzzy UKF actuator-fault estimation and diagnosis",
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-
-    r = sub.add_parser("reproduce", help="the paper's DC-motor experiment, Figs. 1-4")
-    r.add_argument("--out", default="out/reproduce", help="output directory")
-    r.add_argument("--period", type=_positive_float, default=0.01, help="sample period, s")
-    r.add_argument("--seed", type=int, default=0)
-    r.set_defaults(func=_cmd_reproduce)
-
     c = sub.add_parser("calibrate", help="learn thresholds F1 < F2 from gamma^ samples")
     c.add_argument("gamma_file", help="text/CSV file, gamma^ in the first column")
     c.add_argument("--out", default="thresholds.toml")
     c.set_defaults(func=_cmd_calibrate)
-
-    from monitor import daemon, demo
-
-    daemon.add_commands(sub)
-    demo.add_command(sub)
+    run.add_command(sub)
+    replay.add_command(sub)
+    for ep in sorted(entry_points(group=COMMANDS_GROUP), key=lambda e: e.name):
+        ep.load()(sub)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from monitor.bus.codec import CodecError
-    from monitor.app.daemon import BusError
-    from monitor.diagnosis import DiagnosisError
-    from monitor.estimation.model import ModelError
-    from sim_ecu.scenario import ScenarioError
-    from monitor.bus.secoc import SecOCError
-
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -119,8 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return int(args.func(args))
-    except (UsageError, BusError, CodecError, DiagnosisError, ModelError, ScenarioError,
-            SecOCError) as exc:
+    except MonitorError as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"motor-monitor: error: {msg}", file=sys.stderr)
         return 2

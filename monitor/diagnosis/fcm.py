@@ -4,6 +4,8 @@ F1 < F2 read off its clusters (see the package docstring for the exact equations
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray

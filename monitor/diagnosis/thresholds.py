@@ -75,7 +75,7 @@ outage at 1. The equal-membership midpoints are then F1 in [0.15, 0.35] and F2 i
 every partial fault in that range is reported as a fault and not confused with fault-free
 or outage. The monitor uses calibrated thresholds (`calibrate`, `load_thresholds`) when a
 file is given. The paper's F1 = 0.3, F2 = 1 are in its f^ units and do not apply here.
-
+"""
 
 
 def _toml_string(value: str) -> str:

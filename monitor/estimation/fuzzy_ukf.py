@@ -337,8 +337,8 @@ def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
 
     MOTOR_MONITOR_KERNEL=jit|aot|python forces one; by default the numba JIT is used
     unless NUMBA_DISABLE_JIT is set (the hardened service forbids W+X memory), in which
-    case the ahead-of-time build (`python -m monitor.estimation.kernels_aot`) is used if present, and
-    the same code interpreted (about 40x slower) otherwise.
+    case the ahead-of-time build (`python -m monitor.estimation.kernels_aot`) is used if
+    present, and the same code interpreted (about 40x slower) otherwise.
     """
     want = (choice or os.environ.get("MOTOR_MONITOR_KERNEL", "auto")).strip().lower()
     jit_off = os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0")
@@ -350,8 +350,8 @@ def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
         except ImportError:
             if want == "aot":
                 raise
-            _log.warning("JIT disabled and no AOT kernel built (python -m monitor.estimation.kernels_aot):"
-                         " the estimator runs interpreted")
+            _log.warning("JIT disabled and no AOT kernel built (python -m "
+                         "monitor.estimation.kernels_aot): the estimator runs interpreted")
     if want == "python":
         return "python", getattr(_fuzzy_ukf_step, "py_func", _fuzzy_ukf_step)
     return ("python" if jit_off else "jit"), _fuzzy_ukf_step

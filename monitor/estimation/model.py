@@ -37,6 +37,8 @@ import scipy.linalg
 import scipy.signal
 from numpy.typing import NDArray
 
+from monitor.errors import MonitorError
+
 Array = NDArray[np.float64]
 
 __all__ = [
@@ -50,7 +52,7 @@ __all__ = [
 ]
 
 
-class ModelError(ValueError):
+class ModelError(MonitorError, ValueError):
     """A model that cannot be estimated: the message says what is wrong with it."""
 
 

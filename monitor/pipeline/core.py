@@ -26,31 +26,37 @@ times the 4-bit counter wrapped in a long gap. k > 1 means missed samples that t
 estimator predicts through.
 
 A node whose current frames stop for `silence_timeout_s` turns to `no_data` (see `tick`).
-`MonitorDiagnosis` is published on every state change and at a steady rate.
+A node's `Diagnosis` is due on every state change and at a steady rate (the bus publisher
+sink turns it into a MonitorDiagnosis frame).
+
+What comes out goes to one `monitor.sinks.Sink` (a `FanOut` for several): typed events
+from `monitor.pipeline.events`, never Rerun calls or CAN frames. Interface outages and
+kernel socket drops are reported to the pipeline by the application (`interface_failed`,
+`interface_back`, `socket_drops`), so every counter is written here.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
-from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import can
 
+from monitor.bus.codec import Decoded, MotorDatabase, Rejected
+from monitor.bus.counters import CounterOutcome, CounterTracker
 from monitor.bus.faults import describe_error_frame
-from monitor.bus.codec import CounterOutcome, CounterTracker, Decoded, MotorDatabase, Rejected
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier, Thresholds
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import DCMotorParameters, DiscreteModel, dc_motor
-from monitor.sinks.rerun import NullSink, Sink
+from monitor.pipeline import counters as C
+from monitor.pipeline.counters import Counters
+from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.sinks.base import Sink
 
-__all__ = ["BUS_EVENTS", "DiagnosisEvent", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
-
-BUS_EVENTS = -1  # the node number under which bus-level events (error frames, outages) go
+__all__ = ["MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 
 log = logging.getLogger("motor_monitor")
 
@@ -76,30 +82,6 @@ class MonitorConfig:
     process_noise: float = 1.44
     current_sigma: float = 0.5
     estimator: FuzzyUKFConfig = field(default_factory=FuzzyUKFConfig)
-
-
-@dataclass(frozen=True)
-class DiagnosisEvent:
-    """A change of a node's health state (also written as a JSON line by `replay`)."""
-
-    t: float
-    node: int
-    state: str
-    previous: str
-    gamma: float
-    fault_volts: float
-    rules: int
-    cause: str  # "estimate" or "silence"
-
-    def to_json(self) -> str:
-        return json.dumps(asdict(self), separators=(",", ":"))
-
-
-class Counters(dict[str, int]):
-    """Named event counters: every frame's outcome lands in exactly one of them."""
-
-    def inc(self, name: str, n: int = 1) -> None:
-        self[name] = self.get(name, 0) + n
 
 
 class _RateLimitedLog:
@@ -136,45 +118,40 @@ class NodeMonitor:
         self.last_t: float | None = None
         self.last_publish: float = -math.inf
         self.truth_gamma: float | None = None
-        self.diag_counter = 0
         self.samples = 0
-        self.started = False
 
     def restart(self) -> None:
         """Forget the estimate (after a gap too long to predict through)."""
         self.estimator = FuzzyUKF(self.model, self.cfg.estimator)
-        self.started = False
 
     @property
     def state(self) -> HealthState:
         return self.classifier.state
 
+    @property
+    def gamma(self) -> float:
+        """The latest gamma^ of the node's first actuator."""
+        return float(self.estimator.out.gamma[0])
+
 
 class MonitorPipeline:
-    """Frames in, diagnosis out. See the module docstring for every frame's outcome."""
+    """Frames in, typed events out to `sink`. See the module docstring for every frame's
+    outcome."""
 
-    def __init__(
-        self,
-        db: MotorDatabase,
-        cfg: MonitorConfig | None = None,
-        *,
-        sink: Sink | None = None,
-        publish: Callable[[can.Message], None] | None = None,
-        on_event: Callable[[DiagnosisEvent], None] | None = None,
-    ) -> None:
+    def __init__(self, db: MotorDatabase, cfg: MonitorConfig | None = None, *,
+                 sink: Sink | None = None, counters: Counters | None = None) -> None:
+        """`counters` may be shared with sinks that count their own outcomes (the bus
+        publisher); by default the pipeline starts its own."""
         self.db = db
         self.cfg = cfg or MonitorConfig()
-        self.sink: Sink = sink if sink is not None else NullSink()
-        self.publish = publish
-        self.on_event = on_event
-        self.counters = Counters()
+        self.sink: Sink = sink if sink is not None else Sink()
+        self.counters = counters if counters is not None else Counters()
         self.nodes: dict[int, NodeMonitor] = {}
         self._warn = _RateLimitedLog()
         self._last_counters_t = -math.inf
         self._model = dc_motor(self.cfg.motor, q=self.cfg.process_noise,
                                r=self.cfg.current_sigma**2).discretize(1.0 / self.cfg.rate)
         self.tracker = CounterTracker()
-        self.sink.set_thresholds(self.cfg.thresholds.f1, self.cfg.thresholds.f2)
         # Load the compiled kernels now, not on the first frame of a live bus.
         FuzzyUKF(self._model, self.cfg.estimator).step(0.0, 0.0, 1.0 / self.cfg.rate)
         for n in self.cfg.nodes or ():
@@ -189,20 +166,16 @@ class MonitorPipeline:
             self.nodes[n] = nm
         return nm
 
-    def feed_many(self, msgs: Iterable[can.Message]) -> None:
-        for msg in msgs:
-            self.feed(msg)
-
     def feed(self, msg: can.Message) -> None:
         """One frame from the bus or a log; never raises on the frame's content."""
-        self.counters.inc("frames/received")
+        self.counters.inc(C.FRAMES_RECEIVED)
         if msg.is_error_frame:
             self._on_error_frame(msg)
             return
         res = self.db.decode_can(msg)
         if isinstance(res, Rejected):
             reason = str(res.reason)
-            self.counters.inc(f"rejected/{reason}")
+            self.counters.inc(C.rejected(reason))
             self._warn.warn(reason, f"frame rejected ({reason}, id 0x{res.arbitration_id:X}): "
                                     f"{res.detail}")
             return
@@ -210,28 +183,29 @@ class MonitorPipeline:
 
     def _on_error_frame(self, msg: can.Message) -> None:
         """A SocketCAN error frame: counted per condition, logged, shown in the recording."""
-        self.counters.inc("bus/error_frames")
+        self.counters.inc(C.BUS_ERROR_FRAMES)
         names = describe_error_frame(msg)
         for name in names:
-            self.counters.inc(f"bus/errors/{name}")
+            self.counters.inc(C.bus_error(name))
         text = "CAN error frame: " + ", ".join(names)
         severe = any(n in ("bus_off", "controller/rx_overflow") or n.endswith("error_passive")
                      for n in names)
         self._warn.warn("errframe-" + ",".join(names), text)
-        self.sink.log_event(BUS_EVENTS, float(msg.timestamp), text, "ERROR" if severe else "WARN")
+        self.sink.on_bus_event(BusEvent(float(msg.timestamp), text,
+                                        "ERROR" if severe else "WARN"))
 
     def _dispatch(self, d: Decoded) -> None:
         kind = d.kind
         if kind == "diagnosis":
-            self.counters.inc("ignored/diagnosis")
+            self.counters.inc(C.IGNORED_DIAGNOSIS)
             return
         if kind == "sync":  # SecOC freshness sync: the codec has applied it (with a key)
-            self.counters.inc("samples/secoc_sync" if self.db.secoc_enabled
-                              else "ignored/secoc_sync")
+            self.counters.inc(C.SAMPLES_SECOC_SYNC if self.db.secoc_enabled
+                              else C.IGNORED_SECOC_SYNC)
             return
         wanted = self.cfg.nodes
         if wanted is not None and d.node not in wanted:
-            self.counters.inc("ignored/node")
+            self.counters.inc(C.IGNORED_NODE)
             return
         nm = self._node(d.node)
         lost = self._check_counter(d)
@@ -241,11 +215,11 @@ class MonitorPipeline:
             self._on_current(nm, d.timestamp, d.value, lost)
         elif kind == "voltage":
             nm.voltage = d.value
-            self.counters.inc("samples/voltage")
-            self.sink.add_voltage(d.node, d.timestamp, d.value)
+            self.counters.inc(C.SAMPLES_VOLTAGE)
+            self.sink.on_voltage(VoltageSample(d.node, d.timestamp, d.value))
         else:  # truth: shown beside the estimate, never read by the estimator
             nm.truth_gamma = d.value
-            self.counters.inc("samples/truth")
+            self.counters.inc(C.SAMPLES_TRUTH)
 
     def _check_counter(self, d: Decoded) -> int | None:
         """Frames lost before this one by its alive counter (0 if none), None to drop it."""
@@ -253,17 +227,17 @@ class MonitorPipeline:
         if check is None or check.outcome == CounterOutcome.OK:
             return 0
         if check.outcome == CounterOutcome.REPEATED:
-            self.counters.inc("e2e/repeated")
+            self.counters.inc(C.E2E_REPEATED)
             self._warn.warn(f"repeat-{d.kind}-{d.node}", f"node {d.node}: repeated {d.kind} "
                             f"alive counter {d.counter} (replay or duplicate)")
             return None
-        self.counters.inc("e2e/counter_jumps")
-        self.counters.inc("e2e/lost_frames", check.lost)
+        self.counters.inc(C.E2E_COUNTER_JUMPS)
+        self.counters.inc(C.E2E_LOST_FRAMES, check.lost)
         return check.lost
 
     def _on_current(self, nm: NodeMonitor, t: float, amps: float, lost: int) -> None:
         if nm.voltage is None:
-            self.counters.inc("samples/no_voltage")
+            self.counters.inc(C.SAMPLES_NO_VOLTAGE)
             return
         last = nm.last_t
         if last is None:
@@ -271,38 +245,37 @@ class MonitorPipeline:
         else:
             dt = t - last
             if not dt > 0.0:
-                self.counters.inc("time/non_monotonic")
+                self.counters.inc(C.TIME_NON_MONOTONIC)
                 return
             if dt > self.cfg.max_gap_s:
-                self.counters.inc("estimator/restarts")
+                self.counters.inc(C.ESTIMATOR_RESTARTS)
                 nm.restart()
                 k = 1
             else:
                 k = self._periods(dt, lost)
                 if k > 1:
-                    self.counters.inc("samples/predicted_through", k - 1)
+                    self.counters.inc(C.SAMPLES_PREDICTED_THROUGH, k - 1)
         nm.last_t = t
-        est = nm.estimator
-        out = est.step(nm.voltage, amps, k * nm.T)
+        out = nm.estimator.step(nm.voltage, amps, k * nm.T)
         nm.samples += 1
-        self.counters.inc("samples/estimated")
+        self.counters.inc(C.SAMPLES_ESTIMATED)
         g = float(out.gamma[0])
         if g != g:  # NaN can only come from a numerical failure: count, restart
-            self.counters.inc("estimator/nan")
+            self.counters.inc(C.ESTIMATOR_NAN)
             nm.restart()
             return
         if out.structure_event:
-            self.counters.inc("estimator/structure_events")
+            self.counters.inc(C.ESTIMATOR_STRUCTURE_EVENTS)
         prev = nm.classifier.state
         new = nm.classifier.update(t, g)
         if new is not None:
-            self._transition(nm, t, prev, new, g, out.rules, "estimate")
+            self._transition(nm, t, prev, new, "estimate")
         elif t - nm.last_publish >= self.cfg.publish_period_s:
-            self._publish(nm, t)
-        self.sink.add_sample(nm.node, t, amps, float(out.y_est[0]), g, out.rules,
-                             int(nm.classifier.state), float(out.nis), nm.truth_gamma)
+            self._diagnosis_due(nm, t)
+        self.sink.on_sample(Sample(nm.node, t, amps, float(out.y_est[0]), g, out.rules,
+                                   nm.classifier.state, float(out.nis), nm.truth_gamma))
         if t - self._last_counters_t >= self.cfg.counters_period_s:
-            self.log_counters(t)
+            self.emit_counters(t)
 
     def _periods(self, dt: float, lost: int) -> int:
         """Sample periods since the previous current sample.
@@ -320,42 +293,20 @@ class MonitorPipeline:
     # ------------------------------------------------------------------ diagnosis out
 
     def _transition(self, nm: NodeMonitor, t: float, prev: HealthState, new: HealthState,
-                    gamma: float, rules: int, cause: str) -> None:
-        volts = nm.voltage or 0.0
+                    cause: str) -> None:
+        gamma = nm.gamma
         ev = DiagnosisEvent(t=t, node=nm.node, state=new.label, previous=prev.label,
-                            gamma=gamma, fault_volts=gamma * volts, rules=rules, cause=cause)
-        self.counters.inc(f"transitions/{new.label}")
-        level = "INFO" if new == HealthState.FAULT_FREE else "WARN"
-        text = f"{prev.label} -> {new.label} (gamma^ = {gamma:.3f}, {rules} rules, {cause})"
-        log.info("node %d: %s", nm.node, text)
-        self.sink.log_event(nm.node, t, text, level)
-        if self.on_event is not None:
-            self.on_event(ev)
-        self._publish(nm, t)
+                            gamma=gamma, fault_volts=gamma * (nm.voltage or 0.0),
+                            rules=nm.estimator.out.rules, cause=cause)
+        self.counters.inc(C.transition(new.label))
+        self.sink.on_transition(ev)
+        self._diagnosis_due(nm, t)
 
-    def _publish(self, nm: NodeMonitor, t: float) -> None:
+    def _diagnosis_due(self, nm: NodeMonitor, t: float) -> None:
         nm.last_publish = t
-        if self.publish is None:
-            return
-        out = nm.estimator.out
-        g = float(out.gamma[0])
-        fault = max(-999.0, min(999.0, g * (nm.voltage or 0.0)))
-        try:
-            data = self.db.encode_diagnosis(nm.node, int(nm.classifier.state), g, fault,
-                                            min(out.rules, 255), nm.diag_counter)
-        except ValueError as exc:  # a value the DBC cannot carry: count, never crash
-            self.counters.inc("publish/encode_errors")
-            self._warn.warn("encode", f"node {nm.node}: cannot encode diagnosis: {exc}")
-            return
-        nm.diag_counter = (nm.diag_counter + 1) % 16
-        msg = can.Message(arbitration_id=self.db.frame_id("diagnosis", nm.node), data=data,
-                          is_extended_id=False, timestamp=t)
-        try:
-            self.publish(msg)
-            self.counters.inc("publish/sent")
-        except can.CanError as exc:
-            self.counters.inc("publish/errors")
-            self._warn.warn("publish", f"cannot send diagnosis: {exc}")
+        gamma = nm.gamma
+        self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.classifier.state, gamma,
+                                         gamma * (nm.voltage or 0.0), nm.estimator.out.rules))
 
     def tick(self, now: float) -> None:
         """Timeouts and steady publication, at bus time `now` (no frame needed)."""
@@ -364,27 +315,41 @@ class MonitorPipeline:
             if silent and nm.classifier.state != HealthState.NO_DATA:
                 prev = nm.classifier.state
                 nm.classifier.mark_no_data(now)
-                self.counters.inc("nodes/silent")
-                self._transition(nm, now, prev, HealthState.NO_DATA,
-                                 float(nm.estimator.out.gamma[0]), nm.estimator.out.rules,
-                                 "silence")
+                self.counters.inc(C.NODES_SILENT)
+                self._transition(nm, now, prev, HealthState.NO_DATA, "silence")
             elif silent and now - nm.last_publish >= self.cfg.publish_period_s:
-                self._publish(nm, now)
+                self._diagnosis_due(nm, now)
         # Counters go with estimated samples (at their time stamps); when none come (a
-        # silent bus, error frames, an outage) they still reach the recording.
+        # silent bus, error frames, an outage) they still reach the sinks.
         if now - self._last_counters_t >= 2.0 * self.cfg.counters_period_s:
-            self.log_counters(now)
+            self.emit_counters(now)
 
-    def log_counters(self, t: float) -> None:
-        """Log every counter into the sink at time `t` (also called on exit)."""
+    def emit_counters(self, t: float) -> None:
+        """Hand every counter to the sink at time `t` (also called on exit)."""
         self._last_counters_t = t
-        self.sink.log_counters(t, self.counters)
+        self.sink.on_counters(t, self.counters)
+
+    # ------------------------------------------------------------------ the interface
+
+    def interface_failed(self, t: float, reason: str) -> None:
+        """The CAN interface failed: a new outage (not a failed reopen during one)."""
+        self.counters.inc(C.BUS_OUTAGES)
+        self.sink.on_bus_event(BusEvent(t, f"CAN interface failed: {reason}", "ERROR"))
+
+    def interface_back(self, t: float, outage_s: float) -> None:
+        """The CAN interface delivers frames again after `outage_s` seconds."""
+        self.counters.inc(C.BUS_RECONNECTS)
+        self.sink.on_bus_event(BusEvent(t, f"CAN interface back after {outage_s:.1f} s", "WARN"))
+
+    def socket_drops(self, total: int) -> None:
+        """Frames the kernel dropped before the monitor could read them, since start."""
+        self.counters[C.BUS_SOCKET_DROPS] = total
 
     def summary(self) -> dict[str, Any]:
         return {
             "counters": dict(sorted(self.counters.items())),
             "nodes": {
-                n: {"state": nm.state.label, "gamma": float(nm.estimator.out.gamma[0]),
+                n: {"state": nm.state.label, "gamma": nm.gamma,
                     "rules": nm.estimator.out.rules, "samples": nm.samples}
                 for n, nm in sorted(self.nodes.items())
             },

@@ -100,7 +100,7 @@ class FanOut(Sink):
         for s in self.sinks:
             try:
                 s.close()
-            except BaseException as exc:  # noqa: BLE001 - the others must still close
+            except BaseException as exc:  # the others must still close
                 first = first or exc
         if first is not None:
             raise first

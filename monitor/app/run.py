@@ -1,0 +1,221 @@
+"""`motor-monitor run`: the daemon on a live bus.
+
+Frames come from a python-can bus (`--interface/--channel`, or python-can's own
+configuration). An interface that fails (deleted, down) is closed and reopened with
+back-off while the pipeline keeps its state; the outage is counted and logged. SIGINT and
+SIGTERM stop the loop; the sinks are flushed and closed so that `rerun rrd verify` passes on
+the recording. Under systemd (Type=notify) the loop reports READY, STATUS, WATCHDOG and
+STOPPING (`monitor.app.notify`).
+
+The wiring: bus -> `MonitorPipeline` -> `FanOut` of sinks (the log, the bus publisher, the
+Rerun recording, JSON lines). This module owns the sinks' life (periodic flush, close); the
+pipeline only hands them events.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from contextlib import suppress
+from typing import Any
+
+import can
+
+from monitor.app import options, outputs
+from monitor.app.canbus import BusError, open_bus
+from monitor.app.freshness import FreshnessSaver
+from monitor.app.notify import Notifier
+from monitor.app.signals import StopOnSignals
+from monitor.bus.codec import MotorDatabase
+from monitor.bus.faults import socket_drops
+from monitor.errors import UsageError
+from monitor.pipeline import Counters, MonitorPipeline
+from monitor.pipeline import counters as C
+from monitor.sinks.base import FanOut, Sink
+from monitor.sinks.log import LogSink
+from monitor.sinks.publisher import BusPublisher
+
+__all__ = ["add_command", "run_live"]
+
+log = logging.getLogger("motor_monitor")
+
+FRESHNESS_SAVE_PERIOD_S = 5.0
+TICK_S = 0.05  # timeouts, flushing and freshness saving, also while the bus is down
+
+
+class _LiveBus:
+    """The current bus, or None while the interface is down."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        self.bus: can.BusABC | None = open_bus(args.interface, args.channel, args.bitrate,
+                                               quiet=_quiet())
+
+    def reopen(self) -> None:
+        a = self.args
+        self.bus = open_bus(a.interface, a.channel, a.bitrate, quiet=_quiet())
+
+    def send(self, msg: can.Message) -> None:
+        if self.bus is None:
+            raise can.CanOperationError("interface is down")
+        self.bus.send(msg, timeout=0.01)
+
+    def drop(self) -> None:
+        if self.bus is not None:
+            with suppress(Exception):
+                self.bus.shutdown()
+        self.bus = None
+
+
+def _quiet() -> bool:
+    return not log.isEnabledFor(logging.DEBUG)  # python-can's ERROR record: a second line
+
+
+def _freshness(db: MotorDatabase, path: str | None) -> FreshnessSaver | None:
+    """--secoc-state: restore the receive counters, then save them periodically, so a
+    restarted monitor resumes verification at once and an old recorded sync cannot roll its
+    freshness back."""
+    if path is None:
+        return None
+    if db.secoc is None:
+        raise UsageError("--secoc-state needs --key (there is no freshness without SecOC)")
+    restored = db.secoc.load_state(path)
+    log.warning("SecOC freshness: %s", "fresh start, first sync trusted" if restored is None
+                else f"{restored} counters restored from {path}")
+    return FreshnessSaver(db.secoc, path, FRESHNESS_SAVE_PERIOD_S)
+
+
+def run_live(args: argparse.Namespace) -> int:
+    db = options.database(args)
+    fresh = _freshness(db, args.secoc_state)
+    cfg = options.monitor_config(args)
+    with StopOnSignals() as stop:
+        # Load the compiled estimator before the socket opens: frames arriving meanwhile
+        # would pile up in the kernel's buffer and be dropped.
+        MonitorPipeline(db, cfg)
+        live = _LiveBus(args)
+        try:
+            recording = outputs.rerun_sink(args, cfg)
+            events = outputs.event_lines(args.events, to_stdout=False)
+        except BaseException:
+            live.drop()
+            raise
+        counters = Counters()
+        sinks: list[Sink] = [LogSink(), BusPublisher(db, live.send, counters)]
+        sinks += [s for s in (recording, events) if s is not None]
+        sink = FanOut(sinks)
+        pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)
+        try:
+            _loop(args, pipe, sink, live, fresh, stop)
+        finally:
+            if fresh is not None:
+                failed = fresh.final()
+                if failed is not None:
+                    log.error("%s", failed)
+            pipe.emit_counters(time.time())  # the last second's counters, into the recording
+            sink.close()
+            live.drop()
+            c = pipe.counters
+            why = f"signal {stop.signum}" if stop.signum else "end"
+            print(f"motor-monitor: stopped ({why}): {c.get(C.FRAMES_RECEIVED, 0)} frames, "
+                  f"{c.get(C.SAMPLES_ESTIMATED, 0)} estimated, {c.rejected_total()} rejected, "
+                  f"{c.get(C.PUBLISH_SENT, 0)} diagnosis frames sent", file=sys.stderr)
+    return 0
+
+
+def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _LiveBus,
+          fresh: FreshnessSaver | None, stop: StopOnSignals) -> None:
+    where = f"{args.interface or '<config>'}:{args.channel or '<config>'}"
+    log.warning("monitoring %s, nodes %s", where,
+                "all" if pipe.cfg.nodes is None else pipe.cfg.nodes)
+    notifier = Notifier.from_environment()
+    notifier.ready(f"monitoring {where}")
+    last_status = 0.0
+    last_tick = 0.0
+    dropped_before = 0  # socket drops of sockets closed before the current one
+    backoff = 0.1
+    down_since: float | None = None
+    try:
+        while not stop.event.is_set():
+            mono = time.monotonic()
+            notifier.maybe_ping(mono)
+            now = time.time()
+            if now - last_tick >= TICK_S:
+                last_tick = now
+                pipe.tick(now)
+                sink.maybe_flush(mono)
+                if fresh is not None:
+                    fresh.maybe_save(mono)
+                drops = None if live.bus is None else socket_drops(live.bus)
+                if drops is not None:  # the kernel's count for this socket, since it opened
+                    pipe.socket_drops(dropped_before + drops)
+            if mono - last_status >= 1.0:
+                last_status = mono
+                notifier.status(status_line(pipe, live.bus is not None))
+            bus = live.bus
+            if bus is None:
+                if stop.event.wait(backoff):
+                    break
+                try:
+                    live.reopen()
+                except BusError as exc:
+                    backoff = min(2.0, backoff * 2)
+                    log.debug("still down: %s", exc)
+                continue  # back only once a receive succeeds (a down link binds fine)
+            try:
+                msg = bus.recv(timeout=0.05)
+            except (can.CanError, OSError) as exc:
+                dropped_before = pipe.counters.get(C.BUS_SOCKET_DROPS, 0)
+                live.drop()
+                if down_since is None:  # a new outage
+                    log.warning("CAN interface failed: %s; reconnecting", exc)
+                    pipe.interface_failed(time.time(), str(exc))
+                    down_since = time.monotonic()
+                else:  # reopened, but still down (e.g. ENETDOWN on a link set down)
+                    backoff = min(2.0, backoff * 2)
+                    log.debug("still down: %s", exc)
+                continue
+            if down_since is not None:
+                outage = time.monotonic() - down_since
+                log.warning("CAN interface back after %.1f s", outage)
+                pipe.interface_back(time.time(), outage)
+                backoff = 0.1
+                down_since = None
+            if msg is not None:
+                pipe.feed(msg)
+    finally:
+        notifier.stopping("flushing the recording")
+
+
+def status_line(pipe: MonitorPipeline, bus_up: bool) -> str:
+    """One line for systemctl status: traffic, rejections and each node's state."""
+    c = pipe.counters
+    nodes = " ".join(f"{n}={nm.state.label}" for n, nm in sorted(pipe.nodes.items()))
+    return (f"{'bus up' if bus_up else 'bus DOWN, reconnecting'}; "
+            f"{c.get(C.FRAMES_RECEIVED, 0)} frames, {c.get(C.SAMPLES_ESTIMATED, 0)} estimated, "
+            f"{c.rejected_total()} rejected, {c.get(C.E2E_LOST_FRAMES, 0)} lost, "
+            f"{c.get(C.BUS_ERROR_FRAMES, 0)} error frames; nodes {nodes or 'none yet'}")
+
+
+def add_command(sub: argparse._SubParsersAction[Any]) -> None:
+    r = sub.add_parser("run", help="monitor a live CAN bus")
+    r.add_argument("--interface", default=None, help="python-can interface (e.g. socketcan)")
+    r.add_argument("--channel", default=None, help="channel (e.g. vcan0)")
+    r.add_argument("--bitrate", type=int, default=None)
+    r.add_argument("--events", default=None, help="append diagnosis events as JSON lines")
+    r.add_argument("--record-dir", default=None, metavar="DIR",
+                   help="record to rotating .rrd files in DIR (for unattended runs)")
+    r.add_argument("--rotate-mb", type=options.positive_float, default=256.0,
+                   help="start a new file past this size, MiB (default 256)")
+    r.add_argument("--rotate-minutes", type=options.positive_float, default=60.0,
+                   help="start a new file after this long, minutes (default 60)")
+    r.add_argument("--keep", type=int, default=168,
+                   help="recordings kept in DIR, oldest deleted first (default 168)")
+    r.add_argument("--secoc-state", default=None, metavar="FILE",
+                   help="persist SecOC freshness here (with --key): restarts resume at once")
+    r.add_argument("--max-total-gb", type=options.positive_float, default=20.0,
+                   help="recordings in DIR never exceed this, GiB (default 20)")
+    options.add_monitor_options(r)
+    r.set_defaults(func=run_live)

@@ -1,0 +1,352 @@
+"""Week-long recordings: a directory of ``.rrd`` files rotated by size and age, with
+retention by count and total size."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import re
+import time
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Final
+
+import rerun as rr
+
+from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet, RerunSink
+
+__all__ = ["RotatingRerunSink"]
+
+_log = logging.getLogger(__name__)
+
+_PREFIX_RE: Final = re.compile(r"[A-Za-z0-9_.-]+")
+_RETRY_MAX_S: Final = 60.0
+
+
+class RotatingRerunSink(RecordingOutlet):
+    """A `Sink` that records into a directory of ``.rrd`` files, rotated by size and age.
+
+    Files are named ``<prefix>-YYYYmmddTHHMMSS-NNNN.rrd``: the UTC time the file was opened and
+    a sequence number (one more than the highest in the directory at start, then +1 per file),
+    so names sort chronologically. After every flush (`flush`, or `maybe_flush` once
+    ``flush_interval_s`` has passed) the current file is rotated when it has reached
+    ``max_bytes`` (one ``os.stat``) or is ``max_age_s`` old: `RerunSink.switch_file` flushes
+    the buffers into it, the SDK writes its footer and closes it (``rerun rrd verify`` passes
+    on every rotated file) and recording goes on into the next file. Every sample goes to
+    exactly one file (no gap, no duplicate at a boundary). Each file is self-contained: store
+    info, recording start time, blueprint (every node seen so far), static series styles, and
+    the current thresholds with its first gamma batch.
+
+    Retention, applied whenever a file is opened, counts every file of this pattern in the
+    directory (earlier runs too) and never deletes the one being written: the oldest are
+    deleted while there are more than ``keep`` files (the current one included), and while the
+    closed ones total more than ``max_total_bytes - max_bytes`` (the room the current file may
+    take), so the directory stays within ``max_total_bytes``. A file ends up larger than
+    ``max_bytes`` by what was sent after the size check saw it reached (one flush, plus what the
+    SDK's writer thread had not written yet) and its footer (~50-100 kB plus ~35 bytes a chunk).
+    The defaults (64 MiB, 1 h, 48 files) bound the directory to ~3 GiB.
+
+    Sizing: at 100 Hz per node and a flush every 0.1 s, a node makes ~90 chunks/s of ~1 kB,
+    ~0.35 GB/h; the SDK keeps ~0.3-0.45 kB of footer manifest in memory per chunk of the open
+    file (measured), which without rotation would grow by ~20 GB per node and week.
+
+    Memory: one `RecordingStream` serves the whole run (the Python SDK never frees a
+    `RecordingStream`'s threads, so a new one per file would leak them); only its `FileSink` is
+    replaced at each rotation, and with it the footer's chunk manifest that the SDK keeps while
+    a file is open. So memory is bounded by ``max_bytes``/``max_age_s`` however long the run.
+
+    All files of a run share its recording id (``recording_id``, or a random one): opened
+    together (``rerun DIR/*.rrd``) they form one continuous recording. ``connect_url`` streams
+    to a viewer/gRPC proxy through a second `RerunSink` that lives for the whole run and is
+    never rotated (one connection; a gRPC sink keeps no manifest), with the same recording id
+    -- so do not load the files into the viewer that received the live stream: the rows would
+    show twice.
+
+    If the next file cannot be created (disk full, directory removed), the error is logged and
+    recording goes on into the current file; the rotation is retried after 1 s, then with
+    doubling back-off up to a minute. One sink per directory: retention deletes files that
+    another writer might be using.
+    """
+
+    def __init__(
+        self,
+        directory: str | Path,
+        *,
+        max_bytes: int | None = 64 * 2**20,
+        max_age_s: float | None = 3600.0,
+        keep: int | None = 48,
+        max_total_bytes: int | None = None,
+        prefix: str = "monitor",
+        connect_url: str | None = None,
+        application_id: str = "motor-monitor",
+        recording_id: str | None = None,
+        nodes: Sequence[int] = (0,),
+        f1: float = 0.15,
+        f2: float = 0.85,
+        batch_size: int = 2048,
+        flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
+    ) -> None:
+        if max_bytes is not None and max_bytes < 1:
+            raise ValueError("max_bytes must be >= 1 (or None)")
+        if max_age_s is not None and not max_age_s > 0:
+            raise ValueError("max_age_s must be > 0 (or None)")
+        if keep is not None and keep < 1:
+            raise ValueError("keep must be >= 1 (or None)")
+        if max_total_bytes is not None and (
+            max_total_bytes < 1 or (max_bytes is not None and max_total_bytes < max_bytes)
+        ):
+            raise ValueError("max_total_bytes must be >= max_bytes (or None)")
+        if not _PREFIX_RE.fullmatch(prefix):
+            raise ValueError(f"prefix must match [A-Za-z0-9_.-]+: {prefix!r}")
+        self.directory = Path(directory)
+        self.max_bytes = max_bytes
+        self.max_age_s = None if max_age_s is None else float(max_age_s)
+        self.keep = keep
+        self.max_total_bytes = max_total_bytes
+        self.prefix = prefix
+        self.recording_id = recording_id if recording_id is not None else uuid.uuid4().hex
+        self.rotations = 0
+        """Files closed by rotation so far."""
+        self._pattern = re.compile(re.escape(prefix) + r"-(\d{8}T\d{6})-(\d{4,})\.rrd")
+        self._flush_interval_s = float(flush_interval_s)
+        self._closed = False
+        self._last_flush = time.monotonic()
+        self._retry_at = 0.0
+        self._retry_s = 1.0
+
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self._seq = 1 + max((seq for _, seq, _ in self._scan()), default=-1)
+        path = self._next_path()
+        self._file = RerunSink(
+            rrd_path=path,
+            application_id=application_id,
+            recording_id=self.recording_id,
+            nodes=nodes,
+            f1=f1,
+            f2=f2,
+            batch_size=batch_size,
+            flush_interval_s=flush_interval_s,
+        )
+        self._path = path
+        self._opened = time.monotonic()
+        # RERUN=off in the environment: no file is written, nothing to rotate
+        self._enabled = rr.is_enabled(self._file.recording)
+        self._live: RerunSink | None = None
+        try:
+            self._prune()
+            if connect_url is not None:
+                self._live = RerunSink(
+                    connect_url=connect_url,
+                    application_id=application_id,
+                    recording_id=self.recording_id,
+                    nodes=nodes,
+                    f1=f1,
+                    f2=f2,
+                    batch_size=batch_size,
+                    flush_interval_s=flush_interval_s,
+                )
+        except BaseException:
+            self.close()
+            raise
+
+    # -- the Sink protocol: forwarded to the file sink and the live stream ----------------------
+
+    def add_sample(
+        self,
+        node: int,
+        t: float,
+        measured_current: float,
+        estimated_current: float,
+        gamma_hat: float,
+        rule_count: int,
+        health: int,
+        nis: float,
+        true_gamma: float | None = None,
+    ) -> None:
+        """Buffer one estimator sample (see `RerunSink.add_sample`)."""
+        self._file.add_sample(
+            node, t, measured_current, estimated_current, gamma_hat, rule_count, health, nis,
+            true_gamma,
+        )  # fmt: skip
+        live = self._live
+        if live is not None:
+            live.add_sample(
+                node, t, measured_current, estimated_current, gamma_hat, rule_count, health, nis,
+                true_gamma,
+            )  # fmt: skip
+
+    def add_voltage(self, node: int, t: float, volts: float) -> None:
+        for sink in self._sinks():
+            sink.add_voltage(node, t, volts)
+
+    def log_event(self, node: int, t: float, text: str, level: str = "INFO") -> None:
+        for sink in self._sinks():
+            sink.log_event(node, t, text, level)
+
+    def log_counters(self, t: float, counters: Mapping[str, int]) -> None:
+        for sink in self._sinks():
+            sink.log_counters(t, counters)
+
+    def set_thresholds(self, f1: float, f2: float) -> None:
+        """Change the thresholds (buffered samples keep the old ones; later files start with
+        the new ones)."""
+        for sink in self._sinks():
+            sink.set_thresholds(f1, f2)
+
+    def maybe_flush(self, now_monotonic: float) -> None:
+        """Flush (and maybe rotate) if ``flush_interval_s`` has passed since the last flush."""
+        if now_monotonic - self._last_flush >= self._flush_interval_s:
+            self.flush()
+            self._last_flush = now_monotonic
+
+    def flush(self) -> None:
+        """Send all buffered data, then rotate if the current file is too big or too old."""
+        now = time.monotonic()
+        self._last_flush = now
+        if self._closed:
+            return
+        for sink in self._sinks():
+            sink.flush()
+        if now >= self._retry_at and self._due(now):
+            self.rotate()
+
+    def rotate(self) -> Path:
+        """Close the current file (footer written), start the next one and apply retention;
+        return the path being written (the old one if the new one could not be created)."""
+        if self._closed:
+            return self._path
+        path = self._next_path()
+        started = time.monotonic()
+        old = self._path
+        try:
+            self._file.switch_file(path)
+        except (RuntimeError, OSError) as exc:
+            _log.error(
+                "rerun sink: cannot start %s: %s; still recording to %s (retry in %.0f s)",
+                path,
+                exc,
+                old,
+                self._retry_s,
+            )
+            self._retry_at = started + self._retry_s
+            self._retry_s = min(2.0 * self._retry_s, _RETRY_MAX_S)
+            return old
+        self._retry_s = 1.0
+        self._path = path
+        self._opened = time.monotonic()
+        self.rotations += 1
+        _log.info(
+            "rerun sink: closed %s (%s bytes) in %.3f s, recording to %s",
+            old,
+            self._size(old),
+            self._opened - started,
+            path,
+        )
+        self._prune()
+        return path
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Flush and close the current file (footer written) and the live stream. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._file.close(timeout_s)
+        finally:
+            if self._live is not None:
+                self._live.close(timeout_s)
+
+    # -- introspection ------------------------------------------------------------------------
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def path(self) -> Path:
+        """The file being written (after `close`: the last one written)."""
+        return self._path
+
+    @property
+    def nodes(self) -> tuple[int, ...]:
+        return self._file.nodes
+
+    @property
+    def recording(self) -> rr.RecordingStream:
+        """The `RecordingStream` of the files (one for the whole run)."""
+        return self._file.recording
+
+    def files(self) -> list[Path]:
+        """The files of this pattern in the directory, oldest first (the current one last)."""
+        return [p for _, _, p in self._scan()]
+
+    # -- internals --------------------------------------------------------------------------
+
+    def _sinks(self) -> tuple[RerunSink, ...]:
+        return (self._file,) if self._live is None else (self._file, self._live)
+
+    def _due(self, now: float) -> bool:
+        if not self._enabled:
+            return False
+        if self.max_age_s is not None and now - self._opened >= self.max_age_s:
+            return True
+        if self.max_bytes is not None:
+            size = self._size(self._path)
+            # removed under us: start a new file rather than write into an unlinked one
+            return size is None or size >= self.max_bytes
+        return False
+
+    @staticmethod
+    def _size(path: Path) -> int | None:
+        try:
+            return os.stat(path).st_size
+        except OSError:
+            return None
+
+    def _scan(self) -> list[tuple[str, int, Path]]:
+        """(UTC stamp, sequence number, path) of this pattern's files, oldest first."""
+        out: list[tuple[str, int, Path]] = []
+        try:
+            names = os.listdir(self.directory)
+        except OSError:
+            return out
+        for name in names:
+            m = self._pattern.fullmatch(name)
+            if m is not None:
+                out.append((m.group(1), int(m.group(2)), self.directory / name))
+        out.sort()
+        return out
+
+    def _next_path(self) -> Path:
+        with contextlib.suppress(OSError):  # if it fails, creating the file reports it
+            self.directory.mkdir(parents=True, exist_ok=True)
+        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+        while True:
+            path = self.directory / f"{self.prefix}-{stamp}-{self._seq:04d}.rrd"
+            self._seq += 1
+            if not path.exists():
+                return path
+
+    def _prune(self) -> None:
+        """Delete the oldest closed files beyond ``keep`` and ``max_total_bytes``."""
+        if self.keep is None and self.max_total_bytes is None:
+            return
+        closed = [p for _, _, p in self._scan() if p != self._path]
+        sizes = [self._size(p) or 0 for p in closed]
+        count = len(closed) + 1  # with the current file
+        total = sum(sizes)
+        room = (
+            None if self.max_total_bytes is None else self.max_total_bytes - (self.max_bytes or 0)
+        )
+        for p, size in zip(closed, sizes, strict=True):
+            if (self.keep is None or count <= self.keep) and (room is None or total <= room):
+                break
+            try:
+                p.unlink(missing_ok=True)
+                _log.info("rerun sink: deleted %s (%d bytes)", p, size)
+            except OSError as exc:
+                _log.warning("rerun sink: cannot delete %s: %s", p, exc)
+            count -= 1
+            total -= size
