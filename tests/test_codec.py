@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import can
@@ -19,8 +19,6 @@ from monitor.bus.codec import (
     KINDS,
     N_NODES,
     CodecError,
-    CounterOutcome,
-    CounterTracker,
     Decoded,
     Kind,
     MotorDatabase,
@@ -31,6 +29,7 @@ from monitor.bus.codec import (
     frame_id,
     load_database,
 )
+from monitor.bus.counters import CounterCheck, CounterOutcome, CounterTracker
 
 REPO_DBC = Path(__file__).resolve().parents[1] / "dbc" / "motor.dbc"
 E2E_KINDS: tuple[Kind, ...] = ("current", "voltage", "diagnosis")
@@ -53,6 +52,38 @@ def _valid(mdb: MotorDatabase, kind: Kind, node: int, counter: int = 3) -> bytes
     if kind == "truth":
         return mdb.encode_truth(node, 0.5, 1.5, 100.0)
     return mdb.encode_diagnosis(node, "fault", 0.5, 12.0, 4, counter)
+
+
+def _tally(checks: Iterable[CounterCheck]) -> dict[str, int]:
+    """Frames per alive-counter outcome (all three keys present)."""
+    total = dict.fromkeys((o.value for o in CounterOutcome), 0)
+    for check in checks:
+        total[check.outcome.value] += 1
+    return total
+
+
+class _Checks:
+    """A `CounterTracker` that keeps every `CounterCheck` it returns, per stream."""
+
+    def __init__(self) -> None:
+        self.tracker = CounterTracker()
+        self.seen: list[tuple[Kind, int, CounterCheck]] = []
+
+    def update(self, kind: Kind, node: int, counter: int) -> CounterCheck:
+        check = self.tracker.update(kind, node, counter)
+        self.seen.append((kind, node, check))
+        return check
+
+    def of(self, kind: Kind | None = None, node: int | None = None) -> list[CounterCheck]:
+        """The checks of the streams that match (None: any kind, any node)."""
+        return [c for k, n, c in self.seen
+                if (kind is None or k == kind) and (node is None or n == node)]
+
+    def counts(self, kind: Kind | None = None, node: int | None = None) -> dict[str, int]:
+        return _tally(self.of(kind, node))
+
+    def lost_frames(self, kind: Kind | None = None, node: int | None = None) -> int:
+        return sum(c.lost for c in self.of(kind, node))
 
 
 def _raw_frame(mdb: MotorDatabase, kind: Kind, node: int, raw: dict[str, int]) -> bytes:
@@ -195,12 +226,14 @@ def test_roundtrip_all_kinds(mdb: MotorDatabase, node: int, counter: int) -> Non
 
 def test_counter_wraparound_sequence(mdb: MotorDatabase) -> None:
     tracker = CounterTracker()
+    checks: list[CounterCheck] = []
     for i in range(40):  # 2.5 laps: 15 -> 0 must be an ordinary step
         d = _decode(mdb, 0x115, mdb.encode_current(5, float(i), i % 16))
         assert isinstance(d, Decoded) and d.counter == i % 16
         check = tracker.observe(d)
         assert check is not None and check.outcome is CounterOutcome.OK
-    assert tracker.counts() == {"ok": 40, "repeated": 0, "jump": 0}
+        checks.append(check)
+    assert _tally(checks) == {"ok": 40, "repeated": 0, "jump": 0}
 
 
 def test_health_state_by_index_and_name(mdb: MotorDatabase) -> None:
@@ -456,7 +489,7 @@ def test_roundtrip_property(
 
 
 def test_counter_tracker_sequences() -> None:
-    tr = CounterTracker()
+    tr = _Checks()
     seq = [(14, "ok", 0), (15, "ok", 0), (0, "ok", 0), (1, "ok", 0), (1, "repeated", 0),
            (4, "jump", 2), (5, "ok", 0), (15, "jump", 9), (2, "jump", 2), (2, "repeated", 0)]
     for counter, outcome, lost in seq:
@@ -473,13 +506,13 @@ def test_counter_tracker_sequences() -> None:
     assert tr.counts("voltage") == {"ok": 1, "repeated": 0, "jump": 0}
 
 
-def test_counter_tracker_jump_by_three_and_reset() -> None:
-    tr = CounterTracker()
+def test_counter_tracker_jump_by_three_and_a_fresh_stream() -> None:
+    tr = _Checks()
     tr.update("voltage", 0, 7)
     check = tr.update("voltage", 0, 10)
     assert check.outcome is CounterOutcome.JUMP and check.lost == 2
-    tr.reset("voltage", 0)
-    assert tr.update("voltage", 0, 3).outcome is CounterOutcome.OK  # first after reset
+    # a stream with no previous counter takes any counter as ok (was: after reset)
+    assert CounterTracker().update("voltage", 0, 3).outcome is CounterOutcome.OK
     assert tr.lost_frames("voltage", 0) == 2
     with pytest.raises(ValueError, match=r"0\.\.15"):
         tr.update("voltage", 0, 16)

@@ -15,7 +15,7 @@ from monitor.bus.codec import HEALTH_STATES, KINDS, N_NODES, e2e_data_id, load_d
 
 ROOT = Path(__file__).resolve().parents[1]
 REPO_DBC = ROOT / "dbc" / "motor.dbc"
-PACKAGE_DBC = ROOT / "monitor" / "data" / "motor.dbc"
+PACKAGE_DBC = ROOT / "monitor" / "bus" / "motor.dbc"
 
 LAYOUT = {  # kind: (message prefix, base id, sender, cycle time ms, E2E protected)
     "current": ("MotorCurrent", 0x110, "MotorECU", 10, True),
@@ -40,7 +40,7 @@ def db() -> Database:
 
 
 def test_package_copy_is_byte_identical() -> None:
-    # dbc/motor.dbc is the source of truth; the wheel ships monitor/data/motor.dbc.
+    # dbc/motor.dbc is the source of truth; the wheel ships monitor/bus/motor.dbc.
     assert PACKAGE_DBC.read_bytes() == REPO_DBC.read_bytes()
 
 

@@ -35,8 +35,6 @@ from monitor.bus.codec import (
     frame_id,
     load_database,
 )
-from monitor.pipeline import MonitorConfig, MonitorPipeline
-from sim_ecu.scenario import load_scenario
 from monitor.bus.secoc import (
     DEFAULT_WINDOW,
     SecOC,
@@ -47,7 +45,9 @@ from monitor.bus.secoc import (
     nearest_freshness,
     parse_key,
 )
+from monitor.pipeline import MonitorConfig, MonitorPipeline
 from sim_ecu.ecu import ECUError, VirtualECU
+from sim_ecu.scenario import load_scenario
 
 REPO_DBC = Path(__file__).resolve().parents[1] / "dbc" / "motor.dbc"
 KEY = bytes.fromhex("000102030405060708090a0b0c0d0e0f")
