@@ -48,6 +48,7 @@ from monitor.bus.secoc import (
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from sim_ecu.ecu import ECUError, VirtualECU
 from sim_ecu.scenario import load_scenario
+from tests.support.pipeline import feed_all
 
 REPO_DBC = Path(__file__).resolve().parents[1] / "dbc" / "motor.dbc"
 KEY = bytes.fromhex("000102030405060708090a0b0c0d0e0f")
@@ -649,11 +650,11 @@ def test_pipeline_with_a_key_estimates_and_rejects_forged_and_replayed_frames() 
     frames = list(VirtualECU(None, load_database(), 0, scenario, seed=3, key=KEY)
                   .frames(start_time=T0))
     reference = MonitorPipeline(load_database(), MonitorConfig())  # keyless: as before
-    reference.feed_many(frames)
+    feed_all(reference, frames)
 
     pipe = MonitorPipeline(load_database(secoc_key=KEY), MonitorConfig())
     half = len(frames) // 2
-    pipe.feed_many(frames[:half])
+    feed_all(pipe, frames[:half])
     estimated = _current(pipe)
     assert estimated > 0
     assert not any(k.startswith("rejected/") for k in pipe.counters)
@@ -673,13 +674,13 @@ def test_pipeline_with_a_key_estimates_and_rejects_forged_and_replayed_frames() 
     voltage = next(m for m in reversed(frames[:half]) if m.arbitration_id == 0x120)
     injected.append(can.Message(arbitration_id=0x120, data=bytes(voltage.data),
                                 is_extended_id=False, timestamp=last.timestamp + 2e-3))
-    pipe.feed_many(injected)
+    feed_all(pipe, injected)
     assert pipe.counters["rejected/stale_freshness"] == 6
     assert pipe.counters["rejected/bad_mac"] == 5
     assert _current(pipe) == estimated  # none of them reached the estimator
     assert pipe.counters.get("e2e/repeated", 0) == 0  # stopped before the alive counter
 
-    pipe.feed_many(frames[half:])  # the genuine stream goes on undisturbed
+    feed_all(pipe, frames[half:])  # the genuine stream goes on undisturbed
     assert _current(pipe) == _current(reference)
     assert pipe.summary()["nodes"] == reference.summary()["nodes"]
     rejected = {k: v for k, v in pipe.counters.items() if k.startswith("rejected/")}
@@ -690,13 +691,13 @@ def test_pipeline_with_a_key_rejects_an_unsigned_ecu() -> None:
     frames = list(VirtualECU(None, load_database(), 1, load_scenario("healthy"), seed=2)
                   .frames(1.0, start_time=T0))
     pipe = MonitorPipeline(load_database(secoc_key=KEY), MonitorConfig())
-    pipe.feed_many(frames)
+    feed_all(pipe, frames)
     assert _current(pipe) == 0
     # an unsigned ECU sends no sync either: its streams are never synchronised
     assert pipe.counters["rejected/unsynced"] == 100 + 20  # every current and voltage frame
     assert pipe.counters["samples/truth"] == 100  # SimTruth is not authenticated
     _synced(pipe.db)  # synchronised by hand, its frames are plainly unauthentic
-    pipe.feed_many(VirtualECU(None, load_database(), 1, load_scenario("healthy"), seed=2)
+    feed_all(pipe, VirtualECU(None, load_database(), 1, load_scenario("healthy"), seed=2)
                    .frames(1.0, start_time=T0 + 1.0))
     assert _current(pipe) == 0
     assert pipe.counters["rejected/bad_mac"] == 100 + 20
@@ -866,22 +867,22 @@ def test_monitor_started_after_500_frames_recovers_at_the_first_sync() -> None:
     late = [m for m in frames if _k(m) >= 510]  # the ECU has sent 510 current frames
     pipe = _keyed_pipe()
     before = [m for m in late if _k(m) < 600]  # the next syncs come at sample 600
-    pipe.feed_many(before)
+    feed_all(pipe, before)
     n_data = sum(1 for m in before if m.arbitration_id in (0x110, 0x120))
     assert _rejected(pipe) == {"rejected/unsynced": n_data}
     assert n_data == 90 + 18 and _current(pipe) == 0
-    pipe.feed_many(m for m in late if _k(m) >= 600)
+    feed_all(pipe, (m for m in late if _k(m) >= 600))
     assert _rejected(pipe) == {"rejected/unsynced": n_data}  # none after the sync
     assert pipe.counters["samples/secoc_sync"] == 2 * 3  # samples 600, 700, 800
     assert pipe.db.secoc is not None and pipe.db.secoc.rx_freshness(("current", 0)) == 900
     # from the sync on it estimates exactly as a monitor that started there
     reference = _keyed_pipe()
-    reference.feed_many(m for m in frames if _k(m) >= 600)
+    feed_all(reference, (m for m in frames if _k(m) >= 600))
     assert _current(pipe) == _current(reference) > 250
     assert pipe.summary()["nodes"] == reference.summary()["nodes"]
     # a keyless monitor ignores the syncs and estimates from the start
     plain = MonitorPipeline(load_database(), MonitorConfig())
-    plain.feed_many(late)
+    feed_all(plain, late)
     assert plain.counters["ignored/secoc_sync"] == 6 and not _rejected(plain)
 
 
@@ -889,7 +890,7 @@ def test_restart_with_saved_state(tmp_path: Path) -> None:
     frames = _ecu_frames(6.0)
     state = tmp_path / "secoc.state"
     first = _keyed_pipe()
-    first.feed_many(m for m in frames if _k(m) < 250)
+    feed_all(first, (m for m in frames if _k(m) < 250))
     assert first.db.secoc is not None and not _rejected(first)
     first.db.secoc.save_state(state)
     assert first.db.secoc.rx_freshness(("current", 0)) == 250
@@ -899,7 +900,7 @@ def test_restart_with_saved_state(tmp_path: Path) -> None:
     assert db.secoc is not None and db.secoc.load_state(state) == 2
     assert not db.secoc.is_synchronised(("current", 0))
     quick = _keyed_pipe(db)
-    quick.feed_many(m for m in frames if 270 <= _k(m) < 300)
+    feed_all(quick, (m for m in frames if 270 <= _k(m) < 300))
     assert not _rejected(quick) and _current(quick) == 30 - 1  # the first waits for a voltage
     assert db.secoc.is_synchronised(("current", 0))
 
@@ -907,11 +908,11 @@ def test_restart_with_saved_state(tmp_path: Path) -> None:
     db = load_database(secoc_key=KEY)
     assert db.secoc is not None and db.secoc.load_state(state) == 2
     slow = _keyed_pipe(db)
-    slow.feed_many(m for m in frames if 450 <= _k(m) < 500)
+    feed_all(slow, (m for m in frames if 450 <= _k(m) < 500))
     # 200 current frames on: unsynced; 40 voltage frames on: still in the window
     assert _rejected(slow) == {"rejected/unsynced": 50} and _current(slow) == 0
     assert slow.counters["samples/voltage"] == 10
-    slow.feed_many(m for m in frames if _k(m) >= 500)
+    feed_all(slow, (m for m in frames if _k(m) >= 500))
     assert _rejected(slow) == {"rejected/unsynced": 50}
     assert _current(slow) == 100
     assert db.secoc.rx_freshness(("current", 0)) == 600
@@ -924,7 +925,7 @@ def test_replayed_old_sync_after_a_restart_cannot_roll_back(tmp_path: Path) -> N
     recent_current = next(m for m in frames if m.arbitration_id == 0x110 and _k(m) == 340)
     state = tmp_path / "state.json"
     first = _keyed_pipe()
-    first.feed_many(m for m in frames if _k(m) < 350)
+    feed_all(first, (m for m in frames if _k(m) < 350))
     assert first.db.secoc is not None
     first.db.secoc.save_state(state)
 
@@ -946,10 +947,10 @@ def test_replayed_old_sync_after_a_restart_cannot_roll_back(tmp_path: Path) -> N
     assert db.secoc.rx_freshness(stream) == 350
     # the genuine stream continues within the window, and the replays stay dead
     pipe = _keyed_pipe(db)
-    pipe.feed_many(m for m in frames if _k(m) >= 355)
+    feed_all(pipe, (m for m in frames if _k(m) >= 355))
     assert not _rejected(pipe) and _current(pipe) > 100
-    pipe.feed_many(_with_data(m, bytes(m.data), frames[-1].timestamp + 2.0)
-                   for m in [old_sync, *old_current])
+    feed_all(pipe, (_with_data(m, bytes(m.data), frames[-1].timestamp + 2.0)
+                   for m in [old_sync, *old_current]))
     assert _rejected(pipe) == {"rejected/stale_freshness": 1, "rejected/bad_mac": 10}
 
 
@@ -975,13 +976,13 @@ def test_more_than_a_window_of_lost_frames_recovers_at_the_next_sync() -> None:
     outage = [m for m in frames if 150 <= _k(m) < 250]  # 1 s lost, the sync at 200 too
     assert sum(m.arbitration_id == 0x110 for m in outage) == 100 > DEFAULT_WINDOW
     pipe = _keyed_pipe()
-    pipe.feed_many(m for m in frames if _k(m) < 150 or 250 <= _k(m) < 300)
+    feed_all(pipe, (m for m in frames if _k(m) < 150 or 250 <= _k(m) < 300))
     # after the gap the current stream is beyond the window until the sync at 300 (its
     # 8 freshness bits place the frames exactly: authentic, but too far ahead)
     rejected = _rejected(pipe)
     assert rejected == {"rejected/stale_freshness": 50}  # samples 250..299
     assert pipe.counters["samples/voltage"] == 40  # 20 voltage frames lost: in the window
-    pipe.feed_many(m for m in frames if _k(m) >= 300)
+    feed_all(pipe, (m for m in frames if _k(m) >= 300))
     assert _rejected(pipe) == rejected  # recovered at the sync
     assert pipe.db.secoc is not None and pipe.db.secoc.rx_freshness(("current", 0)) == 500
     assert _current(pipe) == 150 + 200 - 1

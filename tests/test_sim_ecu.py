@@ -29,10 +29,10 @@ import pytest
 
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.estimation.model import DCMotorParameters, dc_motor
-from sim_ecu.plant import simulate
-from sim_ecu.scenario import load_scenario, scenario_from_dict
 from sim_ecu import ECUError, VirtualECU, load_motor_parameters, motor_parameters
 from sim_ecu.cli import main
+from sim_ecu.plant import simulate
+from sim_ecu.scenario import load_scenario, scenario_from_dict
 from tests.vcan_harness import VcanResult
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -536,7 +536,7 @@ def test_cli_secoc_state_keeps_the_counters_across_runs(
     key = _key_file(tmp_path / "ecu.key", SECOC_KEY.hex().encode(), 0o600)
     state = tmp_path / "ecu.state"
     monitor = load_database(secoc_key=SECOC_KEY)  # one monitor sees every run
-    assert monitor.bus.secoc is not None
+    assert monitor.secoc is not None
     args = ("--key", str(key), "--secoc-state", str(state))
     first = _decode_all(monitor, _cli_run(channel, *args))
     assert first[0].kind == "sync" and first[0].value == 0
@@ -549,7 +549,7 @@ def test_cli_secoc_state_keeps_the_counters_across_runs(
     margin = 60 * 100
     assert [(d.kind, d.value) for d in second[:2]] == [("sync", 30 + margin),
                                                        ("sync", 6 + margin)]
-    assert monitor.bus.secoc.rx_freshness(("current", 4)) == 30 + margin + 30
+    assert monitor.secoc.rx_freshness(("current", 4)) == 30 + margin + 30
     assert json.loads(state.read_text())["freshness"]["tx/current/4"] == 60 + margin
     # without the state a run restarts at 0: the monitor takes it for a replay
     third = [monitor.decode_can(m) for m in _cli_run(channel, "--key", str(key))]

@@ -68,7 +68,8 @@ def open_bus(interface: str | None, channel: str | None, bitrate: int | None = N
                 "python-can config file"
             ) from None
         known = ", ".join(sorted(can.VALID_INTERFACES))
-        raise BusError(f"cannot open CAN interface {name!r}: python-can knows {known}") from None
+        raise BusError(f"cannot open CAN interface {name!r}: unknown CAN interface; python-can "
+                       f"knows {known}") from None
     except Exception as exc:  # malformed CAN_CONFIG JSON, bad config-file values, ...
         raise BusError(f"python-can configuration: {one_line(exc)}") from None
     shown = "(default)" if resolved["channel"] is None else repr(resolved["channel"])
