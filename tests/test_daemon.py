@@ -115,8 +115,8 @@ def test_replay_with_secoc_key_rejects_forged_and_replayed_frames(tmp_path: Path
     import can
 
     from monitor.bus.codec import load_database
-    from sim_ecu.scenario import load_scenario
     from sim_ecu.ecu import VirtualECU
+    from sim_ecu.scenario import load_scenario
 
     key = bytes(range(16))
     keyfile = tmp_path / "secoc.key"

@@ -23,12 +23,11 @@ from typing import Any
 
 import numpy as np
 
+from experiments.scoring import score_run
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier
 from monitor.estimation.model import DCMotorParameters, dc_motor
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import Scenario, scenario_from_dict
-from experiments.scoring import score_run
-
 from tests.bench.common import METHODS
 
 DWELL_S = 0.03

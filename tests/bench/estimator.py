@@ -31,7 +31,6 @@ from monitor.estimation.fuzzy_ukf import FuzzyUKF
 from monitor.estimation.model import DCMotorParameters, dc_motor
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import load_scenario, scenario_from_dict
-
 from tests.bench.common import METHODS, FilterpyAugmentedUKF
 
 BLOCK = 2000

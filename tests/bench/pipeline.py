@@ -24,8 +24,8 @@ import can
 from monitor.bus.codec import MotorDatabase, load_database
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.sinks.rerun import RerunSink
-from sim_ecu.scenario import load_scenario
 from sim_ecu.ecu import VirtualECU
+from sim_ecu.scenario import load_scenario
 
 BUS_LIMIT_FPS = 1_000_000 / 111  # 8-byte standard frames, no stuff bits: the upper bound
 
