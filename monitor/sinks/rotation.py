@@ -11,7 +11,7 @@ import time
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import rerun as rr
 
@@ -119,16 +119,12 @@ class RotatingRerunSink(RecordingOutlet):
         self.directory.mkdir(parents=True, exist_ok=True)
         self._seq = 1 + max((seq for _, seq, _ in self._scan()), default=-1)
         path = self._next_path()
-        self._file = RerunSink(
-            rrd_path=path,
-            application_id=application_id,
-            recording_id=self.recording_id,
-            nodes=nodes,
-            f1=f1,
-            f2=f2,
-            batch_size=batch_size,
-            flush_interval_s=flush_interval_s,
-        )
+        common: dict[str, Any] = {
+            "application_id": application_id, "recording_id": self.recording_id,
+            "nodes": nodes, "f1": f1, "f2": f2, "batch_size": batch_size,
+            "flush_interval_s": flush_interval_s,
+        }
+        self._file = RerunSink(rrd_path=path, **common)
         self._path = path
         self._opened = time.monotonic()
         # RERUN=off in the environment: no file is written, nothing to rotate
@@ -137,16 +133,7 @@ class RotatingRerunSink(RecordingOutlet):
         try:
             self._prune()
             if connect_url is not None:
-                self._live = RerunSink(
-                    connect_url=connect_url,
-                    application_id=application_id,
-                    recording_id=self.recording_id,
-                    nodes=nodes,
-                    f1=f1,
-                    f2=f2,
-                    batch_size=batch_size,
-                    flush_interval_s=flush_interval_s,
-                )
+                self._live = RerunSink(connect_url=connect_url, **common)
         except BaseException:
             self.close()
             raise
@@ -166,16 +153,9 @@ class RotatingRerunSink(RecordingOutlet):
         true_gamma: float | None = None,
     ) -> None:
         """Buffer one estimator sample (see `RerunSink.add_sample`)."""
-        self._file.add_sample(
-            node, t, measured_current, estimated_current, gamma_hat, rule_count, health, nis,
-            true_gamma,
-        )  # fmt: skip
-        live = self._live
-        if live is not None:
-            live.add_sample(
-                node, t, measured_current, estimated_current, gamma_hat, rule_count, health, nis,
-                true_gamma,
-            )  # fmt: skip
+        for sink in self._sinks():
+            sink.add_sample(node, t, measured_current, estimated_current, gamma_hat,
+                            rule_count, health, nis, true_gamma)
 
     def add_voltage(self, node: int, t: float, volts: float) -> None:
         for sink in self._sinks():
