@@ -79,7 +79,7 @@ def _report(rows: np.ndarray, path: Path, f1: float, f2: float) -> None:
     truth = true_classes(np.nan_to_num(rows[:, 4]), DEFAULT_THRESHOLDS)
     a3.step(t, truth, where="post", color="k", lw=1.5, label="true class")
     a3.step(t, rows[:, 5], where="post", color="tab:blue", lw=1.0, label="diagnosed")
-    a3.set_yticks([0, 1, 2, 3], [s.label for s in HealthState])
+    a3.set_yticks([int(s) for s in HealthState], [s.label for s in HealthState])
     a3.set_xlabel("time (s)")
     a3.legend(loc="upper left", fontsize=8)
     fig.tight_layout()

@@ -393,7 +393,7 @@ def test_bytearray_and_memoryview_payloads(mdb: MotorDatabase) -> None:
         lambda m: m.encode_voltage(0, 1.0, -1),
         lambda m: m.encode_truth(0, 1.5, 0.0, 0.0),
         lambda m: m.encode_diagnosis(0, "broken", 0.0, 0.0, 0, 0),
-        lambda m: m.encode_diagnosis(0, 4, 0.0, 0.0, 0, 0),
+        lambda m: m.encode_diagnosis(0, 5, 0.0, 0.0, 0, 0),  # past model_mismatch (4)
         lambda m: m.encode_diagnosis(0, 0, 0.0, 0.0, 256, 0),
         lambda m: m.encode_diagnosis(0, 0, 1.6, 0.0, 1, 0),
     ],

@@ -136,14 +136,22 @@ class Decoded:
     TrueGamma, GammaEstimate, SyncFreshness (low 32 bits; the stream in raw["SyncKind"]).
     `counter` is the alive counter (None for truth and sync frames), `raw` all signals of
     the frame, physical (scaled) values, choices as ints.
+
+    What the estimator takes from the frame, in the model's units: `inputs`, (index, value)
+    pairs of the model inputs u it carries; `outputs`, every model output y (a frame with
+    outputs is one sample); `truth`, a simulator's true gamma. For a rig's own DBC
+    (`monitor.bus.rigcodec`) `kind` is the message's name in the rig.
     """
 
-    kind: Kind
+    kind: str
     node: int
     timestamp: float
     value: float
     counter: int | None
     raw: Mapping[str, float]
+    inputs: tuple[tuple[int, float], ...] = ()
+    outputs: tuple[float, ...] = ()
+    truth: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -410,13 +418,18 @@ class MotorDatabase:
             if not lo <= v <= hi:  # also catches NaN
                 return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp,
                                 route.node, route.kind, f"{name}={v} not in [{lo}, {hi}]")
+        kind = route.kind
+        value = float(signals[route.value_signal])
         return Decoded(
-            route.kind,
+            kind,
             route.node,
             timestamp,
-            float(signals[route.value_signal]),
+            value,
             None if route.data_id is None else int(signals["Counter"]),
             signals,
+            ((0, value),) if kind == "voltage" else (),
+            (value,) if kind == "current" else (),
+            value if kind == "truth" else None,
         )
 
     def decode_can(self, msg: can.Message) -> Decoded | Rejected:

@@ -1,4 +1,4 @@
-"""Alive-counter supervision of the 4-bit E2E counters, per (kind, node) stream.
+"""Alive-counter supervision of the 4-bit E2E counters, per (kind or message, node) stream.
 
 `CounterTracker.observe` classifies each decoded frame's counter against the previous one
 of its stream as `CounterOutcome.OK`, ``REPEATED`` (a duplicate or replay) or ``JUMP``
@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from monitor.bus.codec import Decoded
-    from monitor.bus.scheme import Kind
 
 __all__ = ["CounterCheck", "CounterOutcome", "CounterTracker"]
 
@@ -44,9 +43,9 @@ class CounterTracker:
     """
 
     def __init__(self) -> None:
-        self._last: dict[tuple[Kind, int], int] = {}
+        self._last: dict[tuple[str, int], int] = {}
 
-    def update(self, kind: Kind, node: int, counter: int) -> CounterCheck:
+    def update(self, kind: str, node: int, counter: int) -> CounterCheck:
         """Classify `counter` against the previous one of the same stream."""
         if not isinstance(counter, int) or not 0 <= counter <= 15:
             raise ValueError(f"alive counter must be an int in 0..15, got {counter!r}")

@@ -52,7 +52,13 @@ does not make the reported state flicker. `HealthState` values are the numbers s
 CAN bus.
 """
 
-from monitor.diagnosis.classifier import HealthState, OnlineClassifier, classify, transitions
+from monitor.diagnosis.classifier import (
+    HealthState,
+    MismatchDetector,
+    OnlineClassifier,
+    classify,
+    transitions,
+)
 from monitor.diagnosis.fcm import (
     FCMResult,
     calibrate,
@@ -73,6 +79,7 @@ __all__ = [
     "DiagnosisError",
     "FCMResult",
     "HealthState",
+    "MismatchDetector",
     "OnlineClassifier",
     "Thresholds",
     "calibrate",

@@ -8,22 +8,29 @@ from enum import IntEnum
 
 from monitor.diagnosis.thresholds import DiagnosisError, Thresholds
 
-__all__ = ["HealthState", "OnlineClassifier", "classify", "transitions"]
+__all__ = ["HealthState", "MismatchDetector", "OnlineClassifier", "classify", "transitions"]
 
 
 
 
 class HealthState(IntEnum):
-    """Diagnosed actuator health; the integer values are sent on the CAN bus."""
+    """Diagnosed actuator health; the integer values are sent on the CAN bus.
+
+    The regions of (76) give FAULT_FREE, FAULT and OUTAGE; NO_DATA is a silent node;
+    MODEL_MISMATCH is not a region of (76) but a verdict on the model: the innovations say
+    the model no longer explains the plant (see `MismatchDetector`), so gamma^ -- and a
+    fault alarm read from it -- cannot be trusted.
+    """
 
     FAULT_FREE = 0
     FAULT = 1
     OUTAGE = 2
     NO_DATA = 3
+    MODEL_MISMATCH = 4
 
     @property
     def label(self) -> str:
-        """'fault_free', 'fault', 'outage' or 'no_data'."""
+        """'fault_free', 'fault', 'outage', 'no_data' or 'model_mismatch'."""
         return self.name.lower()
 
 
@@ -211,3 +218,75 @@ def transitions(
         raise DiagnosisError(f"times has {len(ts)} entries but states has {len(ss)}")
     return [(ts[i], ss[i - 1], ss[i]) for i in range(1, len(ss)) if ss[i] != ss[i - 1]]
 
+
+
+class MismatchDetector:
+    """Flags a model that stops fitting: the windowed NIS outside its chi-square band for
+    longer than a dwell.
+
+    With a fitting model the normalised innovation squared (NIS, nu' S^-1 nu) of a Kalman
+    filter is chi-square with p degrees of freedom, independent from sample to sample. Its
+    exponential average with coefficient a (a window of `window_s`) has mean p and variance
+    2 p a / (2 - a), which is that of p / v times a chi-square with v = p (2 - a) / a degrees
+    of freedom; the band is its [`alpha`/2, 1 - `alpha`/2] quantiles (scipy.stats.chi2). A
+    loss of effectiveness is absorbed by gamma^ within a fraction of a second; a drifted
+    resistance, an unmodelled load or a wrong rig file keeps the average out of the band,
+    and after `dwell_s` the node is flagged. It is cleared when the average has been back
+    inside the band for `dwell_s`. Timestamps are sample time, never the wall clock.
+    """
+
+    __slots__ = ("_a", "_avg", "_hi", "_in_since", "_lo", "_out_since", "dwell_s", "flagged")
+
+    def __init__(self, outputs: int, rate: float, *, window_s: float = 2.0,
+                 dwell_s: float = 3.0, alpha: float = 1e-3) -> None:
+        from scipy.stats import chi2
+
+        if not (window_s > 0 and dwell_s > 0 and rate > 0 and 0 < alpha < 1):
+            raise DiagnosisError("mismatch window, dwell and rate must be > 0, alpha in (0, 1)")
+        a = min(1.0, 1.0 / (window_s * rate))
+        dof = outputs * (2.0 - a) / a
+        self._a = a
+        self._lo = float(chi2.ppf(0.5 * alpha, dof)) * outputs / dof
+        self._hi = float(chi2.ppf(1.0 - 0.5 * alpha, dof)) * outputs / dof
+        self._avg = float(outputs)
+        self._out_since: float | None = None
+        self._in_since: float | None = None
+        self.dwell_s = dwell_s
+        self.flagged = False
+
+    @property
+    def band(self) -> tuple[float, float]:
+        """The band of the windowed NIS for a fitting model."""
+        return self._lo, self._hi
+
+    @property
+    def average(self) -> float:
+        return self._avg
+
+    def reset(self, outputs: int) -> None:
+        """Forget the history (a restarted estimator)."""
+        self._avg = float(outputs)
+        self._out_since = self._in_since = None
+        self.flagged = False
+
+    def update(self, t: float, nis: float) -> bool | None:
+        """Feed one NIS at sample time t; True or False when the flag changes, else None."""
+        if nis != nis:  # NaN: nothing learnt
+            return None
+        self._avg += self._a * (nis - self._avg)
+        inside = self._lo <= self._avg <= self._hi
+        if inside:
+            self._out_since = None
+            if self._in_since is None:
+                self._in_since = t
+            if self.flagged and t - self._in_since >= self.dwell_s:
+                self.flagged = False
+                return False
+        else:
+            self._in_since = None
+            if self._out_since is None:
+                self._out_since = t
+            if not self.flagged and t - self._out_since >= self.dwell_s:
+                self.flagged = True
+                return True
+        return None

@@ -41,24 +41,45 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import can
+import numpy as np
 
-from monitor.bus.codec import Decoded, MotorDatabase, Rejected
+from monitor.bus.codec import Decoded, Rejected
 from monitor.bus.counters import CounterOutcome, CounterTracker
 from monitor.bus.faults import describe_error_frame
-from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier, Thresholds
+from monitor.diagnosis import (
+    DEFAULT_THRESHOLDS,
+    HealthState,
+    MismatchDetector,
+    OnlineClassifier,
+    Thresholds,
+)
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
-from monitor.estimation.model import DCMotorParameters, DiscreteModel, dc_motor
+from monitor.estimation.model import (
+    ContinuousDescriptor,
+    DCMotorParameters,
+    DiscreteModel,
+    dc_motor,
+)
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import Counters
 from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
 from monitor.sinks.base import Sink
 
-__all__ = ["MonitorConfig", "MonitorPipeline", "NodeMonitor"]
+__all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 
 log = logging.getLogger("motor_monitor")
+
+
+class FrameDecoder(Protocol):
+    """What the pipeline needs of a bus codec: `MotorDatabase` (our bus) or `RigCodec`."""
+
+    @property
+    def secoc_enabled(self) -> bool: ...
+
+    def decode_can(self, msg: can.Message) -> Decoded | Rejected: ...
 
 
 @dataclass(frozen=True)
@@ -66,7 +87,9 @@ class MonitorConfig:
     """What the monitor watches and how.
 
     nodes: node numbers to monitor, or None for every node that sends valid frames.
-    rate: nominal current-sample rate of the ECUs (Hz).
+    rate: nominal output-sample rate of the ECUs (Hz).
+    model: the plant of every node; None: the DC motor of `motor`, `process_noise` and
+    `current_sigma` (the paper's Table 1 by default).
     """
 
     nodes: tuple[int, ...] | None = None
@@ -82,6 +105,16 @@ class MonitorConfig:
     process_noise: float = 1.44
     current_sigma: float = 0.5
     estimator: FuzzyUKFConfig = field(default_factory=FuzzyUKFConfig)
+    model: ContinuousDescriptor | None = None
+    mismatch_window_s: float = 2.0
+    mismatch_dwell_s: float = 3.0
+    jitter_fraction: float = 0.25  # of a period: counted as time/jitter (no counter)
+
+    def plant(self) -> ContinuousDescriptor:
+        """The continuous model of every node."""
+        if self.model is not None:
+            return self.model
+        return dc_motor(self.motor, q=self.process_noise, r=self.current_sigma**2)
 
 
 class _RateLimitedLog:
@@ -104,7 +137,7 @@ class _RateLimitedLog:
 
 
 class NodeMonitor:
-    """Estimator, classifier and alignment state of one motor ECU."""
+    """Estimator, classifier and alignment state of one node."""
 
     def __init__(self, node: int, model: DiscreteModel, cfg: MonitorConfig) -> None:
         self.node = node
@@ -114,31 +147,51 @@ class NodeMonitor:
         self.estimator = FuzzyUKF(model, cfg.estimator)
         self.classifier = OnlineClassifier(cfg.thresholds, dwell_s=cfg.dwell_s,
                                            hysteresis=cfg.hysteresis)
-        self.voltage: float | None = None
+        self.mismatch = MismatchDetector(model.p, cfg.rate, window_s=cfg.mismatch_window_s,
+                                         dwell_s=cfg.mismatch_dwell_s)
+        self.u = np.zeros(model.m)
+        self.u_seen = np.zeros(model.m, dtype=bool)
+        self.y = np.zeros(model.p)
         self.last_t: float | None = None
         self.last_publish: float = -math.inf
         self.truth_gamma: float | None = None
         self.samples = 0
 
+    @property
+    def voltage(self) -> float | None:
+        """The first input (the voltage command of a motor), None before any."""
+        return float(self.u[0]) if self.u_seen[0] else None
+
     def restart(self) -> None:
         """Forget the estimate (after a gap too long to predict through)."""
         self.estimator = FuzzyUKF(self.model, self.cfg.estimator)
+        self.mismatch.reset(self.model.p)
 
     @property
     def state(self) -> HealthState:
+        """The reported state: the classifier's, unless the model no longer fits."""
+        if self.mismatch.flagged and self.classifier.state != HealthState.NO_DATA:
+            return HealthState.MODEL_MISMATCH
         return self.classifier.state
 
     @property
     def gamma(self) -> float:
-        """The latest gamma^ of the node's first actuator."""
-        return float(self.estimator.out.gamma[0])
+        """The largest gamma^ of the node's actuators (the one the diagnosis reads)."""
+        return float(self.estimator.out.gamma.max())
+
+    @property
+    def fault_volts(self) -> float:
+        """gamma^ times its input: the input the fault takes away, in the input's unit."""
+        g = self.estimator.out.gamma
+        j = int(np.argmax(g))
+        return float(g[j] * self.u[j])
 
 
 class MonitorPipeline:
     """Frames in, typed events out to `sink`. See the module docstring for every frame's
     outcome."""
 
-    def __init__(self, db: MotorDatabase, cfg: MonitorConfig | None = None, *,
+    def __init__(self, db: FrameDecoder, cfg: MonitorConfig | None = None, *,
                  sink: Sink | None = None, counters: Counters | None = None) -> None:
         """`counters` may be shared with sinks that count their own outcomes (the bus
         publisher); by default the pipeline starts its own."""
@@ -149,11 +202,12 @@ class MonitorPipeline:
         self.nodes: dict[int, NodeMonitor] = {}
         self._warn = _RateLimitedLog()
         self._last_counters_t = -math.inf
-        self._model = dc_motor(self.cfg.motor, q=self.cfg.process_noise,
-                               r=self.cfg.current_sigma**2).discretize(1.0 / self.cfg.rate)
+        self._model = self.cfg.plant().discretize(1.0 / self.cfg.rate)
         self.tracker = CounterTracker()
         # Load the compiled kernels now, not on the first frame of a live bus.
-        FuzzyUKF(self._model, self.cfg.estimator).step(0.0, 0.0, 1.0 / self.cfg.rate)
+        FuzzyUKF(self._model, self.cfg.estimator).step(np.zeros(self._model.m),
+                                                       np.zeros(self._model.p),
+                                                       1.0 / self.cfg.rate)
         for n in self.cfg.nodes or ():
             self._node(n)
 
@@ -211,15 +265,17 @@ class MonitorPipeline:
         lost = self._check_counter(d)
         if lost is None:
             return
-        if kind == "current":
-            self._on_current(nm, d.timestamp, d.value, lost)
-        elif kind == "voltage":
-            nm.voltage = d.value
+        if d.inputs:
+            for i, v in d.inputs:
+                nm.u[i] = v
+                nm.u_seen[i] = True
             self.counters.inc(C.SAMPLES_VOLTAGE)
-            self.sink.on_voltage(VoltageSample(d.node, d.timestamp, d.value))
-        else:  # truth: shown beside the estimate, never read by the estimator
-            nm.truth_gamma = d.value
+            self.sink.on_voltage(VoltageSample(d.node, d.timestamp, d.inputs[0][1]))
+        if d.truth is not None:  # shown beside the estimate, never read by the estimator
+            nm.truth_gamma = d.truth
             self.counters.inc(C.SAMPLES_TRUTH)
+        if d.outputs:
+            self._on_output(nm, d.timestamp, d.outputs, lost if d.counter is not None else None)
 
     def _check_counter(self, d: Decoded) -> int | None:
         """Frames lost before this one by its alive counter (0 if none), None to drop it."""
@@ -235,8 +291,11 @@ class MonitorPipeline:
         self.counters.inc(C.E2E_LOST_FRAMES, check.lost)
         return check.lost
 
-    def _on_current(self, nm: NodeMonitor, t: float, amps: float, lost: int) -> None:
-        if nm.voltage is None:
+    def _on_output(self, nm: NodeMonitor, t: float, outputs: tuple[float, ...],
+                   lost: int | None) -> None:
+        """One output sample; `lost` frames before it by the alive counter (None: the
+        message has no counter, the timestamps tell)."""
+        if not nm.u_seen.all():
             self.counters.inc(C.SAMPLES_NO_VOLTAGE)
             return
         last = nm.last_t
@@ -256,36 +315,51 @@ class MonitorPipeline:
                 if k > 1:
                     self.counters.inc(C.SAMPLES_PREDICTED_THROUGH, k - 1)
         nm.last_t = t
-        out = nm.estimator.step(nm.voltage, amps, k * nm.T)
+        y = nm.y
+        for i, v in enumerate(outputs):
+            y[i] = v
+        out = nm.estimator.step(nm.u, y, k * nm.T)
         nm.samples += 1
         self.counters.inc(C.SAMPLES_ESTIMATED)
-        g = float(out.gamma[0])
+        g = nm.gamma
         if g != g:  # NaN can only come from a numerical failure: count, restart
             self.counters.inc(C.ESTIMATOR_NAN)
             nm.restart()
             return
         if out.structure_event:
             self.counters.inc(C.ESTIMATOR_STRUCTURE_EVENTS)
-        prev = nm.classifier.state
-        new = nm.classifier.update(t, g)
-        if new is not None:
-            self._transition(nm, t, prev, new, "estimate")
+        prev = nm.state
+        nm.classifier.update(t, g)
+        if nm.mismatch.update(t, float(out.nis)) is True:
+            self.counters.inc(C.NODES_MODEL_MISMATCH)
+        new = nm.state
+        if new != prev:
+            self._transition(nm, t, prev, new, "model" if HealthState.MODEL_MISMATCH in
+                             (prev, new) else "estimate")
         elif t - nm.last_publish >= self.cfg.publish_period_s:
             self._diagnosis_due(nm, t)
-        self.sink.on_sample(Sample(nm.node, t, amps, float(out.y_est[0]), g, out.rules,
-                                   nm.classifier.state, float(out.nis), nm.truth_gamma))
+        self.sink.on_sample(Sample(nm.node, t, float(outputs[0]), float(out.y_est[0]), g,
+                                   out.rules, new, float(out.nis), nm.truth_gamma))
         if t - self._last_counters_t >= self.cfg.counters_period_s:
             self.emit_counters(t)
 
-    def _periods(self, dt: float, lost: int) -> int:
-        """Sample periods since the previous current sample.
+    def _periods(self, dt: float, lost: int | None) -> int:
+        """Sample periods since the previous output sample.
 
         The alive counter says it exactly, modulo 16 (lost + 1): a frame delayed on the
         bus or in a driver queue does not make a missed sample. The timestamps only pick
-        the multiple of 16 when a gap is longer than the counter can tell.
+        the multiple of 16 when a gap is longer than the counter can tell. A message
+        without a counter has only its timestamps: the nearest whole number of nominal
+        periods, and a sample further than `jitter_fraction` of a period from that grid is
+        counted as late (`time/jitter`).
         """
-        k_counter = lost + 1
         k_time = dt * self.cfg.rate
+        if lost is None:
+            k = max(1, round(k_time))
+            if abs(k_time - k) > self.cfg.jitter_fraction:
+                self.counters.inc(C.TIME_JITTER)
+            return k
+        k_counter = lost + 1
         if k_time < 12.0:
             return k_counter
         return k_counter + 16 * max(0, round((k_time - k_counter) / 16.0))
@@ -294,9 +368,8 @@ class MonitorPipeline:
 
     def _transition(self, nm: NodeMonitor, t: float, prev: HealthState, new: HealthState,
                     cause: str) -> None:
-        gamma = nm.gamma
         ev = DiagnosisEvent(t=t, node=nm.node, state=new.label, previous=prev.label,
-                            gamma=gamma, fault_volts=gamma * (nm.voltage or 0.0),
+                            gamma=nm.gamma, fault_volts=nm.fault_volts,
                             rules=nm.estimator.out.rules, cause=cause)
         self.counters.inc(C.transition(new.label))
         self.sink.on_transition(ev)
@@ -304,17 +377,17 @@ class MonitorPipeline:
 
     def _diagnosis_due(self, nm: NodeMonitor, t: float) -> None:
         nm.last_publish = t
-        gamma = nm.gamma
-        self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.classifier.state, gamma,
-                                         gamma * (nm.voltage or 0.0), nm.estimator.out.rules))
+        self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.state, nm.gamma, nm.fault_volts,
+                                         nm.estimator.out.rules))
 
     def tick(self, now: float) -> None:
         """Timeouts and steady publication, at bus time `now` (no frame needed)."""
         for nm in self.nodes.values():
             silent = nm.last_t is None or now - nm.last_t >= self.cfg.silence_timeout_s
             if silent and nm.classifier.state != HealthState.NO_DATA:
-                prev = nm.classifier.state
+                prev = nm.state
                 nm.classifier.mark_no_data(now)
+                nm.mismatch.reset(nm.model.p)
                 self.counters.inc(C.NODES_SILENT)
                 self._transition(nm, now, prev, HealthState.NO_DATA, "silence")
             elif silent and now - nm.last_publish >= self.cfg.publish_period_s:

@@ -1,0 +1,248 @@
+"""Frames of a user's own bus, described by a rig file, as typed samples (and back).
+
+`RigCodec` reads any DBC through cantools (float and big-endian signals, standard or 29-bit
+IDs, as the DBC defines them) and routes each frame to a node by the rig's layout:
+``<message>_N<node>`` names, a node number in bits of the arbitration ID (the DBC lists
+node 0's messages), or an explicit table per node. Each rig message has its protection:
+none, or AUTOSAR E2E profile 2 checked by `cantools.autosar.end_to_end` (CRC in byte 0,
+alive counter in the low nibble of byte 1, a data ID per message). Decoding never raises:
+every frame is `Decoded` (the model's inputs and outputs converted to the model's units)
+or `Rejected` with a reason from `RejectReason`, like `monitor.bus.codec.MotorDatabase`
+for our own bus.
+
+SecOC is not offered for rig files yet; our own bus (`MotorDatabase`) has it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, cast
+
+import cantools.database
+from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
+from cantools.database.can import Database, Message, Signal
+from cantools.database.can.formats.arxml import AutosarEnd2EndProperties, AutosarMessageSpecifics
+
+from monitor.bus.codec import Decoded, Rejected, RejectReason
+from monitor.bus.errors import CodecError
+from monitor.errors import one_line
+
+if TYPE_CHECKING:
+    import can
+
+__all__ = ["Resolver", "RigCodec", "RigMessage", "load_dbcs"]
+
+
+@dataclass(frozen=True)
+class RigMessage:
+    """How the codec reads one rig message: which signals are which model input/output,
+    their unit factors, and the protection."""
+
+    name: str  # as the rig names it
+    inputs: tuple[tuple[int, str, float], ...] = ()  # (input index, signal, unit factor)
+    outputs: tuple[tuple[str, float], ...] = ()  # (signal, unit factor), in output order
+    truth: str | None = None
+    e2e: bool = False
+    counter: str | None = None
+    crc: str | None = None
+    data_id: int | None = None  # None: frame_id & 0xFF
+
+
+Resolver = Callable[[str, int], "tuple[Message, int] | None"]
+"""(rig message, node) -> (the node's DBC message, its arbitration ID), None if absent. With
+a node number in the ID bits every node shares node 0's DBC message: the resolver hands out
+a copy per node, so that each carries its own E2E data ID."""
+
+
+@dataclass(frozen=True, slots=True)
+class _Route:
+    message: Message
+    spec: RigMessage
+    node: int
+    limits: tuple[tuple[str, float, float], ...]
+
+
+def load_dbcs(paths: Sequence[Path]) -> Database:
+    """One cantools database from one or more DBC files; any problem is one line."""
+    db = Database()
+    for p in paths:
+        try:
+            db.add_dbc_file(str(p))
+        except FileNotFoundError:
+            raise CodecError(f"{p}: file not found") from None
+        except OSError as exc:
+            raise CodecError(f"{p}: cannot read: {exc.strerror or exc}") from None
+        except Exception as exc:  # cantools/textparser raise many types for a bad DBC
+            raise CodecError(f"{p}: not a valid DBC: {one_line(exc)}") from None
+    if not db.messages:
+        raise CodecError(f"{', '.join(map(str, paths))}: no messages")
+    return db
+
+
+class RigCodec:
+    """Routes and decodes the frames of a rig's bus.
+
+    `messages` says how to read each rig message; `resolve(name, node)` gives the DBC
+    message of a rig message for a node and the frame's arbitration ID (None if the node
+    has no such message); `nodes` are the nodes to route. Built and checked by
+    `monitor.rig.check`.
+    """
+
+    def __init__(self, db: Database, source: str, messages: Sequence[RigMessage],
+                 resolve: Resolver, nodes: Sequence[int]) -> None:
+        self._db = db
+        self.source = source
+        self.secoc = None
+        self.secoc_enabled = False
+        self._routes: dict[tuple[int, bool], _Route] = {}
+        self._by_name: dict[tuple[str, int], tuple[_Route, int]] = {}
+        for spec in messages:
+            for node in nodes:
+                found = resolve(spec.name, node)
+                if found is None:
+                    continue
+                message, frame_id = found
+                route = _Route(message, spec, node, _limits(message, spec))
+                key = (frame_id, message.is_extended_frame)
+                other = self._routes.get(key)
+                if other is not None and other is not route:
+                    raise CodecError(f"{source}: {spec.name} of node {node} and "
+                                     f"{other.spec.name} of node {other.node} share ID "
+                                     f"0x{frame_id:X}")
+                self._routes[key] = route
+                self._by_name[(spec.name, node)] = (route, frame_id)
+                if spec.e2e:
+                    _attach_e2e(message, frame_id if spec.data_id is None else spec.data_id)
+
+    @property
+    def nodes(self) -> tuple[int, ...]:
+        return tuple(sorted({n for _, n in self._by_name}))
+
+    def frame_id(self, name: str, node: int) -> int:
+        """The arbitration ID of rig message `name` of `node`."""
+        return self._lookup(name, node)[1]
+
+    def message(self, name: str, node: int) -> Message:
+        return self._lookup(name, node)[0].message
+
+    def _lookup(self, name: str, node: int) -> tuple[_Route, int]:
+        hit = self._by_name.get((name, node))
+        if hit is None:
+            raise CodecError(f"no message {name} for node {node} on this rig")
+        return hit
+
+    # -- encoding (the rig's virtual ECU) ---------------------------------------------
+
+    def encode(self, name: str, node: int, values: Mapping[str, float],
+               counter: int | None = None) -> tuple[int, bool, bytes]:
+        """(arbitration ID, extended?, payload) of rig message `name` for `node` carrying
+        `values` (DBC signal name -> physical value in the DBC's unit); signals not given
+        are sent at 0 (or the nearest value their range allows); with E2E, `counter`
+        (0..15) and the CRC are applied."""
+        route, frame_id = self._lookup(name, node)
+        msg, spec = route.message, route.spec
+        signals: dict[str, float] = {}
+        for s in msg.signals:
+            lo = s.minimum if s.minimum is not None else -math.inf
+            hi = s.maximum if s.maximum is not None else math.inf
+            signals[s.name] = min(max(0.0, lo), hi)
+        for k, v in values.items():
+            if not math.isfinite(v):
+                raise CodecError(f"{msg.name}: {k} must be a finite number, got {v!r}")
+            signals[k] = v
+        if spec.e2e:
+            if counter is None or not 0 <= counter <= 15:
+                raise CodecError(f"{msg.name}: counter must be an int in 0..15, got {counter!r}")
+            assert spec.counter is not None and spec.crc is not None
+            signals[spec.counter] = counter
+            signals[spec.crc] = 0
+        try:
+            payload = msg.encode(signals, scaling=True, padding=False, strict=True)
+        except (cantools.database.EncodeError, ValueError, OverflowError) as exc:
+            raise CodecError(f"{msg.name}: {one_line(exc)}") from None
+        if spec.e2e:
+            protected = apply_profile2_crc(payload, msg)
+            if protected is None:
+                raise CodecError(f"{msg.name}: cantools did not apply the E2E profile 2 CRC")
+            payload = bytes(protected)
+        return frame_id, msg.is_extended_frame, bytes(payload)
+
+    # -- decoding -----------------------------------------------------------------------
+
+    def decode(self, arbitration_id: int, data: bytes, is_extended: bool, is_remote: bool,
+               is_error: bool, timestamp: float) -> Decoded | Rejected:
+        """Classify one received frame; never raises."""
+        if is_error:
+            return Rejected(RejectReason.ERROR_FRAME, arbitration_id, timestamp)
+        if is_remote:
+            return Rejected(RejectReason.REMOTE_FRAME, arbitration_id, timestamp,
+                            detail="remote frames carry no data")
+        route = self._routes.get((arbitration_id, is_extended))
+        if route is None:
+            if (arbitration_id, not is_extended) in self._routes:
+                return Rejected(RejectReason.EXTENDED_ID, arbitration_id, timestamp,
+                                detail="the DBC defines this ID with the other ID length")
+            return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
+                            detail=f"not a rig message in {self.source}")
+        spec, message, node = route.spec, route.message, route.node
+        data = bytes(data)
+        if len(data) != message.length:
+            return Rejected(RejectReason.WRONG_LENGTH, arbitration_id, timestamp, node,
+                            None, f"{len(data)} bytes, expected {message.length}")
+        if spec.e2e and not check_profile2_crc(data, message):
+            return Rejected(RejectReason.BAD_CRC, arbitration_id, timestamp, node, None,
+                            f"crc 0x{data[0]:02X}, counter {data[1] & 0xF}")
+        try:
+            signals = cast("dict[str, float]",
+                           message.decode(data, decode_choices=False, scaling=True,
+                                          allow_truncated=False, allow_excess=False))
+        except Exception as exc:  # decode must never raise; cantools may raise several types
+            return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, None,
+                            f"{type(exc).__name__}: {exc}")
+        for name, lo, hi in route.limits:
+            v = signals[name]
+            if not lo <= v <= hi:  # also catches NaN and inf
+                return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp, node,
+                                None, f"{name}={v} not in [{lo}, {hi}]")
+        inputs = tuple((i, float(signals[s]) * f) for i, s, f in spec.inputs)
+        outputs = tuple(float(signals[s]) * f for s, f in spec.outputs)
+        truth = None if spec.truth is None else float(signals[spec.truth])
+        first = inputs[0][1] if inputs else outputs[0] if outputs else (truth or 0.0)
+        return Decoded(spec.name, node, timestamp, first,
+                       None if spec.counter is None else int(signals[spec.counter]),
+                       signals, inputs, outputs, truth)
+
+    def decode_can(self, msg: can.Message) -> Decoded | Rejected:
+        """`decode` for a python-can message."""
+        return self.decode(msg.arbitration_id, bytes(msg.data), msg.is_extended_id,
+                           msg.is_remote_frame, msg.is_error_frame, msg.timestamp)
+
+
+def _limits(message: Message, spec: RigMessage) -> tuple[tuple[str, float, float], ...]:
+    """[min, max] of every signal the estimator reads (NaN and inf fail any range)."""
+    used = [s for _, s, _ in spec.inputs] + [s for s, _ in spec.outputs]
+    if spec.truth is not None:
+        used.append(spec.truth)
+    out = []
+    for name in dict.fromkeys(used):
+        sig: Signal = message.get_signal_by_name(name)
+        lo = -math.inf if sig.minimum is None else float(sig.minimum)
+        hi = math.inf if sig.maximum is None else float(sig.maximum)
+        if lo == hi == 0.0:  # a DBC that writes [0|0] means "no range given"
+            lo, hi = -math.inf, math.inf
+        out.append((name, lo, hi))
+    return tuple(out)
+
+
+def _attach_e2e(message: Message, data_id: int) -> None:
+    """The properties cantools' profile-2 helpers read: one data ID for every counter."""
+    e2e = AutosarEnd2EndProperties()
+    e2e.category = "PROFILE_02"
+    e2e.data_ids = [data_id & 0xFF] * 16
+    e2e.payload_length = message.length
+    specifics = AutosarMessageSpecifics()
+    specifics.e2e = e2e
+    message.autosar = specifics

@@ -1,0 +1,343 @@
+"""Reading a rig file (TOML) into a `Rig`, every key checked before the bus opens.
+
+Each mistake is one `RigError` line naming the file, the key and what is wrong: an unknown
+key, a value of the wrong type, a DBC that does not load, a message or signal the DBC does
+not have, a unit that does not convert, a model whose shapes disagree or whose fault the
+outputs cannot see. The format is explained key by key in README.md ("Rig files") and in
+the example rigs/motor.toml, which is the built-in default.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from monitor.errors import MonitorError, one_line
+from monitor.rig.spec import (
+    DiagnosisSpec,
+    LayoutSpec,
+    ModelSpec,
+    ProtectionSpec,
+    Rig,
+    SignalRef,
+)
+
+__all__ = ["RigError", "builtin_rig", "load_rig", "parse_rig"]
+
+T = TypeVar("T")
+
+_MOTOR_KEYS = ("J", "b", "Ke", "Ki", "Ra", "La")
+_MATRICES = ("E", "A", "B", "C", "D", "Q", "R")
+
+
+class RigError(MonitorError, ValueError):
+    """A rig file that cannot serve (one line: file, key, problem)."""
+
+
+class _Table:
+    """One TOML table being read: each key taken once; what is left over is unknown."""
+
+    def __init__(self, data: Mapping[str, Any], where: str, fail: Callable[[str, str], RigError]
+                 ) -> None:
+        self.data = dict(data)
+        self.where = where
+        self.fail = fail
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def take(self, name: str, kind: type[T] | tuple[type, ...], default: Any = ...) -> Any:
+        if name not in self.data:
+            if default is ...:
+                raise self.fail(self.key(name), "missing")
+            return default
+        value = self.data.pop(name)
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        if float in kinds and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if isinstance(value, bool) and bool not in kinds:
+            raise self.fail(self.key(name), f"must be {_names(kinds)}, got a boolean")
+        if not isinstance(value, kinds):
+            raise self.fail(self.key(name), f"must be {_names(kinds)}, "
+                                            f"got {type(value).__name__}")
+        return value
+
+    def number(self, name: str, default: float | None = None, *, positive: bool = False,
+               at_least: float | None = None) -> float:
+        value = self.take(name, float, ... if default is None else default)
+        if not math.isfinite(value):
+            raise self.fail(self.key(name), f"must be a finite number, got {value!r}")
+        if positive and not value > 0:
+            raise self.fail(self.key(name), f"must be > 0, got {value!r}")
+        if at_least is not None and value < at_least:
+            raise self.fail(self.key(name), f"must be >= {at_least:g}, got {value!r}")
+        return float(value)
+
+    def table(self, name: str, required: bool = False) -> _Table:
+        value = self.take(name, dict, ... if required else {})
+        return _Table(value, self.key(name), self.fail)
+
+    def done(self) -> None:
+        if self.data:
+            extra = ", ".join(sorted(self.data))
+            raise self.fail(self.key(next(iter(sorted(self.data)))),
+                            f"unknown key (not one of the rig format's keys): {extra}")
+
+
+def _names(kinds: tuple[type, ...]) -> str:
+    words = {str: "a string", float: "a number", int: "an integer", list: "an array",
+             dict: "a table", bool: "true or false"}
+    return " or ".join(words.get(k, k.__name__) for k in kinds)
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read and check a rig file (DBC paths are relative to it)."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            doc = tomllib.load(fh)
+    except FileNotFoundError:
+        raise RigError(f"rig file {p}: file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise RigError(f"rig file {p}: not valid TOML: {one_line(exc)}") from None
+    except UnicodeDecodeError as exc:
+        raise RigError(f"rig file {p}: not valid TOML (not UTF-8: {exc.reason})") from None
+    except OSError as exc:
+        raise RigError(f"rig file {p}: cannot read: {exc.strerror or exc}") from None
+    return parse_rig(doc, source=p)
+
+
+def builtin_rig() -> Rig:
+    """Our own bus and the paper's motor: what every command uses without --rig. The same
+    rig is written out as rigs/motor.toml (a test keeps the two equal)."""
+    from monitor.bus.codec import default_dbc_path
+
+    return Rig(
+        dbc=(default_dbc_path(),),
+        layout=LayoutSpec("name_suffix"),
+        inputs=(SignalRef("MotorVoltage", "VoltageCommand", "V"),),
+        outputs=(SignalRef("MotorCurrent", "ArmatureCurrent", "A"),),
+        truth=SignalRef("SimTruth", "TrueGamma"),
+        protection={m: ProtectionSpec("e2e_profile2", "Counter", "CRC")
+                    for m in ("MotorVoltage", "MotorCurrent")},
+        model=ModelSpec(),
+        rate=100.0,
+        diagnosis=DiagnosisSpec(),
+    )
+
+
+def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None) -> Rig:
+    """A `Rig` from a parsed TOML document; `source` names the file in errors and anchors
+    relative DBC paths."""
+    shown = str(source) if source is not None else "<rig>"
+
+    def fail(key: str, problem: str) -> RigError:
+        return RigError(f"rig file {shown}: {key}: {problem}")
+
+    top = _Table(doc, "", fail)
+    bus = top.table("bus", required=True)
+    base = source.resolve().parent if source is not None else Path.cwd()
+    dbc_value = bus.take("dbc", (str, list))
+    dbc_list = [dbc_value] if isinstance(dbc_value, str) else dbc_value
+    if not dbc_list or not all(isinstance(d, str) for d in dbc_list):
+        raise fail("bus.dbc", "must be a file name or an array of file names")
+    dbc = tuple((base / d) for d in dbc_list)
+    for i, d in enumerate(dbc):
+        if not d.is_file():
+            raise fail(f"bus.dbc[{i}]" if isinstance(dbc_value, list) else "bus.dbc",
+                       f"no such file: {d}")
+    layout = _layout(bus, fail)
+    nodes = _nodes(bus.take("nodes", (str, list), "all"), fail)
+    bus.done()
+
+    signals = top.table("signals", required=True)
+    inputs = _refs(signals, "inputs", fail)
+    outputs = _refs(signals, "outputs", fail)
+    truth_t = signals.take("truth", dict, None)
+    truth = None if truth_t is None else _ref(_Table(truth_t, "signals.truth", fail))
+    signals.done()
+    out_msgs = {r.message for r in outputs}
+    if len(out_msgs) > 1:
+        raise fail("signals.outputs", "every output must come in one message (the one whose "
+                   f"arrival is a sample); got {', '.join(sorted(out_msgs))}")
+
+    prot_t = top.table("protection")
+    protection: dict[str, ProtectionSpec] = {}
+    for name in list(prot_t.data):
+        protection[name] = _protection(prot_t.table(name), fail)
+    prot_t.done()
+
+    model_t = top.table("model", required=True)
+    model, rate = _model(model_t, len(inputs), len(outputs), fail)
+    model_t.done()
+
+    diag_t = top.table("diagnosis")
+    diagnosis = _diagnosis(diag_t, fail)
+    diag_t.done()
+    top.done()
+    rig = Rig(dbc=dbc, layout=layout, inputs=inputs, outputs=outputs, truth=truth,
+              protection=protection, model=model, rate=rate, diagnosis=diagnosis,
+              nodes=nodes, source=source)
+    from monitor.rig.check import check_rig  # the DBC and the model, checked against the rig
+
+    return check_rig(rig, fail)
+
+
+def _layout(bus: _Table, fail: Callable[[str, str], RigError]) -> LayoutSpec:
+    kind = bus.take("layout", str, "name_suffix")
+    if kind == "name_suffix":
+        return LayoutSpec("name_suffix")
+    if kind == "id_bits":
+        bits_value = bus.take("node_bits", list)
+        if (len(bits_value) != 2 or not all(isinstance(v, int) and not isinstance(v, bool)
+                                            for v in bits_value)):
+            raise fail("bus.node_bits", "must be [first bit, number of bits], e.g. [5, 4]")
+        shift, width = bits_value
+        if not (0 <= shift <= 28 and 1 <= width <= 8 and shift + width <= 29):
+            raise fail("bus.node_bits", f"bits {shift}..{shift + width - 1} do not fit a "
+                       "29-bit ID with at most 8 node bits")
+        return LayoutSpec("id_bits", shift=shift, bits=width)
+    if kind == "explicit":
+        table = bus.table("node_messages", required=True)
+        explicit: dict[int, dict[str, str]] = {}
+        for key in list(table.data):
+            try:
+                node = int(key)
+            except ValueError:
+                raise fail(f"bus.node_messages.{key}", "keys are node numbers") from None
+            names = table.take(key, dict)
+            if not all(isinstance(v, str) for v in names.values()):
+                raise fail(f"bus.node_messages.{key}", "values must be DBC message names")
+            explicit[node] = dict(names)
+        if not explicit:
+            raise fail("bus.node_messages", "needs one table per node")
+        return LayoutSpec("explicit", explicit=explicit)
+    raise fail("bus.layout", f"must be name_suffix, id_bits or explicit, got {kind!r}")
+
+
+def _nodes(value: str | list[Any], fail: Callable[[str, str], RigError]
+           ) -> tuple[int, ...] | None:
+    if value == "all":
+        return None
+    if (not isinstance(value, list) or not value
+            or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 256
+                       for v in value)):
+        raise fail("bus.nodes", "must be \"all\" or an array of node numbers 0..255")
+    return tuple(sorted(set(value)))
+
+
+def _ref(t: _Table) -> SignalRef:
+    ref = SignalRef(t.take("message", str), t.take("signal", str), t.take("unit", str, None))
+    t.done()
+    return ref
+
+
+def _refs(signals: _Table, name: str, fail: Callable[[str, str], RigError]
+          ) -> tuple[SignalRef, ...]:
+    items = signals.take(name, list)
+    if not items:
+        raise fail(f"signals.{name}", "needs at least one signal")
+    refs = []
+    for i, item in enumerate(items):
+        if not isinstance(item, dict):
+            raise fail(f"signals.{name}[{i}]", "must be a table {message = ..., signal = ...}")
+        refs.append(_ref(_Table(item, f"signals.{name}[{i}]", fail)))
+    return tuple(refs)
+
+
+def _protection(t: _Table, fail: Callable[[str, str], RigError]) -> ProtectionSpec:
+    kind = t.take("kind", str)
+    if kind == "none":
+        spec = ProtectionSpec("none")
+    elif kind == "e2e_profile2":
+        data_id = t.take("data_id", (int, str), "id_low_byte")
+        if data_id == "id_low_byte":
+            did: int | None = None
+        elif isinstance(data_id, int) and not isinstance(data_id, bool) and 0 <= data_id <= 255:
+            did = data_id
+        else:
+            raise fail(t.key("data_id"), "must be \"id_low_byte\" or an integer 0..255")
+        spec = ProtectionSpec("e2e_profile2", t.take("counter", str), t.take("crc", str), did)
+    else:
+        raise fail(t.key("kind"), f"must be none or e2e_profile2, got {kind!r}")
+    t.done()
+    return spec
+
+
+def _matrix(t: _Table, name: str) -> tuple[tuple[float, ...], ...] | None:
+    value = t.take(name, list, None)
+    if value is None:
+        return None
+    rows = value if value and isinstance(value[0], list) else [value]
+    out = []
+    for r in rows:
+        if not isinstance(r, list) or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in r):
+            raise t.fail(t.key(name), "must be a matrix: an array of arrays of numbers")
+        out.append(tuple(float(v) for v in r))
+    if len({len(r) for r in out}) > 1:
+        raise t.fail(t.key(name), "rows of different lengths")
+    return tuple(out)
+
+
+def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
+           ) -> tuple[ModelSpec, float]:
+    kind = t.take("kind", str)
+    rate = t.number("rate", positive=True)
+    if rate > 100_000:
+        raise fail("model.rate", f"must be at most 100000 Hz, got {rate:g}")
+    if kind == "dc_motor":
+        if (m, p) != (1, 1):
+            raise fail("model.kind", f"dc_motor has one input and one output; the rig "
+                       f"names {m} input(s) and {p} output(s)")
+        motor = {k: t.number(k) for k in _MOTOR_KEYS if k in t.data}
+        q = t.number("process_noise", 1.44, at_least=0.0)
+        sigma = t.number("output_sigma", 0.5, positive=True)
+        return ModelSpec("dc_motor", motor=motor, process_noise=q, output_sigma=(sigma,)), rate
+    if kind == "state_space":
+        domain = t.take("domain", str, "continuous")
+        if domain not in ("continuous", "discrete"):
+            raise fail("model.domain", f"must be continuous or discrete, got {domain!r}")
+        matrices = {}
+        for name in _MATRICES:
+            mat = _matrix(t, name)
+            if mat is not None:
+                matrices[name] = mat
+        for name in ("A", "B", "C", "Q", "R"):
+            if name not in matrices:
+                raise fail(f"model.{name}", "missing (state_space needs A, B, C, Q and R)")
+        faults_value = t.take("fault_inputs", list, None)
+        faults = None
+        if faults_value is not None:
+            if not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v < m
+                       for v in faults_value) or not faults_value:
+                raise fail("model.fault_inputs", f"must list input indices 0..{m - 1}")
+            faults = tuple(sorted(set(faults_value)))
+        names = t.take("states", list, [])
+        if not all(isinstance(v, str) for v in names):
+            raise fail("model.states", "must be an array of names")
+        return ModelSpec("state_space", domain=domain,
+                         matrices=matrices, fault_inputs=faults,
+                         state_names=tuple(names)), rate
+    raise fail("model.kind", f"must be dc_motor or state_space, got {kind!r}")
+
+
+def _diagnosis(t: _Table, fail: Callable[[str, str], RigError]) -> DiagnosisSpec:
+    d = DiagnosisSpec()
+    spec = DiagnosisSpec(
+        f1=t.number("f1", d.f1), f2=t.number("f2", d.f2),
+        dwell_s=t.number("dwell_s", d.dwell_s, at_least=0.0),
+        hysteresis=t.number("hysteresis", d.hysteresis, at_least=0.0),
+        silence_timeout_s=t.number("silence_timeout_s", d.silence_timeout_s, positive=True),
+        mismatch_window_s=t.number("mismatch_window_s", d.mismatch_window_s, positive=True),
+        mismatch_dwell_s=t.number("mismatch_dwell_s", d.mismatch_dwell_s, positive=True),
+    )
+    if not 0.0 < spec.f1 < spec.f2 < 1.0:
+        raise fail("diagnosis.f1", f"thresholds must satisfy 0 < f1 < f2 < 1, got "
+                   f"f1 = {spec.f1:g}, f2 = {spec.f2:g}")
+    if not spec.hysteresis < 0.5 * (spec.f2 - spec.f1):
+        raise fail("diagnosis.hysteresis", "must be less than (f2 - f1) / 2")
+    return spec

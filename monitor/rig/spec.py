@@ -1,0 +1,119 @@
+"""What a rig file describes, as plain immutable data (the loader is `monitor.rig.load`).
+
+A rig is the bus and the plant in front of the monitor: which DBC files define the bus, how
+a frame belongs to a node, which DBC signals are the model's inputs u and outputs y, how
+each message is protected, the linear model of every node and the diagnosis settings.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+__all__ = ["DiagnosisSpec", "LayoutSpec", "ModelSpec", "ProtectionSpec", "Rig", "SignalRef"]
+
+LayoutKind = Literal["name_suffix", "id_bits", "explicit"]
+ProtectionKind = Literal["none", "e2e_profile2"]
+ModelKind = Literal["dc_motor", "state_space"]
+
+
+@dataclass(frozen=True)
+class SignalRef:
+    """A DBC signal that is one of the model's inputs or outputs.
+
+    `message` is the message's name as the DBC writes it for node 0 (layout id_bits), as
+    the template for every node (layout name_suffix: ``<message>_N<node>``), or the key
+    of the per-node table (layout explicit). `unit` is the model's unit; the decoder converts
+    the DBC's physical value to it where the DBC's unit differs.
+    """
+
+    message: str
+    signal: str
+    unit: str | None = None
+
+
+@dataclass(frozen=True)
+class LayoutSpec:
+    """How a frame belongs to a node.
+
+    name_suffix: message names carry the node, ``<message>_N<node>`` (our DBC).
+    id_bits: the node number is held in bits of the arbitration ID, ``node =
+      (id >> shift) & (2**bits - 1)``; the DBC lists node 0's messages only (a node's ID is
+      node 0's ID with those bits set); standard or 29-bit IDs.
+    explicit: a table per node maps each message of the rig to that node's DBC message.
+    """
+
+    kind: LayoutKind = "name_suffix"
+    shift: int = 0
+    bits: int = 4
+    explicit: Mapping[int, Mapping[str, str]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ProtectionSpec:
+    """How a message is protected: not at all, or AUTOSAR E2E profile 2 (CRC-8 over the
+    payload and a data ID, a 4-bit alive counter). `data_id` is an int, or None for our
+    bus's rule ``frame_id & 0xFF``."""
+
+    kind: ProtectionKind = "none"
+    counter: str | None = None
+    crc: str | None = None
+    data_id: int | None = None
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """The plant model of every node: the DC motor's physical parameters (`dc_motor`), or
+    matrices (`state_space`, continuous or discrete, descriptor E optional)."""
+
+    kind: ModelKind = "dc_motor"
+    motor: Mapping[str, float] = field(default_factory=dict)  # J, b, Ke, Ki, Ra, La
+    process_noise: float = 1.44
+    output_sigma: tuple[float, ...] = (0.5,)
+    domain: Literal["continuous", "discrete"] = "continuous"
+    matrices: Mapping[str, tuple[tuple[float, ...], ...]] = field(default_factory=dict)
+    fault_inputs: tuple[int, ...] | None = None  # None: every input
+    state_names: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class DiagnosisSpec:
+    """Thresholds (76), debouncing and timeouts of the online diagnosis."""
+
+    f1: float = 0.15
+    f2: float = 0.85
+    dwell_s: float = 0.03
+    hysteresis: float = 0.02
+    silence_timeout_s: float = 0.5
+    mismatch_window_s: float = 2.0
+    mismatch_dwell_s: float = 3.0
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A whole rig; `source` is the file it came from (None: the built-in default)."""
+
+    dbc: tuple[Path, ...]
+    layout: LayoutSpec
+    inputs: tuple[SignalRef, ...]
+    outputs: tuple[SignalRef, ...]
+    truth: SignalRef | None
+    protection: Mapping[str, ProtectionSpec]
+    model: ModelSpec
+    rate: float
+    diagnosis: DiagnosisSpec
+    nodes: tuple[int, ...] | None = None
+    source: Path | None = None
+
+    @property
+    def messages(self) -> tuple[str, ...]:
+        """The rig's messages (as the rig names them), inputs first, no repeats."""
+        refs = (*self.inputs, *self.outputs, *(() if self.truth is None else (self.truth,)))
+        return tuple(dict.fromkeys(r.message for r in refs))
+
+    @property
+    def output_message(self) -> str:
+        """The message whose arrival is one sample: it carries every output."""
+        return self.outputs[0].message
