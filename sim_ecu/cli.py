@@ -22,15 +22,20 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
 
 from monitor.app.canbus import open_bus
 from monitor.app.freshness import FreshnessSaver
 from monitor.app.options import OneLineParser
 from monitor.app.signals import StopOnSignals
-from monitor.bus.codec import N_NODES, load_database
+from monitor.bus.codec import N_NODES, MotorDatabase
 from monitor.bus.secoc import load_key
 from monitor.errors import MonitorError, UsageError, one_line
+from monitor.estimation.model import DCMotorParameters
+from monitor.rig import Rig, build_decoder, builtin_rig, load_rig
 from sim_ecu.ecu import ECUStats, VirtualECU, load_motor_parameters
+from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import BUILTIN_SCENARIOS, load_scenario
 
 __all__ = ["build_parser", "main"]
@@ -67,7 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"built-in ({', '.join(BUILTIN_SCENARIOS)}) or a scenario TOML file "
         "(optionally with a [motor] table: J, b, Ke, Ki, Ra, La)",
     )
-    p.add_argument("--rate", type=float, default=100.0, help="sample rate in Hz (default 100)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="sample rate in Hz (default: the rig's, 100 on our bus)")
+    p.add_argument("--rig", metavar="FILE", help="rig file: simulate its model and speak its DBC "
+                   "and node layout (a virtual twin of your ECU; default: our bus and motor)")
     p.add_argument(
         "--voltage-rate",
         type=float,
@@ -104,9 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_args(args: argparse.Namespace) -> float | None:
     """Validate numbers argparse cannot; returns the run duration (None: scenario's)."""
-    if not 0 <= args.node < N_NODES:
+    if args.rig is None and not 0 <= args.node < N_NODES:
         raise UsageError(f"--node must be in 0..{N_NODES - 1}, got {args.node}")
-    for flag, value in (("--rate", args.rate), ("--voltage-rate", args.voltage_rate)):
+    for flag, value in (("--rate", 1.0 if args.rate is None else args.rate),
+                        ("--voltage-rate", args.voltage_rate)):
         if not (math.isfinite(value) and value > 0):
             raise UsageError(f"{flag} must be a positive number of Hz, got {value:g}")
     if args.seed < 0:
@@ -122,7 +131,14 @@ def _check_args(args: argparse.Namespace) -> float | None:
     return math.inf if args.duration == 0 else float(args.duration)
 
 
-def _run_in_worker(ecu: VirtualECU, duration: float | None, stop: threading.Event,
+def _rig_motor(rig: Rig) -> DCMotorParameters | None:
+    """The DC motor a rig on our own bus describes (None: the model is not a DC motor)."""
+    if rig.model.kind != "dc_motor":
+        return None
+    return replace(DCMotorParameters(), **rig.model.motor)
+
+
+def _run_in_worker(ecu: VirtualECU | RigECU, duration: float | None, stop: threading.Event,
                    every_second: Callable[[], None] | None = None) -> ECUStats:
     """ecu.run in a worker thread; the main thread stays free to run signal handlers.
 
@@ -171,8 +187,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             scenario = load_scenario(args.scenario)
             motor = load_motor_parameters(args.scenario)
             key = None if args.key is None else load_key(args.key)
-            db = load_database(args.dbc, secoc_key=key)
-            if args.secoc_state is not None and db.secoc is not None:
+            rig = load_rig(args.rig) if args.rig else builtin_rig()
+            if args.dbc:
+                rig = replace(rig, dbc=(Path(args.dbc),))
+            if args.rate is None:
+                args.rate = rig.rate
+            decoder = build_decoder(rig, secoc_key=key)
+            if isinstance(decoder, MotorDatabase) and motor is None and args.rig:
+                motor = _rig_motor(rig)
+            db = decoder
+            if args.secoc_state is not None and isinstance(db, MotorDatabase) and db.secoc:
                 margin = math.ceil(STATE_MARGIN_S * max(args.rate, args.voltage_rate))
                 restored = db.secoc.load_state(args.secoc_state, tx_margin=margin)
                 log.info("SecOC state %s: %s", args.secoc_state,
@@ -187,17 +211,22 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_USAGE
         try:
             try:
-                ecu = VirtualECU(
-                    bus,
-                    db,
-                    args.node,
-                    scenario,
-                    rate=args.rate,
-                    voltage_rate=args.voltage_rate,
-                    seed=args.seed,
-                    truth=not args.no_truth,
-                    motor=motor,
-                )
+                ecu: VirtualECU | RigECU
+                if isinstance(db, MotorDatabase):
+                    ecu = VirtualECU(
+                        bus,
+                        db,
+                        args.node,
+                        scenario,
+                        rate=args.rate,
+                        voltage_rate=args.voltage_rate,
+                        seed=args.seed,
+                        truth=not args.no_truth,
+                        motor=motor,
+                    )
+                else:
+                    ecu = RigECU(bus, db, rig, args.node, scenario, seed=args.seed,
+                                 input_rate=args.voltage_rate)
             except MonitorError as exc:
                 print(f"{PROG}: error: {exc}", file=sys.stderr)
                 return EXIT_USAGE

@@ -38,10 +38,10 @@ import math
 import threading
 import time
 import tomllib
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, Final, Protocol
 
 import can
 import numpy as np
@@ -482,59 +482,75 @@ class VirtualECU:
         on send is counted and logged once per burst of failures. Returns the stats (also
         in `self.stats`).
         """
-        bus = self.bus
-        if bus is None:
+        if self.bus is None:
             raise ECUError("run() needs a bus; use frames() offline")
         n = self._n_samples(duration)
-        stop = stop if stop is not None else threading.Event()
         self.stats = stats = self._new_stats()
-        sim = _Simulation(self, stats)
-        rate = self.rate
-        failing = 0  # consecutive failed sends (the current burst)
-        wall0 = time.time()
-        start = time.monotonic()
-        k = 0
-        try:
-            while (n is None or k < n) and not stop.is_set():
-                now = time.monotonic()
-                deadline = start + k / rate
-                if now < deadline:
-                    if stop.wait(deadline - now):
-                        break
-                else:
-                    behind = math.floor((now - deadline) * rate)
-                    if behind > self.max_catch_up:
-                        skip = behind if n is None else min(behind, n - k)
+        return run_paced(self.bus, _Simulation(self, stats), stats, n, self.rate, self.node,
+                         stop, self.send_timeout, self.max_catch_up,
+                         lambda msg: self.kind_of[msg.arbitration_id])
+
+
+class SampleSource(Protocol):
+    """One sample of a simulated ECU at a time: its frames (none when not `emit`)."""
+
+    def step(self, emit: bool, time_base: float) -> list[can.Message]: ...
+
+
+def run_paced(bus: can.BusABC, sim: SampleSource, stats: ECUStats, n: int | None, rate: float,
+              node: int, stop: threading.Event | None, send_timeout: float, max_catch_up: int,
+              kind_of: Callable[[can.Message], str]) -> ECUStats:
+    """Send `sim`'s samples on `bus` in real time: sample k is due at ``start + k / rate`` on
+    `time.monotonic` (no cumulative drift). Up to `max_catch_up` late samples go out back to
+    back; when further behind, the missed samples are simulated without being sent (their
+    alive counters advance, so a receiver sees the gap) and counted as `overruns`. A
+    `can.CanError` on send is counted and logged once per burst of failures."""
+    stop = stop if stop is not None else threading.Event()
+    failing = 0  # consecutive failed sends (the current burst)
+    wall0 = time.time()
+    start = time.monotonic()
+    k = 0
+    try:
+        while (n is None or k < n) and not stop.is_set():
+            now = time.monotonic()
+            deadline = start + k / rate
+            if now < deadline:
+                if stop.wait(deadline - now):
+                    break
+            else:
+                behind = math.floor((now - deadline) * rate)
+                if behind > max_catch_up:
+                    skip = behind if n is None else min(behind, n - k)
+                    log.warning(
+                        "node %d: %.1f ms behind schedule at t=%.3f s: skipped %d sample(s)",
+                        node, 1e3 * (now - deadline), k / rate, skip,
+                    )
+                    for _ in range(skip):
+                        sim.step(False, wall0)
+                    k += skip
+                    stats.overruns += skip
+                    continue
+            for msg in sim.step(True, wall0):
+                try:
+                    bus.send(msg, timeout=send_timeout)
+                except (can.CanError, OSError) as exc:
+                    stats.send_errors += 1
+                    if failing == 0:
                         log.warning(
-                            "node %d: %.1f ms behind schedule at t=%.3f s: skipped %d sample(s)",
-                            self.node, 1e3 * (now - deadline), k / rate, skip,
+                            "node %d: send failed at t=%.3f s: %s (failures are counted, "
+                            "not logged, until a send succeeds)",
+                            node, k / rate, exc,
                         )
-                        for _ in range(skip):
-                            sim.step(False, wall0)
-                        k += skip
-                        stats.overruns += skip
-                        continue
-                for msg in sim.step(True, wall0):
-                    try:
-                        bus.send(msg, timeout=self.send_timeout)
-                    except (can.CanError, OSError) as exc:
-                        stats.send_errors += 1
-                        if failing == 0:
-                            log.warning(
-                                "node %d: send failed at t=%.3f s: %s (failures are counted, "
-                                "not logged, until a send succeeds)",
-                                self.node, k / rate, exc,
-                            )
-                        failing += 1
-                    else:
-                        stats.sent[self.kind_of[msg.arbitration_id]] += 1
-                        if failing:
-                            log.warning(
-                                "node %d: sending again at t=%.3f s after %d failed frame(s)",
-                                self.node, k / rate, failing,
-                            )
-                            failing = 0
-                k += 1
-        finally:
-            stats.elapsed = time.monotonic() - start
-        return stats
+                    failing += 1
+                else:
+                    stats.sent[kind_of(msg)] += 1
+                    if failing:
+                        log.warning(
+                            "node %d: sending again at t=%.3f s after %d failed frame(s)",
+                            node, k / rate, failing,
+                        )
+                        failing = 0
+            k += 1
+    finally:
+        stats.elapsed = time.monotonic() - start
+    return stats

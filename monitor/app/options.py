@@ -6,15 +6,19 @@ from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import replace
+from pathlib import Path
 from typing import NoReturn
 
-from monitor.bus.codec import MotorDatabase, load_database
+from monitor.bus.codec import MotorDatabase
+from monitor.bus.rigcodec import RigCodec
 from monitor.bus.secoc import load_key
-from monitor.diagnosis import DEFAULT_THRESHOLDS, Thresholds, load_thresholds
+from monitor.diagnosis import Thresholds, load_thresholds
 from monitor.pipeline import MonitorConfig
+from monitor.rig import Rig, build_decoder, build_model, builtin_rig, load_rig
 
-__all__ = ["OneLineParser", "add_monitor_options", "database", "monitor_config", "nodes",
-           "positive_float", "rate"]
+__all__ = ["OneLineParser", "add_monitor_options", "add_rig_option", "database",
+           "monitor_config", "nodes", "positive_float", "rate", "rig"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -56,12 +60,20 @@ def nodes(text: str) -> tuple[int, ...] | None:
     return found
 
 
+def add_rig_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--rig", default=None, metavar="FILE",
+                   help="rig file: your DBC, node layout, signals and model (default: our "
+                   "bus and the paper's motor, rigs/motor.toml)")
+
+
 def add_monitor_options(p: argparse.ArgumentParser) -> None:
     """The options of every command that monitors frames (run, replay)."""
-    p.add_argument("--dbc", default=None, help="DBC file (default: the one shipped)")
+    add_rig_option(p)
+    p.add_argument("--dbc", default=None, help="DBC file (default: the rig's)")
     p.add_argument("--nodes", type=nodes, default=None,
-                   help="nodes to monitor, e.g. 0,3 (default: all that send)")
-    p.add_argument("--rate", type=rate, default=100.0, help="ECU current-sample rate, Hz")
+                   help="nodes to monitor, e.g. 0,3 (default: the rig's, else all that send)")
+    p.add_argument("--rate", type=rate, default=None,
+                   help="the output message's nominal rate, Hz (default: the rig's)")
     p.add_argument("--thresholds", default=None, help="thresholds TOML (motor-monitor calibrate)")
     p.add_argument("--key", default=None, metavar="FILE",
                    help="SecOC key (32 or 64 hex digits, mode 0600): reject unauthenticated frames")
@@ -70,13 +82,29 @@ def add_monitor_options(p: argparse.ArgumentParser) -> None:
                    help="stream to a Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
 
 
-def database(args: argparse.Namespace) -> MotorDatabase:
-    """The DBC, with SecOC verification when --key is given (a key file only we can read)."""
-    key = load_key(args.key) if args.key else None
-    return load_database(args.dbc, secoc_key=key)
+def rig(args: argparse.Namespace) -> Rig:
+    """--rig, else the built-in rig; --dbc replaces its DBC files."""
+    found = load_rig(args.rig) if getattr(args, "rig", None) else builtin_rig()
+    dbc = getattr(args, "dbc", None)
+    return replace(found, dbc=(Path(dbc),)) if dbc else found
 
 
-def monitor_config(args: argparse.Namespace) -> MonitorConfig:
-    thresholds: Thresholds = (load_thresholds(args.thresholds) if args.thresholds
-                              else DEFAULT_THRESHOLDS)
-    return MonitorConfig(nodes=args.nodes, rate=args.rate, thresholds=thresholds)
+def database(args: argparse.Namespace, the_rig: Rig | None = None) -> MotorDatabase | RigCodec:
+    """The rig's frame decoder, with SecOC verification when --key is given (a key file
+    only we can read; our own bus only)."""
+    key = load_key(args.key) if getattr(args, "key", None) else None
+    return build_decoder(the_rig or rig(args), secoc_key=key)
+
+
+def monitor_config(args: argparse.Namespace, the_rig: Rig | None = None) -> MonitorConfig:
+    """The monitor's configuration: the rig's, with the command line's overrides."""
+    r = the_rig or rig(args)
+    d = r.diagnosis
+    thresholds = (load_thresholds(args.thresholds) if getattr(args, "thresholds", None)
+                  else Thresholds(d.f1, d.f2))
+    return MonitorConfig(
+        nodes=args.nodes if getattr(args, "nodes", None) is not None else r.nodes,
+        rate=args.rate if getattr(args, "rate", None) is not None else r.rate,
+        thresholds=thresholds, dwell_s=d.dwell_s, hysteresis=d.hysteresis,
+        silence_timeout_s=d.silence_timeout_s, model=build_model(r),
+        mismatch_window_s=d.mismatch_window_s, mismatch_dwell_s=d.mismatch_dwell_s)

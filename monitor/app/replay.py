@@ -61,8 +61,9 @@ def _frames(path: Path, reader: can.io.generic.MessageReader) -> Iterator[can.Me
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    db = options.database(args)
-    cfg = options.monitor_config(args)
+    rig = options.rig(args)
+    db = options.database(args, rig)
+    cfg = options.monitor_config(args, rig)
     frames = read_log(Path(args.log))
     sinks: list[Sink] = [LogSink()]
     recording = outputs.rerun_sink(args, cfg)

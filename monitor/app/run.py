@@ -30,6 +30,7 @@ from monitor.app.notify import Notifier
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.faults import socket_drops
+from monitor.bus.rigcodec import RigCodec
 from monitor.errors import UsageError
 from monitor.pipeline import Counters, MonitorPipeline
 from monitor.pipeline import counters as C
@@ -73,7 +74,7 @@ def _quiet() -> bool:
     return not log.isEnabledFor(logging.DEBUG)  # python-can's ERROR record: a second line
 
 
-def _freshness(db: MotorDatabase, path: str | None) -> FreshnessSaver | None:
+def _freshness(db: MotorDatabase | RigCodec, path: str | None) -> FreshnessSaver | None:
     """--secoc-state: restore the receive counters, then save them periodically, so a
     restarted monitor resumes verification at once and an old recorded sync cannot roll its
     freshness back."""
@@ -88,9 +89,10 @@ def _freshness(db: MotorDatabase, path: str | None) -> FreshnessSaver | None:
 
 
 def run_live(args: argparse.Namespace) -> int:
-    db = options.database(args)
+    rig = options.rig(args)
+    db = options.database(args, rig)
     fresh = _freshness(db, args.secoc_state)
-    cfg = options.monitor_config(args)
+    cfg = options.monitor_config(args, rig)
     with StopOnSignals() as stop:
         # Load the compiled estimator before the socket opens: frames arriving meanwhile
         # would pile up in the kernel's buffer and be dropped.
@@ -103,7 +105,9 @@ def run_live(args: argparse.Namespace) -> int:
             live.drop()
             raise
         counters = Counters()
-        sinks: list[Sink] = [LogSink(), BusPublisher(db, live.send, counters)]
+        sinks: list[Sink] = [LogSink()]
+        if isinstance(db, MotorDatabase):  # MonitorDiagnosis frames exist on our bus only
+            sinks.append(BusPublisher(db, live.send, counters))
         sinks += [s for s in (recording, events) if s is not None]
         sink = FanOut(sinks)
         pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)

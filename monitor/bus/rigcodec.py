@@ -22,9 +22,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING, cast
 
 import cantools.database
+import numpy as np
 from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
 from cantools.database.can import Database, Message, Signal
 from cantools.database.can.formats.arxml import AutosarEnd2EndProperties, AutosarMessageSpecifics
+from numpy.typing import NDArray
 
 from monitor.bus.codec import Decoded, Rejected, RejectReason
 from monitor.bus.errors import CodecError
@@ -97,6 +99,7 @@ class RigCodec:
         self.source = source
         self.secoc = None
         self.secoc_enabled = False
+        self.specs: dict[str, RigMessage] = {m.name: m for m in messages}
         self._routes: dict[tuple[int, bool], _Route] = {}
         self._by_name: dict[tuple[str, int], tuple[_Route, int]] = {}
         for spec in messages:
@@ -169,6 +172,19 @@ class RigCodec:
                 raise CodecError(f"{msg.name}: cantools did not apply the E2E profile 2 CRC")
             payload = bytes(protected)
         return frame_id, msg.is_extended_frame, bytes(payload)
+
+    def encode_sample(self, name: str, node: int, u: Sequence[float] | NDArray[np.float64],
+                      y: Sequence[float] | NDArray[np.float64],
+                      truth: float | None = None, counter: int | None = None
+                      ) -> tuple[int, bool, bytes]:
+        """`encode` of rig message `name` from model-unit inputs `u` and outputs `y` (and a
+        true gamma): each signal the message carries, converted to the DBC's unit."""
+        spec = self.specs[name]
+        values: dict[str, float] = {s: float(u[i]) / f for i, s, f in spec.inputs}
+        values.update({s: float(v) / f for (s, f), v in zip(spec.outputs, y, strict=False)})
+        if spec.truth is not None and truth is not None:
+            values[spec.truth] = truth
+        return self.encode(name, node, values, counter)
 
     # -- decoding -----------------------------------------------------------------------
 
