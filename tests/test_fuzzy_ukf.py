@@ -2,15 +2,24 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
+import scipy.signal
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from experiments.akf import AugmentedKalmanFilter
 from monitor.estimation.fuzzy_ukf import FuzzyUKF
-from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, dc_motor
-from sim_ecu.plant import SimulatedRun, simulate
+from monitor.estimation.model import (
+    ContinuousDescriptor,
+    DCMotorParameters,
+    DiscreteModel,
+    dc_motor,
+    van_loan,
+)
+from sim_ecu.plant import PlantSimulator, SimulatedRun, simulate, steady_state
 from sim_ecu.scenario import load_scenario, scenario_from_dict
 
 
@@ -132,3 +141,121 @@ def test_bad_dt_is_rejected() -> None:
     est = FuzzyUKF(dc_motor().discretize(0.01))
     with pytest.raises(ValueError, match="dt"):
         est.step([220.0], [0.0], 0.0)
+
+
+# ---- general linear actuator models (issue 9): MIMO plants, discrete models, known inputs
+
+def _mimo(**kw: object) -> ContinuousDescriptor:
+    """A coupled 2x2 plant: each actuator drives both states, with a small feed-through."""
+    base: dict[str, object] = dict(
+        E=np.eye(2), A=[[-2.0, 0.5], [0.3, -3.0]], B=[[1.0, 0.2], [0.1, 1.0]], C=np.eye(2),
+        D=[[0.05, 0.0], [0.0, 0.02]], Qc=np.eye(2) * 0.01, R=np.eye(2) * 0.01,
+        state_names=("a", "b"), input_names=("u1", "u2"), output_names=("y1", "y2"),
+    )
+    base.update(kw)
+    return ContinuousDescriptor(**base)  # type: ignore[arg-type]
+
+
+def _simulate_inputs(model: ContinuousDescriptor, T: float, U: np.ndarray,
+                     gamma: Callable[[float], np.ndarray], seed: int, sigma: float = 0.1,
+                     ) -> np.ndarray:
+    """Measured outputs of the plant under inputs U (one row per sample) and gamma(t),
+    starting from the fault-free steady state of U[0]."""
+    sim = PlantSimulator(model, T, seed=seed, current_sigma=sigma)
+    sim.x = steady_state(sim, U[0])
+    Y = np.empty((len(U), model.C.shape[0]))
+    for k, u in enumerate(U):
+        g = gamma(k * T)
+        Y[k] = sim.output(u, g)
+        sim.advance(u, g)
+    return Y
+
+
+@pytest.mark.parametrize("faulty", [0, 1])
+def test_coupled_two_actuator_plant_finds_the_faulty_actuator(faulty: int) -> None:
+    model = _mimo()
+    T = 0.01
+
+    def gamma(t: float) -> np.ndarray:
+        g = np.zeros(2)
+        g[faulty] = 0.4 if t >= 2.0 else 0.0
+        return g
+
+    U = np.tile([10.0, 6.0], (600, 1))
+    Y = _simulate_inputs(model, T, U, gamma, seed=20 + faulty)
+    est = FuzzyUKF(model.discretize(T))
+    gs = np.array([est.step(U[k], Y[k], T).gamma.copy() for k in range(len(U))])
+    before, after = gs[100:200], gs[-200:]
+    # gamma is projected onto [0, 1], so noise biases a fault-free estimate slightly up
+    assert np.all(before.mean(axis=0) < 0.05)
+    assert after[:, faulty].mean() == pytest.approx(0.4, abs=0.04)
+    assert after[:, 1 - faulty].mean() < 0.05
+    assert est.repairs == 0
+
+
+def test_discrete_model_gives_the_filter_of_its_continuous_model() -> None:
+    # The same plant given at its sample period T: the inverse zero-order hold makes it the
+    # continuous model again, so the filters agree to round-off at T and at 2 T.
+    cont = dc_motor()
+    T = 0.01
+    ss = cont.standard_form()
+    Ad, Bd, _, _, _ = scipy.signal.cont2discrete((ss.A, ss.B, ss.C, ss.D), T, method="zoh")
+    Qd = van_loan(ss.A, cont.noise_standard_form(), T)
+    disc = DiscreteModel.from_discrete(Ad, Bd, ss.C, Qd, cont.R, T, D=ss.D,
+                                       state_names=ss.state_names)
+    assert disc.observable_names == ("current", "speed")
+    run = simulate(cont, load_scenario("fault-outage-recovery"), T, seed=9)
+    for stride in (1, 2):
+        a = FuzzyUKF(cont.discretize(T), x0=run.x[0])
+        b = FuzzyUKF(disc, x0=run.x[0])
+        for k in range(0, len(run.t), stride):
+            oa = a.step(run.u[k], run.y[k], stride * T)
+            ob = b.step(run.u[k], run.y[k], stride * T)
+            assert ob.gamma == pytest.approx(oa.gamma, abs=1e-9)
+            assert ob.x_hat == pytest.approx(oa.x_hat, rel=1e-9, abs=1e-9)
+            assert ob.rules == oa.rules and ob.structure_event == oa.structure_event
+        assert a.structure_events == b.structure_events >= 3
+
+
+def _motor_with_load() -> ContinuousDescriptor:
+    """The DC motor (68) with a second, known input: a measured load torque on the shaft."""
+    m = dc_motor()
+    return ContinuousDescriptor(
+        E=m.E, A=m.A, B=np.hstack([m.B, [[0.0], [-1.0], [0.0]]]), C=m.C, Qc=m.Qc, R=m.R,
+        state_names=m.state_names, input_names=("voltage", "load"),
+        output_names=m.output_names, fault_inputs=("voltage",),
+    )
+
+
+def test_known_actuator_keeps_gamma_exactly_zero() -> None:
+    # Two inputs, one output: allowed because only the voltage can lose effectiveness. The
+    # known load torque varies; the filter is told it, so it is no fault.
+    model = _motor_with_load()
+    T = 0.01
+    t = np.arange(800) * T
+    U = np.column_stack([np.full(t.size, 220.0), 2.0 + 1.5 * np.sin(t)])
+    Y = _simulate_inputs(model, T, U, lambda s: np.array([0.4 if s >= 4 else 0.0, 0.0]),
+                         seed=3, sigma=0.5)
+    est = FuzzyUKF(model.discretize(T))
+    gs = np.array([est.step(U[k], Y[k], T).gamma.copy() for k in range(len(Y))])
+    assert np.all(gs[:, 1] == 0.0)
+    assert gs[100:400, 0].mean() < 0.05
+    assert gs[-300:, 0].mean() == pytest.approx(0.4, abs=0.04)
+    assert np.all(est.fuzzy.var[:, 1] == 0.0)
+    assert est.structure_events >= 1
+    healthy = _simulate_inputs(model, T, U, lambda s: np.zeros(2), seed=4, sigma=0.5)
+    est = FuzzyUKF(model.discretize(T))
+    gh = np.array([est.step(U[k], healthy[k], T).gamma.copy() for k in range(len(U))])
+    assert np.max(np.abs(gh[100:, 0])) < 0.1 and np.all(gh[:, 1] == 0.0)
+
+
+def test_two_actuator_plant_with_one_fault_input_leaves_the_other_at_zero() -> None:
+    model = _mimo(fault_inputs=(1,))
+    T = 0.01
+    U = np.tile([10.0, 6.0], (600, 1))
+    Y = _simulate_inputs(model, T, U, lambda t: np.array([0.0, 0.5 if t >= 2 else 0.0]),
+                         seed=5)
+    est = FuzzyUKF(model.discretize(T))
+    gs = np.array([est.step(U[k], Y[k], T).gamma.copy() for k in range(len(U))])
+    assert np.all(gs[:, 0] == 0.0)
+    assert gs[-200:, 1].mean() == pytest.approx(0.5, abs=0.04)

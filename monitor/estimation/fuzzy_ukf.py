@@ -43,6 +43,13 @@ Per sample k (the paper's order, made sound where NOTES.md says it must be):
 
 A missed sample is a step with dt = k T: the ZOH model for that span holds the last
 voltage, which is what the ECU does, and the covariance grows accordingly.
+
+Any linear model runs (`monitor.estimation.model`: n states, m actuators, p outputs). Only
+the actuators in `model.fault_inputs` have a loss of effectiveness; the others are known
+inputs. They enter B and D like the rest, but their projection bounds of (28) are
+[u_L, u_U] = [0, 0]: the kernel reads an actuator with equal bounds as known, so its gamma
+stays exactly 0, its consequents carry no variance (they add nothing to S_tot), are never
+adapted and are not re-opened by structure learning.
 """
 
 from __future__ import annotations
@@ -64,9 +71,19 @@ from monitor.estimation.ukf import sigma_weights, spd_inverse, ukf_predict, ukf_
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["EstimatorOutput", "FuzzyUKF", "FuzzyUKFConfig", "select_kernel"]
+__all__ = ["KERNEL_LAYOUT", "EstimatorOutput", "FuzzyUKF", "FuzzyUKFConfig", "select_kernel"]
 
 _log = logging.getLogger(__name__)
+
+# Version of the kernel's flat-buffer layout; bump it whenever the meaning of the buffers
+# changes (2: per-actuator bounds in prm). An ahead-of-time build of another layout has the
+# same signature but would misread the buffers, so select_kernel refuses it.
+KERNEL_LAYOUT = 2
+
+
+def kernel_layout() -> int:
+    """The buffer layout this kernel reads (exported into the AOT module as well)."""
+    return KERNEL_LAYOUT
 
 
 @dataclass(frozen=True)
@@ -106,7 +123,8 @@ class EstimatorOutput:
     x_hat: estimate of the observable states (model.observable_names); unobservable ones
     (the motor angle) are left out of the filter: they carry no information on the fault.
     x_tilde: fault-model state (52), observable part. x_e = x_tilde - x_hat_obs (50).
-    gamma: loss of effectiveness per actuator. fault: f^ = -B diag(u) gamma (10), per state.
+    gamma: loss of effectiveness per actuator (exactly 0 for an actuator not in
+    model.fault_inputs). fault: f^ = -B diag(u) gamma (10), per state.
     y_hat: predicted output before the update; y_est: output of the final estimate,
     C x^ + D u (1 - gamma^). nis: normalised innovation squared.
     innovation: whitened innovation L^-1 nu (L L' = S_tot), per output. rules: rule count.
@@ -131,7 +149,11 @@ def _fuzzy_ukf_step(
     centres: Array, counts: IntArray, cons: Array, var: Array, rule_idx: IntArray, rule_w: Array,
     wk: Array, out: Array, n: int, m: int, p: int, max_mf: int,
 ) -> None:
-    """One sample of the fuzzy UKF on flat buffers (see FuzzyUKF for the layout)."""
+    """One sample of the fuzzy UKF on flat buffers (see FuzzyUKF for the layout).
+
+    prm = [dt, delta, wi, q_gamma, var_max, nis_coef, lower[0..m), upper[0..m)]: the
+    per-actuator bounds of (28); lower[a] == upper[a] marks a known actuator.
+    """
     # ---- views into the flat buffers (slices and reshapes allocate nothing)
     o = 0
     A = mdl[o:o + n * n].reshape((n, n)); o += n * n
@@ -146,8 +168,10 @@ def _fuzzy_ukf_step(
     q_gamma = prm[3]
     var_max = prm[4]
     nis_coef = prm[5]
-    lo = prm[6]
-    hi = prm[7]
+    # per-actuator projection bounds of (28); lo[a] == hi[a] marks a known actuator (no
+    # loss of effectiveness): its consequents are fixed, carry no variance, never adapt
+    lo = prm[6:6 + m]
+    hi = prm[6 + m:6 + 2 * m]
     o = 0
     x = st[o:o + n]; o += n
     P = st[o:o + n * n].reshape((n, n)); o += n * n
@@ -193,6 +217,8 @@ def _fuzzy_ukf_step(
     nf = fire(z, centres, counts, max_mf, rule_idx, rule_w)
     infer(cons, rule_idx, rule_w, nf, gamma)
     for a in range(m):
+        if not hi[a] > lo[a]:
+            gamma[a] = lo[a]  # a known actuator: its gamma is fixed
         uf[a] = u[a] * (1.0 - gamma[a])
     for r in range(n):
         acc = 0.0
@@ -241,7 +267,8 @@ def _fuzzy_ukf_step(
                 w2 = rule_w[k] * rule_w[k]
                 j = rule_idx[k]
                 for a in range(m):
-                    acc += w2 * var[j, a] * M[r, a] * M[c, a]
+                    if hi[a] > lo[a]:
+                        acc += w2 * var[j, a] * M[r, a] * M[c, a]
             St[r, c] = acc
     rep += spd_inverse(St, Ls, Sti)
     nis = 0.0
@@ -257,6 +284,8 @@ def _fuzzy_ukf_step(
         j = rule_idx[k]
         xi = rule_w[k]
         for a in range(m):
+            if not hi[a] > lo[a]:
+                continue
             # gain row g = var xi M[:, a]' S_tot^-1
             step = 0.0
             gm = 0.0
@@ -269,19 +298,20 @@ def _fuzzy_ukf_step(
                 gm += G[0, r] * M[r, a]
             old = cons[j, a]
             new = old + step
-            if new < lo:
-                new = lo
-            elif new > hi:
-                new = hi
+            if new < lo[a]:
+                new = lo[a]
+            elif new > hi[a]:
+                new = hi[a]
             cons[j, a] = new
             dg[a] += xi * (new - old)
             var[j, a] = var[j, a] * (1.0 - gm * xi)
-    # random walk (54) on every consequent, capped
+    # random walk (54) on every consequent of a fault actuator, capped
     grow = q_gamma * dt
     for j in range(cons.shape[0]):
         for a in range(m):
-            v = var[j, a] + grow
-            var[j, a] = v if v < var_max else var_max
+            if hi[a] > lo[a]:
+                v = var[j, a] + grow
+                var[j, a] = v if v < var_max else var_max
     # 5. two-stage coupling: V = (I - K C) V^- + K D diag(u); x^ += V dgamma
     for r in range(n):
         for a in range(m):
@@ -299,7 +329,7 @@ def _fuzzy_ukf_step(
     for a in range(m):
         # a convex combination of bounded consequents, up to one ulp of round-off
         g = gamma[a] + dg[a]
-        gamma[a] = lo if g < lo else (hi if g > hi else g)
+        gamma[a] = lo[a] if g < lo[a] else (hi[a] if g > hi[a] else g)
     # posterior output estimate y^ = C x^ + D u (1 - gamma^)
     for r in range(p):
         acc = 0.0
@@ -346,12 +376,17 @@ def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
         try:
             from monitor.estimation import _fuzzy_ukf_aot  # type: ignore[attr-defined]
 
+            layout = getattr(_fuzzy_ukf_aot, "kernel_layout", lambda: 1)()
+            if layout != KERNEL_LAYOUT:
+                raise ImportError(f"the AOT kernel reads buffer layout {layout}, this code "
+                                  f"writes layout {KERNEL_LAYOUT}: rebuild it (python -m "
+                                  "monitor.estimation.kernels_aot)")
             return "aot", _fuzzy_ukf_aot.fuzzy_ukf_step
-        except ImportError:
+        except ImportError as exc:
             if want == "aot":
                 raise
-            _log.warning("JIT disabled and no AOT kernel built (python -m "
-                         "monitor.estimation.kernels_aot): the estimator runs interpreted")
+            _log.warning("JIT disabled and no usable AOT kernel (%s): the estimator runs "
+                         "interpreted", exc)
     if want == "python":
         return "python", getattr(_fuzzy_ukf_step, "py_func", _fuzzy_ukf_step)
     return ("python" if jit_off else "jit"), _fuzzy_ukf_step
@@ -385,8 +420,16 @@ class FuzzyUKF:
         self._dims = (n, m, p)
         w = sigma_weights(n, cfg.alpha, cfg.beta)
         self.fuzzy = SelfConstructingFuzzySystem(n, m, cfg.fuzzy, 0.0, cfg.var0)
-        self._prm = np.array([0.0, w.delta, w.wi, cfg.q_gamma, cfg.var_max, 0.0,
-                              cfg.fuzzy.lower, cfg.fuzzy.upper])
+        # Actuators without a loss of effectiveness (not in model.fault_inputs) get the
+        # bounds [0, 0]: their gamma stays exactly 0 and the kernel leaves them out.
+        self._known = [a for a in range(m) if a not in model.fault_inputs]
+        lower = np.full(m, cfg.fuzzy.lower)
+        upper = np.full(m, cfg.fuzzy.upper)
+        lower[self._known] = 0.0
+        upper[self._known] = 0.0
+        self.fuzzy.var[:, self._known] = 0.0
+        self._prm = np.concatenate([[0.0, w.delta, w.wi, cfg.q_gamma, cfg.var_max, 0.0],
+                                    lower, upper])
         self._st = np.zeros(2 * n + n * n + n * m)
         self.x = self._st[:n]
         self.P = self._st[n:n + n * n].reshape(n, n)
@@ -518,6 +561,7 @@ class FuzzyUKF:
         np.maximum(fz.var, cfg.var_reopen, out=fz.var)
         v = int(np.argmax(np.abs(self.z)))
         fz.insert(v, float(self.z[v]), cfg.var_reopen)
+        fz.var[:, self._known] = 0.0  # known actuators have nothing to learn
 
 
 _KERNEL = select_kernel()

@@ -21,6 +21,9 @@ __all__ = ["MODULE", "SIGNATURE", "build"]
 
 MODULE = "_fuzzy_ukf_aot"
 # (mdl, u, y, prm, st, centres, counts, cons, var, rule_idx, rule_w, wk, out, n, m, p, max_mf)
+# prm = [dt, delta, wi, q_gamma, var_max, nis_coef, lower[m], upper[m]] (layout 2, see
+# fuzzy_ukf.KERNEL_LAYOUT): the per-actuator bounds travel in prm, so the signature is
+# that of layout 1 and a stale build is told apart by its exported kernel_layout().
 SIGNATURE = (
     "void(f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[:, ::1], i8[::1], f8[:, ::1], "
     "f8[:, ::1], i8[::1], f8[::1], f8[::1], f8[::1], i8, i8, i8, i8)"
@@ -34,7 +37,7 @@ def build(out_dir: Path | None = None) -> Path:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from monitor.estimation.fuzzy_ukf import _fuzzy_ukf_step
+    from monitor.estimation.fuzzy_ukf import _fuzzy_ukf_step, kernel_layout
 
     target = Path(out_dir) if out_dir is not None else Path(__file__).resolve().parent
     target.mkdir(parents=True, exist_ok=True)
@@ -43,6 +46,8 @@ def build(out_dir: Path | None = None) -> Path:
     cc.verbose = False
     py_func = getattr(_fuzzy_ukf_step, "py_func", _fuzzy_ukf_step)
     cc.export("fuzzy_ukf_step", SIGNATURE)(py_func)
+    # the buffer layout the kernel reads, checked by select_kernel against a stale build
+    cc.export("kernel_layout", "i8()")(kernel_layout)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # pycc's own deprecation notices
         cc.compile()

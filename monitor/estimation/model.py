@@ -1,4 +1,4 @@
-"""Descriptor plant models, their exact discretisation and the DC-motor factory.
+"""Linear actuator models, their exact discretisation and the DC-motor factory.
 
 The paper (Liu et al., Int. J. Fuzzy Syst. 22(1), 2020) writes its plant as a discrete
 descriptor system
@@ -11,15 +11,26 @@ so this module discretises the *continuous* descriptor model exactly, by zero-or
 at the ECU's sample period (scipy.signal.cont2discrete), and discretises a continuous
 process-noise intensity by Van Loan's method.
 
-Two descriptor cases are supported:
+A model is any linear plant with n states, m actuators and p outputs:
+
+* `ContinuousDescriptor`: E x' = A x + B u_F + w, y = C x + D u_F + v (the paper's plant
+  (1-2) in continuous time, with a feed-through D the paper does not have);
+* `DiscreteDescriptor`: the same at its own sample period T, as the paper writes it
+  (1-2, 6-7). It is turned into the equivalent continuous model by the inverse zero-order
+  hold (`inverse_zoh`, `inverse_van_loan`), so that the estimator can step by any dt;
+* `dc_motor`: the paper's DC motor (63-68) from its physical parameters (Table 1);
+* `model_from_matrices`: either domain from plain nested lists, as a rig file holds them.
+
+Two descriptor cases are supported (continuous or discrete alike):
 
 * invertible E, as in the paper: premultiply by E^-1 (73);
 * singular E of a regular index-1 pencil (the La = 0 motor, whose current equation becomes
   algebraic): the pencil is reduced to standard form by an SVD of E, eliminating the
-  algebraic variables; the output then gains a direct feed-through D.
+  algebraic variables; the output then gains a direct feed-through, added to the user's D.
 
 The actuator loss of effectiveness gamma (3-5) enters as u_F = (I - diag(gamma)) u, so the
-fault function is f(k) = -B diag(gamma_k) u(k) (8-10).
+fault function is f(k) = -B diag(gamma_k) u(k) (8-10). `fault_inputs` says which actuators
+can lose effectiveness; the others are known inputs that enter B and D with gamma = 0.
 
 Unobservable states (the motor angle theta when only the current is measured: a mode at
 z = 1, not even detectable) are split off by `StateSpace.observable_part`; the estimator
@@ -28,9 +39,12 @@ never carries their covariance.
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Literal, NamedTuple, cast
 
 import numpy as np
 import scipy.linalg
@@ -40,23 +54,42 @@ from numpy.typing import NDArray
 from monitor.errors import MonitorError
 
 Array = NDArray[np.float64]
+FaultInputs = Sequence[int | str] | None
 
 __all__ = [
     "ContinuousDescriptor",
     "DCMotorParameters",
+    "DiscreteDescriptor",
     "DiscreteModel",
     "ModelError",
     "StateSpace",
     "dc_motor",
+    "inverse_van_loan",
+    "inverse_zoh",
+    "model_from_matrices",
     "van_loan",
 ]
+
+_log = logging.getLogger(__name__)
 
 
 class ModelError(MonitorError, ValueError):
     """A model that cannot be estimated: the message says what is wrong with it."""
 
 
-def _as_matrix(name: str, value: object, rows: int | None = None, cols: int | None = None) -> Array:
+def _empty() -> Array:
+    return np.zeros((0, 0))
+
+
+def _is_empty(value: object) -> bool:
+    return value is None or (isinstance(value, np.ndarray) and value.size == 0) or (
+        isinstance(value, (list, tuple)) and len(value) == 0)
+
+
+def _as_matrix(name: str, value: object, rows: int | None = None, cols: int | None = None,
+               rows_of: str = "", cols_of: str = "") -> Array:
+    """`value` as a finite float matrix; a wrong size names the matrix and what it must match
+    (`rows_of`/`cols_of`, e.g. "A has 3 states")."""
     try:
         arr = np.array(value, dtype=np.float64, ndmin=2)
     except (TypeError, ValueError) as exc:
@@ -66,10 +99,133 @@ def _as_matrix(name: str, value: object, rows: int | None = None, cols: int | No
     if not np.all(np.isfinite(arr)):
         raise ModelError(f"{name} contains NaN or infinite entries")
     if rows is not None and arr.shape[0] != rows:
-        raise ModelError(f"{name} has {arr.shape[0]} rows, expected {rows}")
+        raise ModelError(f"{name} has {arr.shape[0]} rows, {rows_of or f'expected {rows}'}")
     if cols is not None and arr.shape[1] != cols:
-        raise ModelError(f"{name} has {arr.shape[1]} columns, expected {cols}")
+        raise ModelError(f"{name} has {arr.shape[1]} columns, {cols_of or f'expected {cols}'}")
     return arr
+
+
+def _names(kind: str, given: Sequence[str], count: int, prefix: str, what: str
+           ) -> tuple[str, ...]:
+    """Validated names, or `prefix` (count 1) / prefix1..prefixN when none are given."""
+    if len(given) == 0:
+        return (prefix,) if count == 1 and prefix != "x" else tuple(
+            f"{prefix}{i + 1}" for i in range(count))
+    names = tuple(str(s) for s in given)
+    if len(names) != count:
+        raise ModelError(f"{len(names)} {kind} names for {count} {what}")
+    dup = next((s for i, s in enumerate(names) if s in names[:i]), None)
+    if dup is not None:
+        raise ModelError(f"{kind} name {dup!r} appears twice")
+    return names
+
+
+def _fault_indices(fault_inputs: FaultInputs, m: int, input_names: tuple[str, ...]
+                   ) -> tuple[int, ...]:
+    """The actuators with a loss of effectiveness (3-5) as sorted indices; None: all."""
+    if fault_inputs is None:
+        return tuple(range(m))
+    if isinstance(fault_inputs, str):
+        fault_inputs = [fault_inputs]
+    idx: list[int] = []
+    for f in fault_inputs:
+        if isinstance(f, str):
+            if f not in input_names:
+                raise ModelError(f"fault_inputs names {f!r}, which is not an input "
+                                 f"({', '.join(input_names)})")
+            i = input_names.index(f)
+        elif isinstance(f, (int, np.integer)) and not isinstance(f, (bool, np.bool_)):
+            i = int(f)
+            if not 0 <= i < m:
+                raise ModelError(f"fault_inputs names actuator {i}, B has {m} actuators "
+                                 f"(0 to {m - 1})")
+        else:
+            raise ModelError(f"fault_inputs entries must be actuator indices or input names, "
+                             f"got {f!r}")
+        if i in idx:
+            raise ModelError(f"fault_inputs names actuator {i} twice")
+        idx.append(i)
+    if not idx:
+        raise ModelError("fault_inputs is empty: name at least one actuator whose loss of "
+                         "effectiveness is to be estimated")
+    return tuple(sorted(idx))
+
+
+def _check_noise(name: str, M: Array, definite: bool) -> None:
+    if not np.allclose(M, M.T, atol=1e-12 * max(1.0, float(np.abs(M).max(initial=0.0)))):
+        raise ModelError(f"{name} must be symmetric")
+    low = float(np.min(np.linalg.eigvalsh(0.5 * (M + M.T))))
+    if definite and low <= 0:
+        raise ModelError(f"{name} must be positive definite (every measurement is noisy)")
+    if low < -1e-12 * max(1.0, float(np.abs(M).max())):
+        raise ModelError(f"{name} must be positive semi-definite")
+
+
+def _check_regular(E: Array, A: Array) -> None:
+    # A pencil sE - A is regular iff det(sE - A) is not identically zero; a
+    # polynomial of degree <= n vanishing at n+1 distinct points is zero.
+    n = A.shape[0]
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0.5, 2.0, n + 1) * np.exp(1j * rng.uniform(0, np.pi, n + 1))
+    scale = max(1.0, float(np.abs(A).max()), float(np.abs(E).max())) ** n
+    if all(abs(np.linalg.det(s * E - A)) < 1e-10 * scale for s in pts):
+        raise ModelError("singular pencil: det(sE - A) vanishes for every s (no solution)")
+
+
+class _Parts(NamedTuple):
+    E: Array
+    A: Array
+    B: Array
+    C: Array
+    D: Array
+    Q: Array
+    R: Array
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    fault_inputs: tuple[int, ...]
+
+
+def _validate(E: object, A: object, B: object, C: object, D: object, Q: object, R: object,
+              state_names: Sequence[str], input_names: Sequence[str],
+              output_names: Sequence[str], fault_inputs: FaultInputs) -> _Parts:
+    """Shapes, finiteness, noise covariances, names and fault actuators of (E, A, B, C, D).
+
+    Every message is one line naming the matrix and what it disagrees with.
+    """
+    Aa = _as_matrix("A", A)
+    n = Aa.shape[0]
+    if Aa.shape != (n, n) or n == 0:
+        raise ModelError(f"A must be square, got shape {Aa.shape}")
+    states = f"A has {n} states"
+    Ea = np.eye(n) if _is_empty(E) else _as_matrix("E", E, n, n, states, states)
+    Ba = _as_matrix("B", B, n, None, states)
+    m = Ba.shape[1]
+    if m == 0:
+        raise ModelError("B has no columns: the model needs at least one actuator")
+    Ca = _as_matrix("C", C, None, n, "", states)
+    p = Ca.shape[0]
+    if p == 0:
+        raise ModelError("C has no rows: the model needs at least one output")
+    outputs = f"C has {p} outputs"
+    actuators = f"B has {m} actuators"
+    Da = np.zeros((p, m)) if _is_empty(D) else _as_matrix("D", D, p, m, outputs, actuators)
+    Qa = _as_matrix("Q", Q, n, n, states, states)
+    Ra = _as_matrix("R", R, p, p, outputs, outputs)
+    _check_noise("Q", Qa, definite=False)
+    _check_noise("R", Ra, definite=True)
+    ins = _names("input", input_names, m, "u", "actuators")
+    faults = _fault_indices(fault_inputs, m, ins)
+    if len(faults) > p:
+        raise ModelError(
+            f"{len(faults)} actuators but only {p} outputs: the losses of effectiveness of "
+            "more actuators than outputs cannot be separated (fault_inputs selects the "
+            "actuators that can lose effectiveness)"
+        )
+    sts = _names("state", state_names, n, "x", "states")
+    outs = _names("output", output_names, p, "y", "outputs")
+    _check_regular(Ea, Aa)
+    return _Parts(Ea, Aa, Ba, Ca, Da, Qa, Ra, sts, ins, outs, faults)
 
 
 def van_loan(A: Array, Qc: Array, T: float) -> Array:
@@ -87,6 +243,84 @@ def van_loan(A: Array, Qc: Array, T: float) -> Array:
     F = G[n:, n:].T
     Qd = F @ G[:n, n:]
     return 0.5 * (Qd + Qd.T)
+
+
+def inverse_zoh(Ad: Array, Bd: Array, T: float) -> tuple[Array, Array]:
+    """The continuous (A, B) whose zero-order hold at period T is (Ad, Bd).
+
+    The ZOH of x' = A x + B u is expm([[A, B], [0, 0]] T) = [[Ad, Bd], [0, I]], so
+    [[A, B], [0, 0]] = logm([[Ad, Bd], [0, I]]) / T. The principal logarithm is taken: the
+    continuous model whose modes all lie below the Nyquist frequency (|Im s| < pi / T),
+    the only one a model sampled at T can describe. It is real iff Ad has no eigenvalue on
+    the closed negative real axis; a zero eigenvalue (a delay, a dead-beat loop) or a
+    negative one (a mode sampled at or above its Nyquist rate) has no continuous
+    equivalent, and is refused.
+    """
+    n, m = Bd.shape
+    scale = max(1.0, float(np.abs(Ad).max()))
+    for lam in np.linalg.eigvals(Ad):
+        if abs(lam) <= 1e-12 * scale:
+            raise ModelError(
+                "A is singular (eigenvalue 0, a delay or dead-beat mode): no continuous model "
+                "has this zero-order hold; give the continuous model")
+        if lam.real < 0 and abs(lam.imag) <= 1e-9 * abs(lam):
+            raise ModelError(
+                f"A has the eigenvalue {lam.real:.6g} on the negative real axis: no real "
+                "continuous model has this zero-order hold (a mode at or above the Nyquist "
+                "rate); sample faster or give the continuous model")
+    M = np.zeros((n + m, n + m))
+    M[:n, :n] = Ad
+    M[:n, n:] = Bd
+    M[n:, n:] = np.eye(m)
+    L = np.asarray(scipy.linalg.logm(M))
+    norm = max(1.0, float(np.abs(L).max()))
+    if np.iscomplexobj(L):
+        if float(np.abs(L.imag).max()) > 1e-9 * norm:
+            raise ModelError("A has no real logarithm: no continuous model has this zero-order "
+                             "hold; sample faster or give the continuous model")
+        L = L.real
+    L = np.asarray(L, dtype=np.float64)
+    back = scipy.linalg.expm(L)
+    if float(np.abs(back - M).max()) > 1e-8 * max(1.0, float(np.abs(M).max())) or float(
+            np.abs(L[n:]).max(initial=0.0)) > 1e-8 * norm:
+        raise ModelError("the inverse zero-order hold of A, B is ill-conditioned (nearly "
+                         "defective A): give the continuous model")
+    return np.ascontiguousarray(L[:n, :n] / T), np.ascontiguousarray(L[:n, n:] / T)
+
+
+def inverse_van_loan(A: Array, Qd: Array, T: float) -> Array:
+    """The noise intensity Qc per second whose Van Loan covariance over T is Qd.
+
+    Qd = int_0^T expm(A s) Qc expm(A' s) ds is linear in Qc: with row-major vec,
+    vec(Qd) = Phi vec(Qc), Phi = int_0^T expm(K s) ds, K = A (+) A the Kronecker sum, read
+    off expm([[K, I], [0, 0]] T). Phi is invertible for the principal-logarithm A of
+    `inverse_zoh` (its eigenvalues (e^{mu T} - 1)/mu are not 0 when |Im mu| < 2 pi / T),
+    including integrators, where the Stein form Qc - Ad Qc Ad' = -(A Qd + Qd A') is
+    singular. The cost is O(n^6): instantaneous for the few states of an actuator model.
+
+    A Qd that no white noise produces over one period (the exact Qc is indefinite, e.g. a
+    diagonal Qd on states the dynamics couple within T) is replaced by the nearest positive
+    semi-definite intensity (negative eigenvalues clipped), with a warning; `van_loan` at T
+    then reproduces Qd only approximately.
+    """
+    n = A.shape[0]
+    eye = np.eye(n)
+    K = np.kron(A, eye) + np.kron(eye, A)
+    N = n * n
+    G = np.zeros((2 * N, 2 * N))
+    G[:N, :N] = K
+    G[:N, N:] = np.eye(N)
+    Phi = scipy.linalg.expm(G * T)[:N, N:]
+    Qc = np.linalg.solve(Phi, Qd.reshape(N)).reshape(n, n)
+    Qc = 0.5 * (Qc + Qc.T)
+    w, V = np.linalg.eigh(Qc)
+    if w.size and w.min() < -1e-9 * max(float(np.abs(w).max()), 1e-300):
+        _log.warning("Q is not the covariance of any white noise over one period of %g s "
+                     "(its continuous intensity would be indefinite): the nearest positive "
+                     "semi-definite intensity is used", T)
+        Qc = (V * np.clip(w, 0.0, None)) @ V.T
+        Qc = 0.5 * (Qc + Qc.T)
+    return Qc
 
 
 @dataclass(frozen=True)
@@ -139,12 +373,137 @@ class StateSpace:
         return Vt[:rank], null
 
 
+def _reduce(E: Array, A: Array, B: Array, C: Array, D: Array, names: tuple[str, ...]
+            ) -> StateSpace:
+    """Standard form of E x' = A x + B u, y = C x + D u (or its discrete twin, E x(k+1)).
+
+    Invertible E: premultiply by E^-1 (73). Singular E: SVD U' E V = diag(S, 0); with
+    z = V' x partitioned (z1 dynamic, z2 algebraic), 0 = A21 z1 + A22 z2 + B2 u is solved
+    for z2 (index 1 requires A22 invertible) and substituted: y gains -C2 A22^-1 B2 u on top
+    of D u. The states kept are z1, which are the original coordinates whenever E is
+    diagonal. The algebra is the same in both time domains (z2 at step k depends on u(k)).
+    """
+    n = A.shape[0]
+    if np.linalg.matrix_rank(E) == n:
+        Ei = np.linalg.inv(E)
+        return StateSpace(Ei @ A, Ei @ B, C.copy(), D.copy(), names)
+    if np.allclose(E, np.diag(np.diag(E))):
+        # Diagonal E: keep physical coordinates (a permutation, not a rotation).
+        d = np.abs(np.diag(E))
+        dyn = [j for j in range(n) if d[j] > 1e-12 * d.max()]
+        alg = [j for j in range(n) if j not in dyn]
+        U = np.eye(n)[:, dyn + alg]
+        V = U
+        S = np.diag(E)[dyn]
+    else:
+        U, s, Vt = np.linalg.svd(E)
+        r = int(np.sum(s > 1e-12 * s[0]))
+        V = Vt.T
+        S = s[:r]
+        dyn = list(range(r))
+        alg = list(range(r, n))
+    r = len(dyn)
+    At = U.T @ A @ V
+    Bt = U.T @ B
+    Ct = C @ V
+    A11, A12 = At[:r, :r], At[:r, r:]
+    A21, A22 = At[r:, :r], At[r:, r:]
+    B1, B2 = Bt[:r], Bt[r:]
+    if abs(np.linalg.det(A22)) < 1e-12 * max(1.0, float(np.abs(A22).max())) ** A22.shape[0]:
+        raise ModelError(
+            "singular E with a singular algebraic block: the descriptor system is not "
+            "index 1 (impulsive modes); only regular index-1 systems are supported"
+        )
+    A22i = np.linalg.inv(A22)
+    Sinv = np.diag(1.0 / S)
+    As = Sinv @ (A11 - A12 @ A22i @ A21)
+    Bs = Sinv @ (B1 - A12 @ A22i @ B2)
+    C1, C2 = Ct[:, :r], Ct[:, r:]
+    Cs = C1 - C2 @ A22i @ A21
+    Ds = D - C2 @ A22i @ B2
+    if np.allclose(V, np.eye(n)[:, dyn + alg]):
+        kept = tuple(names[j] for j in dyn)
+    else:
+        kept = tuple(f"z{j + 1}" for j in range(r))
+    return StateSpace(As, Bs, Cs, Ds, kept)
+
+
+def _reduce_noise(E: Array, Q: Array) -> Array:
+    """Process noise on the reduced (dynamic) states of `_reduce`: E^-1 Q E^-T, or the
+    dynamic block scaled by S^-1 (noise in an algebraic equation is left out: it would be
+    white noise on the output, which R describes)."""
+    n = E.shape[0]
+    if np.linalg.matrix_rank(E) == n:
+        Ei = np.linalg.inv(E)
+        return Ei @ Q @ Ei.T
+    keep = [j for j in range(n) if abs(E[j, j]) > 1e-12] if np.allclose(
+        E, np.diag(np.diag(E))
+    ) else None
+    if keep is None:
+        U, s, _Vt = np.linalg.svd(E)
+        r = int(np.sum(s > 1e-12 * s[0]))
+        Sinv = np.diag(1.0 / s[:r])
+        Qt = (U.T @ Q @ U)[:r, :r]
+        return Sinv @ Qt @ Sinv
+    Einv = np.diag(1.0 / np.diag(E)[keep])
+    return Einv @ Q[np.ix_(keep, keep)] @ Einv
+
+
+def _check_period(T: float) -> float:
+    if not (isinstance(T, (int, float, np.floating)) and math.isfinite(T) and T > 0):
+        raise ModelError(f"sample period must be a positive number of seconds, got {T!r}")
+    return float(T)
+
+
+class _Descriptor:
+    """What the continuous and discrete descriptor models share: validation on
+    construction, the fault actuators and the reduction to standard form (`_reduce`)."""
+
+    E: Array
+    A: Array
+    B: Array
+    C: Array
+    D: Array
+    R: Array
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    output_names: tuple[str, ...]
+    fault_inputs: FaultInputs
+
+    def _validate_into(self, q_field: str) -> None:
+        """Validate the fields and store them normalised (the noise covariance in q_field)."""
+        parts = _validate(self.E, self.A, self.B, self.C, self.D, getattr(self, q_field),
+                          self.R, self.state_names, self.input_names, self.output_names,
+                          self.fault_inputs)
+        for name, value in zip(_Parts._fields, parts, strict=True):
+            object.__setattr__(self, q_field if name == "Q" else name, value)
+
+    @property
+    def faults(self) -> tuple[int, ...]:
+        """Indices of the actuators with a loss of effectiveness (sorted)."""
+        return cast(tuple[int, ...], self.fault_inputs)
+
+    def standard_form(self) -> StateSpace:
+        """Standard form x' = A x + B u (or x(k+1) = ...), y = C x + D u: E^-1 applied
+        (73), or the index-1 reduction of a singular E (see `_reduce`)."""
+        return _reduce(self.E, self.A, self.B, self.C, self.D, self.state_names)
+
+
 @dataclass(frozen=True)
-class ContinuousDescriptor:
-    """Continuous descriptor model E x' = A x + B u, y = C x (63-67).
+class ContinuousDescriptor(_Descriptor):
+    """Continuous descriptor model E x' = A x + B u_F + w, y = C x + D u_F + v (63-67).
+
+    The paper's plant (1-2) in continuous time, with u_F = (I - diag(gamma)) u the input
+    after the actuators' loss of effectiveness (3-5), so the fault function is
+    f = -B diag(gamma) u (8-10). n states, m actuators (columns of B), p outputs (rows of C).
 
     `Qc` is the process-noise intensity per second (the paper's Q read at its T = 1 s),
-    `R` the per-sample measurement-noise covariance of y.
+    `R` the per-sample measurement-noise covariance of y. `D` is the direct feed-through
+    (p x m; empty, the default, means zeros); a singular E adds its own (see
+    `standard_form`). `fault_inputs` lists the actuators that can lose effectiveness, by
+    index or input name (None, the default: all); the others are known inputs, gamma = 0.
+    Input and output names default to u / y (one) or u1.. / y1.. (several). After
+    construction the matrices are float arrays and `fault_inputs` a sorted tuple of indices.
     """
 
     E: Array
@@ -154,130 +513,74 @@ class ContinuousDescriptor:
     Qc: Array
     R: Array
     state_names: tuple[str, ...]
-    input_names: tuple[str, ...] = ("u",)
-    output_names: tuple[str, ...] = ("y",)
+    input_names: tuple[str, ...] = ()
+    output_names: tuple[str, ...] = ()
+    D: Array = field(default_factory=_empty)
+    fault_inputs: FaultInputs = None
 
     def __post_init__(self) -> None:
-        A = _as_matrix("A", self.A)
-        n = A.shape[0]
-        if A.shape != (n, n):
-            raise ModelError(f"A must be square, got shape {A.shape}")
-        E = _as_matrix("E", self.E, n, n)
-        B = _as_matrix("B", self.B, n)
-        C = _as_matrix("C", self.C, None, n)
-        Qc = _as_matrix("Q", self.Qc, n, n)
-        R = _as_matrix("R", self.R, C.shape[0], C.shape[0])
-        for name, M in (("Q", Qc), ("R", R)):
-            if not np.allclose(M, M.T, atol=1e-12 * max(1.0, float(np.abs(M).max()))):
-                raise ModelError(f"{name} must be symmetric")
-            if np.min(np.linalg.eigvalsh(0.5 * (M + M.T))) < -1e-12:
-                raise ModelError(f"{name} must be positive semi-definite")
-        if np.min(np.linalg.eigvalsh(0.5 * (R + R.T))) <= 0:
-            raise ModelError("R must be positive definite (every measurement is noisy)")
-        if len(self.state_names) != n:
-            raise ModelError(f"{len(self.state_names)} state names for {n} states")
-        object.__setattr__(self, "E", E)
-        object.__setattr__(self, "A", A)
-        object.__setattr__(self, "B", B)
-        object.__setattr__(self, "C", C)
-        object.__setattr__(self, "Qc", Qc)
-        object.__setattr__(self, "R", R)
-        if B.shape[1] > C.shape[0]:
-            raise ModelError(
-                f"{B.shape[1]} actuators but only {C.shape[0]} outputs: the losses of "
-                "effectiveness of more actuators than outputs cannot be separated"
-            )
-        self._check_regular()
-
-    def _check_regular(self) -> None:
-        # A pencil sE - A is regular iff det(sE - A) is not identically zero; a
-        # polynomial of degree <= n vanishing at n+1 distinct points is zero.
-        n = self.A.shape[0]
-        rng = np.random.default_rng(0)
-        pts = rng.uniform(0.5, 2.0, n + 1) * np.exp(1j * rng.uniform(0, np.pi, n + 1))
-        scale = max(1.0, float(np.abs(self.A).max()), float(np.abs(self.E).max())) ** n
-        if all(abs(np.linalg.det(s * self.E - self.A)) < 1e-10 * scale for s in pts):
-            raise ModelError("singular pencil: det(sE - A) vanishes for every s (no solution)")
-
-    def standard_form(self) -> StateSpace:
-        """Reduce to standard form x' = A x + B u, y = C x + D u.
-
-        Invertible E: premultiply by E^-1 (73). Singular E: SVD U' E V = diag(S, 0);
-        with z = V' x partitioned (z1 dynamic, z2 algebraic), 0 = A21 z1 + A22 z2 + B2 u
-        is solved for z2 (index 1 requires A22 invertible) and substituted. The states
-        kept are z1, which are the original coordinates whenever E is diagonal.
-        """
-        E, A, B, C = self.E, self.A, self.B, self.C
-        n = A.shape[0]
-        m = B.shape[1]
-        if np.linalg.matrix_rank(E) == n:
-            Ei = np.linalg.inv(E)
-            D0 = np.zeros((C.shape[0], m))
-            return StateSpace(Ei @ A, Ei @ B, C.copy(), D0, self.state_names)
-        if np.allclose(E, np.diag(np.diag(E))):
-            # Diagonal E: keep physical coordinates (a permutation, not a rotation).
-            d = np.abs(np.diag(E))
-            dyn = [j for j in range(n) if d[j] > 1e-12 * d.max()]
-            alg = [j for j in range(n) if j not in dyn]
-            U = np.eye(n)[:, dyn + alg]
-            V = U
-            S = np.diag(E)[dyn]
-        else:
-            U, s, Vt = np.linalg.svd(E)
-            r = int(np.sum(s > 1e-12 * s[0]))
-            V = Vt.T
-            S = s[:r]
-            dyn = list(range(r))
-            alg = list(range(r, n))
-        r = len(dyn)
-        At = U.T @ A @ V
-        Bt = U.T @ B
-        Ct = C @ V
-        A11, A12 = At[:r, :r], At[:r, r:]
-        A21, A22 = At[r:, :r], At[r:, r:]
-        B1, B2 = Bt[:r], Bt[r:]
-        if abs(np.linalg.det(A22)) < 1e-12 * max(1.0, float(np.abs(A22).max())) ** A22.shape[0]:
-            raise ModelError(
-                "singular E with a singular algebraic block: the descriptor system is not "
-                "index 1 (impulsive modes); only regular index-1 systems are supported"
-            )
-        A22i = np.linalg.inv(A22)
-        Sinv = np.diag(1.0 / S)
-        As = Sinv @ (A11 - A12 @ A22i @ A21)
-        Bs = Sinv @ (B1 - A12 @ A22i @ B2)
-        C1, C2 = Ct[:, :r], Ct[:, r:]
-        Cs = C1 - C2 @ A22i @ A21
-        Ds = -C2 @ A22i @ B2
-        if np.allclose(V, np.eye(n)[:, dyn + alg]):
-            names = tuple(self.state_names[j] for j in dyn)
-        else:
-            names = tuple(f"z{j + 1}" for j in range(r))
-        return StateSpace(As, Bs, Cs, Ds, names)
+        self._validate_into("Qc")
 
     def noise_standard_form(self) -> Array:
         """Process-noise intensity on the reduced (dynamic) states."""
-        E = self.E
-        n = E.shape[0]
-        if np.linalg.matrix_rank(E) == n:
-            Ei = np.linalg.inv(E)
-            return Ei @ self.Qc @ Ei.T
-        keep = [j for j in range(n) if abs(E[j, j]) > 1e-12] if np.allclose(
-            E, np.diag(np.diag(E))
-        ) else None
-        if keep is None:
-            U, s, _Vt = np.linalg.svd(E)
-            r = int(np.sum(s > 1e-12 * s[0]))
-            Sinv = np.diag(1.0 / s[:r])
-            Qt = (U.T @ self.Qc @ U)[:r, :r]
-            return Sinv @ Qt @ Sinv
-        Einv = np.diag(1.0 / np.diag(E)[keep])
-        return Einv @ self.Qc[np.ix_(keep, keep)] @ Einv
+        return _reduce_noise(self.E, self.Qc)
 
     def discretize(self, T: float) -> DiscreteModel:
         """Exact ZOH discretisation at sample period T, observable part split off."""
-        if not (math.isfinite(T) and T > 0):
-            raise ModelError(f"sample period must be a positive number of seconds, got {T!r}")
-        return DiscreteModel(self, float(T))
+        return DiscreteModel(self, _check_period(T))
+
+
+@dataclass(frozen=True, kw_only=True)
+class DiscreteDescriptor(_Descriptor):
+    """Discrete descriptor model at its sample period T, as the paper writes its plant:
+
+        E x(k+1) = A x(k) + B u_F(k) + w(k),   y(k) = C x(k) + D u_F(k) + v(k)   (1-2, 6-7)
+
+    with u_F = (I - diag(gamma_k)) u (3-5), w ~ N(0, Q) per period and v ~ N(0, R). E is
+    optional (identity); a singular E of a regular index-1 pencil is reduced as in the
+    continuous case. Names and `fault_inputs` as in `ContinuousDescriptor`.
+
+    The estimator must step by dt = k T after missed samples and by jittered dt, which
+    powers of A cannot give, so `to_continuous` converts the model by the inverse
+    zero-order hold: the continuous model whose exact ZOH at T is (A, B) and whose Van
+    Loan covariance over T is Q. Its discretisation at T gives the given matrices back to
+    round-off, at k T the k-fold step with the input held, at any other dt the consistent
+    interpolation. Where no such model exists (an eigenvalue of A at 0 or on the negative
+    real axis) the model is refused: sample faster or give the continuous model.
+    """
+
+    A: Array
+    B: Array
+    C: Array
+    Q: Array
+    R: Array
+    T: float
+    E: Array = field(default_factory=_empty)
+    D: Array = field(default_factory=_empty)
+    state_names: tuple[str, ...] = ()
+    input_names: tuple[str, ...] = ()
+    output_names: tuple[str, ...] = ()
+    fault_inputs: FaultInputs = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "T", _check_period(self.T))
+        self._validate_into("Q")
+
+    def to_continuous(self) -> ContinuousDescriptor:
+        """The equivalent continuous model by the inverse ZOH (`inverse_zoh`,
+        `inverse_van_loan`), in standard form (E = I); R and the names carry over."""
+        ss = self.standard_form()
+        Ac, Bc = inverse_zoh(ss.A, ss.B, self.T)
+        Qc = inverse_van_loan(Ac, _reduce_noise(self.E, self.Q), self.T)
+        return ContinuousDescriptor(
+            E=np.eye(ss.n), A=Ac, B=Bc, C=ss.C, Qc=Qc, R=self.R, D=ss.D,
+            state_names=ss.state_names, input_names=self.input_names,
+            output_names=self.output_names, fault_inputs=self.faults,
+        )
+
+    def to_model(self) -> DiscreteModel:
+        """The estimator's model at this period (`DiscreteModel` of `to_continuous`)."""
+        return DiscreteModel(self.to_continuous(), self.T)
 
 
 @dataclass
@@ -287,7 +590,9 @@ class DiscreteModel:
     `at(dt)` returns (A, B, Q) for a step of dt seconds on the observable states x_o,
     cached, so a missed sample (dt = k T) or a jittered period costs one expm once.
     The output map is y = C x_o + D u_F; `Wobs`/`Wunobs` map full states to the
-    observable and unobservable parts.
+    observable and unobservable parts. `fault_inputs` are the actuators whose loss of
+    effectiveness is estimated. Build one with `ContinuousDescriptor.discretize`,
+    `DiscreteModel.from_discrete` or `model_from_matrices`.
     """
 
     continuous: ContinuousDescriptor
@@ -297,6 +602,7 @@ class DiscreteModel:
     )
 
     def __post_init__(self) -> None:
+        self.T = _check_period(self.T)
         ss = self.continuous.standard_form()
         W, N = ss.observable_part()
         self._ss = ss
@@ -311,6 +617,23 @@ class DiscreteModel:
             for i, w in enumerate(W)
         )
         self._check_fault_observable()
+
+    @classmethod
+    def from_discrete(
+        cls, A: object, B: object, C: object, Q: object, R: object, T: float, *,
+        D: object = None, E: object = None, state_names: Sequence[str] = (),
+        input_names: Sequence[str] = (), output_names: Sequence[str] = (),
+        fault_inputs: FaultInputs = None,
+    ) -> DiscreteModel:
+        """The model of a plant given at its sample period T (see `DiscreteDescriptor`):
+        converted by the inverse zero-order hold, so that `at(T)` gives (A, B, Q) back
+        (on the observable part) and `at(k T)` the k-step model with the input held."""
+        return DiscreteDescriptor(
+            A=cast(Array, A), B=cast(Array, B), C=cast(Array, C), Q=cast(Array, Q),
+            R=cast(Array, R), T=T, E=cast(Array, E), D=cast(Array, D),
+            state_names=tuple(state_names), input_names=tuple(input_names),
+            output_names=tuple(output_names), fault_inputs=fault_inputs,
+        ).to_model()
 
     @property
     def standard(self) -> StateSpace:
@@ -333,19 +656,26 @@ class DiscreteModel:
     def p(self) -> int:
         return self._ss.p
 
+    @property
+    def fault_inputs(self) -> tuple[int, ...]:
+        """Actuators whose loss of effectiveness gamma is estimated; the others are known."""
+        return self.continuous.faults
+
     def _check_fault_observable(self) -> None:
-        # gamma is a random-walk state (a mode at z = 1): it is observable iff the
-        # steady-state gain from each actuator to the outputs has full column rank,
-        # i.e. rank [[A - I, B], [C, D]] = n + m on the observable part (PBH at z = 1
-        # of the augmented system). For a unit input on each actuator.
+        # gamma of the fault actuators is a random-walk state (a mode at z = 1): it is
+        # observable iff the steady-state gain from those actuators to the outputs has full
+        # column rank, i.e. rank [[A - I, B_F], [C, D_F]] = n + m_F on the observable part
+        # (PBH at z = 1 of the augmented system, for a unit input on each fault actuator).
+        # Known actuators carry no gamma and do not take part.
         Ao, Bo, _, _, _ = self.full_at(self.T)
-        n, m = self.n, self.m
-        Wc = np.eye(n)
-        M = np.block([[Ao - Wc, Bo], [self.C, self.D]])
-        if np.linalg.matrix_rank(M, tol=1e-9 * max(1.0, float(np.abs(M).max()))) < n + m:
+        F = list(self.fault_inputs)
+        n = self.n
+        M = np.block([[Ao - np.eye(n), Bo[:, F]], [self.C, self.D[:, F]]])
+        if np.linalg.matrix_rank(M, tol=1e-9 * max(1.0, float(np.abs(M).max()))) < n + len(F):
+            names = ", ".join(self.continuous.input_names[a] for a in F)
             raise ModelError(
-                "a loss of effectiveness of some actuator does not show in the outputs "
-                "(steady-state gain to y is rank-deficient): the fault is not observable"
+                f"a loss of effectiveness of some actuator ({names}) does not show in the "
+                "outputs (steady-state gain to y is rank-deficient): the fault is not observable"
             )
 
     def full_at(self, dt: float) -> tuple[Array, Array, Array, Array, Array]:
@@ -383,6 +713,51 @@ class DiscreteModel:
         """Steady-state gain y/u per actuator (p x m): C (I - A)^-1 B + D."""
         A, B, _ = self.at(self.T)
         return np.asarray(self.C @ np.linalg.solve(np.eye(self.n) - A, B) + self.D)
+
+
+def model_from_matrices(
+    domain: Literal["continuous", "discrete"] | str,
+    *,
+    A: object,
+    B: object,
+    C: object,
+    Q: object,
+    R: object,
+    T: float,
+    E: object = None,
+    D: object = None,
+    fault_inputs: FaultInputs = None,
+    state_names: Sequence[str] | None = None,
+    input_names: Sequence[str] | None = None,
+    output_names: Sequence[str] | None = None,
+) -> DiscreteModel:
+    """The estimator's model from plain matrices (nested lists as read from a rig file).
+
+    domain "continuous": E x' = A x + B u_F + w, y = C x + D u_F + v with Q the noise
+    intensity per second, sampled by the ECU every T seconds. domain "discrete":
+    E x(k+1) = A x(k) + B u_F(k) + w(k) at period T with Q per period, converted by the
+    inverse zero-order hold (`DiscreteDescriptor`). E (identity) and D (zeros) are optional;
+    `fault_inputs` are actuator indices or input names (all by default); names default to
+    x1.., u/u1.., y/y1... Any problem raises a one-line ModelError naming the matrix.
+    """
+    if domain not in ("continuous", "discrete"):
+        raise ModelError(f"model domain must be 'continuous' or 'discrete', got {domain!r}")
+    names: list[tuple[str, ...]] = []
+    for key, given in (("state_names", state_names), ("input_names", input_names),
+                       ("output_names", output_names)):
+        if isinstance(given, str) or any(not isinstance(s, str) for s in given or ()):
+            raise ModelError(f"{key} must be a list of strings")
+        names.append(tuple(given or ()))
+    sts, ins, outs = names
+    if domain == "continuous":
+        return ContinuousDescriptor(
+            E=cast(Array, E), A=cast(Array, A), B=cast(Array, B), C=cast(Array, C),
+            Qc=cast(Array, Q), R=cast(Array, R), D=cast(Array, D), state_names=sts,
+            input_names=ins, output_names=outs, fault_inputs=fault_inputs,
+        ).discretize(T)
+    return DiscreteModel.from_discrete(A, B, C, Q, R, T, D=D, E=E, state_names=sts,
+                                       input_names=ins, output_names=outs,
+                                       fault_inputs=fault_inputs)
 
 
 @dataclass(frozen=True)
