@@ -1,4 +1,4 @@
-"""`motor-monitor` command line: run, replay, calibrate, and the commands of installed
+"""`motor-monitor` command line: run, replay, calibrate, identify, and the commands of installed
 extensions (`demo`, `reproduce` from the `experiments` package, found through the
 `motor_monitor.commands` entry-point group: the daemon never imports them).
 
@@ -10,36 +10,18 @@ stderr and exit status 2, never a traceback: each stage raises a subclass of
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from collections.abc import Sequence
 from importlib.metadata import entry_points
-from pathlib import Path
 
-from monitor.app import replay, run
+from monitor.app import calibrate, replay, run
 from monitor.app.options import OneLineParser
-from monitor.errors import MonitorError, UsageError
+from monitor.errors import MonitorError
 
 __all__ = ["build_parser", "main"]
 
 COMMANDS_GROUP = "motor_monitor.commands"
-
-
-def _cmd_calibrate(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from monitor.diagnosis import calibrate, save_thresholds
-
-    path = Path(args.gamma_file)
-    try:
-        values = np.loadtxt(path, dtype=float, ndmin=1, comments="#", delimiter=",", usecols=0)
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"{path}: cannot read gamma^ samples ({exc})") from None
-    th = calibrate(values)
-    save_thresholds(args.out, th, source=str(path))
-    print(json.dumps({"f1": th.f1, "f2": th.f2, "centres": list(th.centres)}))
-    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -50,12 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    c = sub.add_parser("calibrate", help="learn thresholds F1 < F2 from gamma^ samples")
-    c.add_argument("gamma_file", help="text/CSV file, gamma^ in the first column")
-    c.add_argument("--out", default="thresholds.toml")
-    c.set_defaults(func=_cmd_calibrate)
     run.add_command(sub)
     replay.add_command(sub)
+    calibrate.add_command(sub)
     for ep in sorted(entry_points(group=COMMANDS_GROUP), key=lambda e: e.name):
         ep.load()(sub)
     return p

@@ -23,7 +23,8 @@ from monitor.pipeline import counters as C
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.log import LogSink
 
-__all__ = ["LOG_SUFFIXES", "LogError", "add_command", "read_log", "run_replay"]
+__all__ = ["LOG_SUFFIXES", "LogError", "add_command", "feed_log", "read_log", "replay_frames",
+           "run_replay"]
 
 LOG_SUFFIXES = (".log", ".asc", ".blf")
 TICK_S = 0.05  # bus time between timeout checks, as in the live loop
@@ -60,6 +61,25 @@ def _frames(path: Path, reader: can.io.generic.MessageReader) -> Iterator[can.Me
             reader.stop()
 
 
+def feed_log(pipe: MonitorPipeline, frames: Iterator[can.Message]) -> int:
+    """Every frame into `pipe`, with its timeouts checked in bus time; returns the count."""
+    last_tick = -math.inf
+    n = 0
+    for msg in frames:
+        pipe.feed(msg)
+        n += 1
+        ts = msg.timestamp
+        if ts - last_tick >= TICK_S:
+            last_tick = ts
+            pipe.tick(ts)
+    return n
+
+
+def replay_frames(pipe: MonitorPipeline, path: Path) -> int:
+    """`feed_log` of the capture at `path`."""
+    return feed_log(pipe, read_log(path))
+
+
 def run_replay(args: argparse.Namespace) -> int:
     rig = options.rig(args)
     db = options.database(args, rig)
@@ -72,16 +92,8 @@ def run_replay(args: argparse.Namespace) -> int:
     sink = FanOut(sinks)
     pipe = MonitorPipeline(db, cfg, sink=sink)
     t0 = time.perf_counter()
-    last_tick = -math.inf
-    n = 0
     try:
-        for msg in frames:
-            pipe.feed(msg)
-            n += 1
-            ts = msg.timestamp
-            if ts - last_tick >= TICK_S:
-                last_tick = ts
-                pipe.tick(ts)
+        n = feed_log(pipe, frames)
     finally:
         sink.close()
     el = time.perf_counter() - t0
