@@ -228,7 +228,7 @@ def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
             input_names=tuple(r.signal for r in rig.inputs),
             output_names=tuple(r.signal for r in rig.outputs),
             **{k: [list(r) for r in v] for k, v in spec.matrices.items()},
-        )
+        ).continuous
     except ModelError as exc:
         raise fail("model", str(exc)) from None
 
