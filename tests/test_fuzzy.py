@@ -10,6 +10,19 @@ from hypothesis import strategies as st
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, memberships
 
 
+@pytest.fixture(scope="module")
+def compiled_memberships() -> None:
+    """Compile `memberships` (a numba kernel) for the argument types the property uses
+    (float, float64 array, int) before it runs: the first call compiles, 0.3-1 s, which
+    hypothesis would otherwise time as that of its first example."""
+    memberships(0.5, np.array([0.0, 1.0]), 2)
+
+
+# deadline=None as well: each example takes microseconds once compiled, but a loaded machine
+# can stall any one of them past hypothesis' 200 ms default; timing is not what this
+# property tests.
+@pytest.mark.usefixtures("compiled_memberships")
+@settings(deadline=None)
 @given(
     centres=st.lists(st.floats(-10, 10, allow_nan=False), min_size=1, max_size=7, unique=True),
     z=st.floats(-20, 20, allow_nan=False),

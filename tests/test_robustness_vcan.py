@@ -5,13 +5,14 @@ frame, an error frame, a silent ECU, an interface that goes down and comes back,
 each gets a clear, counted, logged outcome, the daemon keeps running, and no recorded data
 is lost."
 
-Two kernel boots (module fixtures, see tests/robustness_helpers.py for the scripts): boot A
-sends every kind of bad frame with ``cansend`` next to a healthy ``sim-ecu``, takes the
-interface down and up, silences the ECU, replays its last frame, deletes and re-creates the
-interface and ends with SIGTERM; boot B floods the bus with ``cangen`` for 10 s and ends
-with SIGKILL. The host checks the daemon's counters as logged in its ``.rrd``, every recorded
-sample against the candump capture (each must be a genuine ECU frame, none an injected one),
-its diagnosis frames on the bus, its events, its exit and its memory.
+Two kernel boots (module fixtures; tests/support/boots.py runs them, tests/support/scripts/
+holds their shell scripts): boot A sends every kind of bad frame with ``cansend`` next to a
+healthy ``sim-ecu``, takes the interface down and up, silences the ECU, replays its last
+frame, deletes and re-creates the interface and ends with SIGTERM; boot B floods the bus
+with ``cangen`` for 10 s and ends with SIGKILL. The host checks the daemon's counters as
+logged in its ``.rrd``, every recorded sample against the candump capture (each must be a
+genuine ECU frame, none an injected one), its diagnosis frames on the bus, its events, its
+exit and its memory.
 
 Run with ``-s`` to see the per-kind table, timings and margins.
 """
@@ -20,38 +21,29 @@ from __future__ import annotations
 
 import math
 import subprocess
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from monitor.bus.codec import MotorDatabase, load_database
-from tests.robustness_helpers import (
+from tests.support.bad_frames import FrameKind, check_kinds_offline, frame_kinds
+from tests.support.boots import (
     F1,
     KIND_GAP_S,
     MAX_KILL_LOSS_S,
     NO_DATA,
     REPLAYS,
-    RERUN_EXE,
     SILENCE_S,
     BootA,
     BootB,
-    CliCase,
-    FrameKind,
-    bad_outcomes,
-    check_kinds_offline,
-    frame_kinds,
-    guest_cli_outcomes,
+    RunOnVcan,
     logs_tail,
-    outcome_total,
     run_boot_a,
     run_boot_b,
-    run_cli_case,
 )
-from tests.vcan_harness import VcanResult
-
-RunOnVcan = Callable[..., VcanResult]
+from tests.support.cli_cases import CliCase, guest_cli_outcomes, run_cli_case
+from tests.support.rrd import RERUN_EXE, bad_outcomes, outcome_total
 
 
 @pytest.fixture(scope="module")

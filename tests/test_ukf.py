@@ -7,7 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.estimation.ukf import UnscentedKalmanFilter, sigma_points, sigma_weights, unscented_transform
+from monitor.estimation.ukf import sigma_points, sigma_weights, unscented_transform
+from tests.support.ukf_filter import UnscentedKalmanFilter
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 6])

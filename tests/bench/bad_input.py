@@ -2,7 +2,7 @@
 
 Every kind of bad frame and bus fault of the robustness brief, sent to a running
 ``motor-monitor run`` on a real SocketCAN vcan interface (User-Mode Linux where the host
-kernel has none; the two boots of tests/robustness_helpers.py), then malformed DBC,
+kernel has none; the two boots of tests/support/boots.py), then malformed DBC,
 threshold and scenario files and wrong command lines, run on the host (they are refused
 before any bus is opened; the wrong-channel cases run in the guest, on a kernel with
 SocketCAN). For each kind it records:
@@ -38,24 +38,19 @@ from pathlib import Path
 import numpy as np
 
 from monitor.bus.codec import MotorDatabase, load_database
-from tests.robustness_helpers import (
+from tests.support.bad_frames import FrameKind
+from tests.support.boots import (
     FLOOD_S,
     MAX_KILL_LOSS_S,
     NO_DATA,
     REPLAYS,
-    RERUN_EXE,
     BootA,
     BootB,
-    CliOutcome,
-    FrameKind,
-    bad_outcomes,
-    cli_cases,
-    guest_cli_outcomes,
-    outcome_total,
     run_boot_a,
     run_boot_b,
-    run_cli_cases,
 )
+from tests.support.cli_cases import CliOutcome, cli_cases, guest_cli_outcomes, run_cli_cases
+from tests.support.rrd import RERUN_EXE, bad_outcomes, outcome_total
 from tests.vcan_harness import run_on_vcan, vcan_unavailable_reason
 
 

@@ -1,0 +1,18 @@
+"""Helpers of the tests and benchmarks (not part of the monitor package).
+
+* `candump`: CAN frames in cansend / ``candump -L`` syntax, and candump logs.
+* `bad_frames`: the catalogue of bad frames sent to the daemon, checked offline.
+* `rrd`: the daemon's ``.rrd`` recordings: series and counter snapshots.
+* `cli_cases`: malformed files and wrong command lines, each one clear error line.
+* `boots`: the two User-Mode Linux (or native vcan) boots of the robustness tests, their
+  shell scripts (``scripts/*.sh``) and what the host reads back from them.
+* `ukf_filter`: a stateful wrapper of the compiled UKF kernels.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+#: The virtual environment's bin directory: motor-monitor, sim-ecu, rerun.
+BIN = Path(sys.executable).parent

@@ -1,0 +1,43 @@
+#!/bin/sh
+# Boot B of the robustness tests (tests/support/boots.py; run by the vcan harness with
+# /bin/sh): the daemon and a healthy ECU, a cangen flood while the daemon's RSS is sampled,
+# 3 s of calm, SIGKILL.
+#
+# Parameters (environment): SCRIPTS, this directory; OUT and GAP (see common.sh);
+# FLOOD_S, seconds of flood.
+
+: "${SCRIPTS:?}" "${FLOOD_S:?}"
+# shellcheck source-path=SCRIPTDIR source=common.sh
+. "$SCRIPTS/common.sh"
+
+motor-monitor -v run --interface socketcan --channel vcan0 --nodes 0 --rrd "$OUT/b.rrd" \
+    --events "$OUT/ev.jsonl" 2> mon.err &
+MON=$!
+ecu 2 ecu.err
+if wait_for ev.jsonl '"state":"fault_free"' 200; then
+  echo "ready=1"
+else
+  echo "ready=0"; kill "$MON" "$ECU"; exit 3
+fi
+( while kill -0 "$MON" 2>/dev/null; do
+    echo "$(now) $(awk '/^VmRSS/ {print $2}' "/proc/$MON/status" 2>/dev/null)"
+    sleep 0.5
+  done ) > rss.txt 2> /dev/null &
+sleep 2
+echo "tx_before=$(cat /sys/class/net/vcan0/statistics/tx_packets)"
+mark flood_start
+cangen vcan0 -g 0 -I r -L r -D r -i 2> cangen1.err &
+G1=$!
+cangen vcan0 -g 0 -m -i 2> cangen2.err &
+G2=$!
+sleep "$FLOOD_S"
+kill -INT "$G1" "$G2"; wait "$G1" "$G2"
+mark flood_end
+echo "tx_after=$(cat /sys/class/net/vcan0/statistics/tx_packets)"
+echo "alive_flood=$(alive)"
+sleep 3
+mark kill
+kill -KILL "$MON"
+mark killed
+wait "$MON"; echo "mon_rc=$?"
+kill -TERM "$ECU"; wait "$ECU"; echo "ecu_rc=$?"

@@ -1,0 +1,48 @@
+# shellcheck shell=sh
+# Functions of the robustness boots (boot_a.sh, boot_b.sh source this file; see
+# tests/support/boots.py). POSIX sh: the vcan harness runs the boot scripts with /bin/sh.
+#
+# Parameters (environment): OUT, the host directory the boot writes into (also its working
+# directory); GAP, seconds of calm after each inject window.
+
+set -u
+: "${OUT:?the directory to write into}" "${GAP:?seconds between inject windows}"
+cd "$OUT" || exit 1
+
+now() { date +%s.%N; }
+
+# mark NAME: print mark_NAME=<guest time>, the clock of the kernel's frame time stamps
+mark() { echo "mark_$1=$(now)"; }
+
+# alive: 1 if the daemon ($MON) is still running, else 0
+alive() { if kill -0 "$MON" 2>/dev/null; then echo 1; else echo 0; fi; }
+
+# wait_for FILE PATTERN SECONDS [FROM_LINE]: poll until FILE has PATTERN after FROM_LINE
+wait_for() {
+  n=0
+  while ! tail -n +"${4:-1}" "$1" 2>/dev/null | grep -q -- "$2"; do
+    n=$((n + 1))
+    [ "$n" -gt $(($3 * 10)) ] && return 1
+    sleep 0.1
+  done
+}
+
+# inject KEY FRAME...: cansend each frame, in a window marked by mark_KEY_start/end
+inject() {
+  key=$1; shift
+  mark "${key}_start"
+  ok=0
+  for f in "$@"; do cansend vcan0 "$f" && ok=$((ok + 1)); done
+  mark "${key}_end"
+  echo "sent_${key}=$ok"
+  echo "alive_${key}=$(alive)"
+  sleep "$GAP"
+}
+
+# ecu SEED LOG: start a healthy node-0 ECU (until stopped); its PID in $ECU
+ecu() {
+  sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario healthy --duration 0 \
+      --seed "$1" 2> "$2" &
+  # shellcheck disable=SC2034 # read by the boot scripts that source this file
+  ECU=$!
+}
