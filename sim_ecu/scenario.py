@@ -10,7 +10,8 @@ name. Example::
     current_sigma = 0.5        # A, measurement noise (R = sigma^2)
     process = 1.0              # scale on the model's process-noise intensity
     [voltage]
-    steps = [[0.0, 220.0], [8.0, 180.0]]   # piecewise-constant command [t, V]
+    steps = [[0.0, 220.0], [8.0, 180.0]]   # piecewise-constant command [t, V], or
+    # prbs = { level = 220.0, amplitude = 15.0, clock = 0.5, seed = 0 }  # +-15 V every 0.5 s
     [[fault]]                  # abrupt: gamma from start until end
     start = 3.0
     end = 6.0
@@ -126,6 +127,23 @@ def _number(table: Mapping[str, Any], key: str, where: str, default: float | Non
     return float(v)
 
 
+def _prbs_steps(table: object, duration: float, where: str) -> list[list[float]]:
+    """The steps of a pseudo-random binary command: level +- amplitude, the sign drawn anew
+    every `clock` seconds (`monitor.identify.prbs`), the excitation `identify` wants."""
+    from monitor.identify import prbs
+
+    if not isinstance(table, dict):
+        raise ScenarioError(f"{where}: must be a table {{level, amplitude, clock, seed}}")
+    level = _number(table, "level", where)
+    amplitude = _number(table, "amplitude", where)
+    clock = _number(table, "clock", where)
+    seed = int(_number(table, "seed", where, 0.0))
+    if not (clock > 0 and amplitude >= 0):
+        raise ScenarioError(f"{where}: needs clock > 0 and amplitude >= 0")
+    values = prbs(duration, clock, level=level, amplitude=amplitude, clock=clock, seed=seed)
+    return [[k * clock, float(v)] for k, v in enumerate(values[:, 0])]
+
+
 def scenario_from_dict(data: Mapping[str, Any], default_name: str = "scenario") -> Scenario:
     """Validate a parsed TOML table into a Scenario (one-line ScenarioError on any fault)."""
     name = str(data.get("name", default_name))
@@ -140,8 +158,10 @@ def scenario_from_dict(data: Mapping[str, Any], default_name: str = "scenario") 
     if sigma <= 0 or process < 0:
         raise ScenarioError(f"{name}: noise needs current_sigma > 0 and process >= 0")
     volt = data.get("voltage", {"steps": [[0.0, 220.0]]})
+    if isinstance(volt, dict) and "prbs" in volt:
+        volt = {"steps": _prbs_steps(volt["prbs"], duration, f"{name} [voltage.prbs]")}
     if not isinstance(volt, dict) or "steps" not in volt:
-        raise ScenarioError(f"{name}: [voltage] needs steps = [[t, volts], ...]")
+        raise ScenarioError(f"{name}: [voltage] needs steps = [[t, volts], ...] or a prbs table")
     steps_raw = volt["steps"]
     if not isinstance(steps_raw, list) or not steps_raw:
         raise ScenarioError(f"{name}: voltage steps must be a non-empty list of [t, volts]")

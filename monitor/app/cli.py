@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import entry_points
 
-from monitor.app import calibrate, replay, run
+from monitor.app import calibrate, identify, replay, run
 from monitor.app.options import OneLineParser
 from monitor.errors import MonitorError
 
@@ -35,6 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_command(sub)
     replay.add_command(sub)
     calibrate.add_command(sub)
+    identify.add_command(sub)
     for ep in sorted(entry_points(group=COMMANDS_GROUP), key=lambda e: e.name):
         ep.load()(sub)
     return p
