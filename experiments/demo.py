@@ -15,6 +15,7 @@ import os
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,16 +24,22 @@ import numpy as np
 
 from experiments.plotting import pyplot
 from experiments.scoring import match_transitions, true_classes
-from monitor.bus.codec import load_database
+from monitor.app import options
+from monitor.bus.codec import MotorDatabase
+from monitor.bus.rigcodec import RigCodec
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState
-from monitor.pipeline import Counters, DiagnosisEvent, MonitorConfig, MonitorPipeline, Sample
+from monitor.estimation.model import DCMotorParameters
+from monitor.pipeline import Counters, DiagnosisEvent, MonitorPipeline, Sample
 from monitor.pipeline import counters as C
+from monitor.rig import Rig
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.jsonl import JsonLinesSink
 from monitor.sinks.log import LogSink
 from monitor.sinks.publisher import BusPublisher
 from monitor.sinks.rerun import RerunSink
-from sim_ecu.scenario import load_scenario
+from sim_ecu.ecu import VirtualECU
+from sim_ecu.rig_ecu import RigECU
+from sim_ecu.scenario import Scenario, load_scenario
 
 __all__ = ["SampleRows", "add_command", "run_demo"]
 
@@ -87,32 +94,46 @@ def _report(rows: np.ndarray, path: Path, f1: float, f2: float) -> None:
     plt.close(fig)
 
 
-def run_demo(args: argparse.Namespace) -> int:
-    from sim_ecu.ecu import VirtualECU
+def _ecu(args: argparse.Namespace, rig: Rig, db: MotorDatabase | RigCodec, node: int,
+         scenario: Scenario, bus: can.BusABC) -> VirtualECU | RigECU:
+    """The rig's virtual ECU: ours on our bus (with the rig's motor), else its twin."""
+    if isinstance(db, MotorDatabase):
+        motor = (replace(DCMotorParameters(), **rig.model.motor)
+                 if rig.model.kind == "dc_motor" else None)
+        return VirtualECU(bus, db, node, scenario, rate=rig.rate, seed=args.seed, motor=motor)
+    return RigECU(bus, db, rig, node, scenario, seed=args.seed)
 
+
+def run_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    db = load_database()
+    rig = options.rig(args)
+    db = options.database(args, rig)
+    node = 0 if isinstance(db, MotorDatabase) else db.nodes[0]
     scenario = load_scenario(args.scenario)
+    ecu_db = options.database(args, rig)  # its own alive counters
     channel = f"motor-monitor-demo-{os.getpid()}"
     ecu_bus = can.Bus(interface="virtual", channel=channel)
     mon_bus = can.Bus(interface="virtual", channel=channel)
     rrd = out / "demo.rrd"
-    cfg = MonitorConfig(nodes=(0,), thresholds=DEFAULT_THRESHOLDS)
+    cfg = replace(options.monitor_config(args, rig), nodes=(node,))
     rows = SampleRows()
     t_start = time.time()
+    counters = Counters()
+    publisher: list[Sink] = ([BusPublisher(db, mon_bus.send, counters)]
+                             if isinstance(db, MotorDatabase) else [])
     sink = FanOut([
         LogSink(),
-        BusPublisher(db, mon_bus.send, counters := Counters()),
-        RerunSink(rrd_path=rrd, nodes=(0,), f1=cfg.thresholds.f1, f2=cfg.thresholds.f2),
+        *publisher,
+        RerunSink(rrd_path=rrd, nodes=(node,), f1=cfg.thresholds.f1, f2=cfg.thresholds.f2),
         JsonLinesSink((out / "events.jsonl").open("w", encoding="utf-8"), owned=True),
         _PrintTransitions(t_start),
         rows,
     ])
     pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)
-    ecu = VirtualECU(ecu_bus, db, 0, scenario, rate=100.0, seed=args.seed)
+    ecu = _ecu(args, rig, ecu_db, node, scenario, ecu_bus)
     stop = threading.Event()
-    print(f"demo: virtual ECU node 0 runs '{scenario.name}' ({scenario.description}) for "
+    print(f"demo: virtual ECU node {node} runs '{scenario.name}' ({scenario.description}) for "
           f"{scenario.duration:.0f} s in real time; the monitor listens on the same bus")
     th = threading.Thread(target=ecu.run, args=(scenario.duration, stop), daemon=True)
     th.start()
@@ -161,4 +182,5 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     d.add_argument("--scenario", default="fault-outage-recovery",
                    help="built-in scenario name or TOML file")
     d.add_argument("--seed", type=int, default=1)
-    d.set_defaults(func=run_demo)
+    options.add_rig_option(d)
+    d.set_defaults(func=run_demo, dbc=None, key=None, nodes=None, rate=None, thresholds=None)
