@@ -1,0 +1,397 @@
+"""`identify`: arrays in, a model for the estimator and a report out."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import threadpool_limits
+
+from monitor.errors import one_line
+from monitor.estimation.fuzzy_ukf import FuzzyUKF
+from monitor.estimation.model import (
+    ContinuousDescriptor,
+    DCMotorParameters,
+    ModelError,
+    dc_motor,
+)
+from monitor.identify import validate as V
+from monitor.identify.blackbox import fit_state_space, subspace_model
+from monitor.identify.dcmotor import fit_dc_motor, oe_refit
+from monitor.identify.errors import IdentifyError
+from monitor.identify.excitation import RECORDING_ADVICE
+from monitor.identify.lti import dsim, kalman, predict, steady_state_x0
+
+Array = NDArray[np.float64]
+
+__all__ = ["KINDS", "Identification", "identify"]
+
+KINDS = ("auto", "dc_motor", "state_space")
+
+
+@dataclass(frozen=True)
+class Identification:
+    """An identified model, ready for `model.discretize(T)` and `FuzzyUKF`.
+
+    model: continuous descriptor model (63)-(67) or black box (E = I), with the noise model
+        (1)-(2): Qc = q Q0 (Q0 = E E for the motor, as `dc_motor`), R per sample.
+    motor: the fitted DC-motor parameters (kind "dc_motor"); J is the template's (fixed),
+        La, Ra, b and Ke = Ki are fitted (report["identifiable"] says which combinations).
+    report: plain JSON-serialisable dict (see `identify`).
+    """
+
+    model: ContinuousDescriptor
+    q: float
+    Qc: Array
+    R: Array
+    T: float
+    kind: str
+    order: int
+    motor: DCMotorParameters | None
+    report: dict[str, Any]
+    traces: dict[str, Array] = field(default_factory=dict, repr=False)
+
+    def to_json(self) -> str:
+        return json.dumps(self.report, indent=2, sort_keys=True)
+
+    def to_png(self, path: str | Path) -> None:
+        """Measured against simulated output on the hold-out, innovation autocorrelation
+        and input cross-correlation with their bands. Needs matplotlib (UsageError if
+        missing, from experiments.plotting.pyplot)."""
+        from experiments.plotting import pyplot
+
+        plt = pyplot()
+        rep = self.report
+        names_y = list(self.model.output_names)
+        names_u = list(self.model.input_names)
+        p = len(names_y)
+        fig, axes = plt.subplots(3, p, figsize=(6 * p, 9), squeeze=False)
+        t, y, yh = self.traces["t_holdout"], self.traces["y_holdout"], self.traces["y_sim"]
+        wh, cc = rep["whiteness"], rep["cross_correlation"]
+        for i, name in enumerate(names_y):
+            ax = axes[0][i]
+            ax.plot(t, y[:, i], lw=0.6, label="measured")
+            ax.plot(t, yh[:, i], lw=0.9, label="simulated")
+            ax.set_title(f"{name}: hold-out fit {rep['fit']['nrmse_holdout_pct'][i]:.1f} %")
+            ax.set_xlabel("time (s)")
+            ax.legend(loc="best")
+            ax = axes[1][i]
+            lags = np.arange(1, wh["lags"] + 1)
+            ax.bar(lags, wh["autocorrelation"][i], width=0.6)
+            for s in (-1, 1):
+                ax.axhline(s * wh["band"], color="r", ls="--", lw=0.8)
+            ax.set_title(f"innovation autocorrelation, Ljung-Box p = {wh['p_value'][i]:.3g}")
+            ax.set_xlabel("lag (samples)")
+            ax = axes[2][i]
+            lags0 = np.arange(0, cc["lags"] + 1)
+            for j, un in enumerate(names_u):
+                ax.plot(lags0, cc["correlation"][i][j], marker=".", label=un)
+            for s in (-1, 1):
+                ax.axhline(s * cc["band"], color="r", ls="--", lw=0.8)
+            ax.set_title(f"innovation x input correlation, p = {cc['p_value'][i]:.3g}")
+            ax.set_xlabel("lag (samples)")
+            ax.legend(loc="best")
+        fig.suptitle(f"identified {self.kind} model, order {self.order}, T = {self.T:g} s")
+        fig.tight_layout()
+        fig.savefig(str(path), dpi=100)
+        plt.close(fig)
+
+
+@dataclass
+class _Candidate:
+    kind: str
+    model: ContinuousDescriptor
+    q: float
+    order: int
+    motor: DCMotorParameters | None
+    params: dict[str, Any]
+    extra: dict[str, Any]
+
+
+def _floats(a: Array) -> list[Any]:
+    out: list[Any] = np.asarray(a, dtype=float).tolist()
+    return out
+
+
+def _fit_motor(u: Array, y: Array, T: float, template: DCMotorParameters,
+               names: tuple[tuple[str, ...], tuple[str, ...]]) -> _Candidate:
+    sub, _ = subspace_model(u, y, 2)
+    fit = fit_dc_motor(u, y, T, template, sub)
+    prm = fit.params
+    base = dc_motor(prm, q=fit.q, r=fit.r)
+    # dc_motor's Qc = q E I E; the fitted speed-noise ratio kappa: q E diag(1, k, k) E.
+    Q0 = np.diag([1.0, fit.kappa, fit.kappa])
+    model = ContinuousDescriptor(E=base.E, A=base.A, B=base.B, C=base.C,
+                                 Qc=fit.q * base.E @ Q0 @ base.E, R=base.R,
+                                 state_names=base.state_names, input_names=names[0],
+                                 output_names=names[1])
+    params = {k: {"value": float(getattr(prm, k)),
+                  "std": float(getattr(prm, k)) * fit.log_std[k]} for k in
+              ("La", "Ra", "b", "Ke", "Ki")}
+    params["J"] = {"value": prm.J, "std": 0.0}
+    extra = {
+        "identifiable": ["La", "Ra", "b/J", "Ke*Ki/J"],
+        "fixed": {"J": prm.J},
+        "note": "from the current alone J, b and Ke*Ki are known only up to a common scale: "
+                "J is fixed to the template's, Ke = Ki = sqrt(Ke*Ki); another J gives the "
+                "same current, filter and gamma estimate",
+        "noise_ratio_rho": fit.rho,
+        "speed_noise_ratio_kappa": fit.kappa,
+        "function_evaluations": fit.nfev,
+    }
+    return _Candidate("dc_motor", model, fit.q, 2, prm, params, extra)
+
+
+def _fit_black_box(u: Array, y: Array, T: float, order: int | None,
+                   names: tuple[tuple[str, ...], tuple[str, ...]]) -> _Candidate:
+    fit = fit_state_space(u, y, T, order)
+    n = fit.order
+    model = ContinuousDescriptor(
+        E=np.eye(n), A=fit.Ac, B=fit.Bc, C=fit.C, Qc=0.5 * (fit.Qc + fit.Qc.T), R=fit.R,
+        state_names=tuple(f"x{i + 1}" for i in range(n)), input_names=names[0],
+        output_names=names[1])
+    extra = {
+        "order_selection": {"bic": {str(k): v for k, v in fit.bic.items()},
+                            "subspace_singular_values": fit.singular_values,
+                            "selected": n, "given": order is not None},
+        "function_evaluations": fit.nfev,
+    }
+    return _Candidate("state_space", model, fit.q, n, None, dict(fit.invariants), extra)
+
+
+def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
+              T: float) -> tuple[dict[str, Any], dict[str, Array]]:
+    """Simulation fit on training and hold-out, innovation tests on the hold-out."""
+    try:
+        dm = model.discretize(T)
+    except ModelError as exc:
+        raise IdentifyError(f"the fitted model cannot serve the estimator ({one_line(exc, 150)}): "
+                            "ask for a larger order or another kind") from exc
+    A, B, Qd = dm.at(T)
+    C, R = dm.C, dm.R
+    kf = kalman(A, C, Qd, R)
+    utr, ytr, uva, yva = u[:ntr], y[:ntr], u[ntr:], y[ntr:]
+    x0 = steady_state_x0(A, B, C, utr[0], ytr[0])
+    ysim_tr = dsim(A, B, C, utr, x0)
+    Ap = A - kf.K @ C
+    n = A.shape[0]
+    X = dsim(Ap, np.hstack([B, kf.K]), np.eye(n), np.hstack([utr, ytr]), x0)
+    xs = Ap @ X[-1] + B @ utr[-1] + kf.K @ ytr[-1]
+    ysim_va = dsim(A, B, C, uva, xs)
+    e = predict(A, B, C, kf.K, uva, yva, xs)
+    w = e @ np.linalg.inv(np.linalg.cholesky(kf.S)).T
+    lam = np.linalg.eigvals(dm.Wobs @ dm.standard.A @ dm.Wobs.T)
+    stable = lam[lam.real < -1e-12]
+    tau = float(1.0 / np.min(-stable.real)) if stable.size else math.inf
+    res: dict[str, Any] = {
+        "fit": {"nrmse_holdout_pct": V.nrmse(yva, ysim_va),
+                "nrmse_training_pct": V.nrmse(ytr, ysim_tr),
+                "definition": "100 (1 - |y - y_sim| / |y - mean y|), simulation from the "
+                              "Kalman state at the start of the hold-out"},
+        "whiteness": V.whiteness_test(w),
+        "cross_correlation": V.cross_correlation_test(w, uva),
+        "mean_nis_kalman_holdout": float(np.mean(np.sum(w * w, axis=1))),
+        "innovation_std": _floats(np.sqrt(np.diag(kf.S))),
+        "slowest_time_constant_s": tau,
+        "poles_continuous": [[float(z.real), float(z.imag)] for z in np.sort_complex(lam)],
+        "dc_gain": _floats(dm.dc_gain),
+    }
+    t_va = np.asarray((ntr + np.arange(yva.shape[0])) * T, dtype=float)
+    traces: dict[str, Array] = {"t_holdout": t_va, "y_holdout": yva, "y_sim": ysim_va}
+    return res, traces
+
+
+def _fuzzy_ukf(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
+               T: float) -> dict[str, Any]:
+    """The monitor's own filter on the capture: mean NIS and gamma^ on the hold-out."""
+    est = FuzzyUKF(model.discretize(T))
+    N = u.shape[0]
+    nis = np.empty(N)
+    gam = np.empty((N, u.shape[1]))
+    for k in range(N):
+        # The filter applies the input it is given over the interval that ends at the
+        # sample (35); the capture's u(k) is applied from t(k) (zero-order hold, as the
+        # fit and sim_ecu.plant): the input held before y(k) is u(k-1).
+        out = est.step(u[max(k - 1, 0)], y[k], T)
+        nis[k] = out.nis
+        gam[k] = out.gamma
+    return {"mean_nis_holdout": float(np.mean(nis[ntr:])),
+            "gamma_mean_holdout": _floats(np.mean(gam[ntr:], axis=0)),
+            "gamma_max_holdout": _floats(np.max(gam[ntr:], axis=0)),
+            "structure_events": int(est.structure_events)}
+
+
+def _consistency(cand: _Candidate, u: Array, y: Array, T: float) -> list[float]:
+    N = u.shape[0]
+    h = N // 2
+    halves = ((u[:h], y[:h]), (u[h:], y[h:]))
+    fits = []
+    for uu, yy in halves:
+        if cand.motor is not None:
+            fits.append(oe_refit(uu, yy, T, cand.motor))
+        else:
+            sub, _ = subspace_model(uu, yy, cand.order)
+            fits.append((sub.A, sub.B, sub.C))
+    return V.consistency_drop(fits[0], fits[1], halves)
+
+
+def identify(
+    u: ArrayLike,
+    y: ArrayLike,
+    T: float,
+    *,
+    kind: str = "auto",
+    order: int | None = None,
+    holdout: float = 0.3,
+    template: DCMotorParameters | None = None,
+    input_names: Sequence[str] | None = None,
+    output_names: Sequence[str] | None = None,
+    run_filter: bool = True,
+) -> Identification:
+    """Identify a model of one node from a healthy capture of inputs u (N, m) and outputs
+    y (N, p) sampled every T seconds.
+
+    kind: "dc_motor" (the Table-1 structure, m = p = 1), "state_space" (black box of
+    `order` states, or the BIC-selected one of 1..6) or "auto" (the DC motor when m = p = 1
+    and its residuals are independent of the input, else the better hold-out fit of the
+    two; the black box for other shapes). The last `holdout` fraction of the capture is not
+    used for fitting: the fit, whiteness and cross-correlation figures are measured on it.
+    `template` gives J (not identifiable from current) and the fallback initial guess.
+    `run_filter` runs the FuzzyUKF over the capture for the report (about 10 us a sample).
+
+    Raises IdentifyError (one line: what to record instead) for a capture that is too
+    short, not exciting enough, contains non-finite samples or shows a fault or outage.
+    """
+    t0 = time.perf_counter()
+    # One BLAS thread (the brief's one core; threads only slow the tiny matrices down);
+    # overflow in a trial step of an optimiser is caught by the finiteness checks.
+    with threadpool_limits(limits=1, user_api="blas"), np.errstate(over="ignore",
+                                                                   invalid="ignore"):
+        ident = _identify(u, y, T, kind, order, holdout, template or DCMotorParameters(),
+                          input_names, output_names, run_filter)
+    ident.report["seconds"] = time.perf_counter() - t0
+    return ident
+
+
+def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int | None,
+              holdout: float, template: DCMotorParameters, input_names: Sequence[str] | None,
+              output_names: Sequence[str] | None, run_filter: bool) -> Identification:
+    requested = kind
+    if kind not in KINDS:
+        raise IdentifyError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
+    if order is not None and not (isinstance(order, int) and 1 <= order <= 12):
+        raise IdentifyError(f"order must be an integer from 1 to 12, got {order!r}")
+    u, y = V.check_capture(np.asarray(u_in), np.asarray(y_in), T, holdout)
+    N, m = u.shape
+    p = y.shape[1]
+    siso = m == 1 and p == 1
+    if kind == "dc_motor" and not siso:
+        raise IdentifyError(f"the DC-motor model has one input (voltage) and one output "
+                            f"(current), the capture has {m} and {p}: use kind state_space")
+    names = (tuple(input_names) if input_names else
+             (("voltage",) if siso else tuple(f"u{j + 1}" for j in range(m))),
+             tuple(output_names) if output_names else
+             (("current",) if siso else tuple(f"y{i + 1}" for i in range(p))))
+    if len(names[0]) != m or len(names[1]) != p:
+        raise IdentifyError(f"{len(names[0])} input and {len(names[1])} output names for "
+                            f"{m} inputs and {p} outputs")
+    ntr = N - round(holdout * N)
+    utr, ytr = u[:ntr], y[:ntr]
+    timing: dict[str, float] = {}
+    t = time.perf_counter()
+    excitation = V.check_excitation(utr, 2 if kind != "state_space" or order is None
+                                    else order, names[0])
+    cands: list[tuple[_Candidate, dict[str, Any], dict[str, Array]]] = []
+    auto_note: dict[str, Any] = {}
+    if kind == "dc_motor" or (kind == "auto" and siso):
+        c = _fit_motor(utr, ytr, T, template, names)
+        ev, tr = _evaluate(c.model, u, y, ntr, T)
+        cands.append((c, ev, tr))
+        auto_note["dc_motor_nrmse_holdout_pct"] = ev["fit"]["nrmse_holdout_pct"][0]
+        if kind == "auto" and ev["cross_correlation"]["passed"] and \
+                ev["fit"]["nrmse_holdout_pct"][0] >= V.MIN_FIT:
+            auto_note["reason"] = "dc_motor residuals independent of the input"
+            kind = "dc_motor"
+    if kind == "state_space" or kind == "auto":
+        c = _fit_black_box(utr, ytr, T, order, names)
+        ev, tr = _evaluate(c.model, u, y, ntr, T)
+        cands.append((c, ev, tr))
+        auto_note["state_space_nrmse_holdout_pct"] = float(np.mean(ev["fit"]["nrmse_holdout_pct"]))
+    best = max(cands, key=lambda c: float(np.mean(c[1]["fit"]["nrmse_holdout_pct"])))
+    if kind == "auto" and "reason" not in auto_note:
+        auto_note["reason"] = "better hold-out fit" if siso else "more than one input or output"
+    cand, ev, traces = best
+    timing["fit"] = time.perf_counter() - t
+
+    # Refusals after the fit: a change inside the capture first (it spoils every figure).
+    t = time.perf_counter()
+    drops = _consistency(cand, u, y, T)
+    timing["consistency"] = time.perf_counter() - t
+    fit_tr = min(ev["fit"]["nrmse_training_pct"])
+    fit_va = min(ev["fit"]["nrmse_holdout_pct"])
+    # A structure too small for the plant also fits the halves differently, but far less
+    # so than a fault does.
+    if fit_tr < V.MIN_FIT and not ev["cross_correlation"]["passed"] and \
+            max(drops) < V.STRUCTURE_DROP:
+        raise IdentifyError(
+            f"the {cand.kind} model of order {cand.order} does not fit (training fit "
+            f"{fit_tr:.0f} %, residuals correlated with the input): ask for kind "
+            "state_space or a larger order")
+    if max(drops) > V.CONSISTENCY_DROP:
+        half = "first" if drops[0] < drops[1] else "second"
+        raise IdentifyError(
+            f"the plant changes within the capture (a fault or outage?): the model of the "
+            f"{half} half fits the other half {max(drops):.0f} points worse than its own; "
+            "record a capture of the healthy node only")
+    if fit_va < fit_tr - V.HOLDOUT_DROP:
+        raise IdentifyError(
+            f"the hold-out fit ({fit_va:.0f} %) is far below the training fit ({fit_tr:.0f} %): "
+            "the plant changes near the end of the capture (a fault or outage?); record a "
+            "capture of the healthy node only")
+    tau = ev["slowest_time_constant_s"]
+    if math.isfinite(tau) and ntr * T < V.MIN_TIME_CONSTANTS * tau:
+        need = V.MIN_TIME_CONSTANTS * tau / (1.0 - holdout)
+        raise IdentifyError(
+            f"capture too short for this plant (slowest time constant {tau:.3g} s): record "
+            f"at least {need:.3g} s with the voltage command varying")
+    if fit_tr < V.MIN_FIT:
+        raise IdentifyError(
+            f"not exciting enough: the input moves the output too little against its noise "
+            f"(training fit {fit_tr:.0f} %): {RECORDING_ADVICE}, with larger steps")
+
+    report: dict[str, Any] = {
+        "kind": cand.kind,
+        "order": cand.order,
+        "T": T,
+        "samples": N,
+        "duration_s": N * T,
+        "holdout_fraction": holdout,
+        "training_samples": ntr,
+        "inputs": list(names[0]),
+        "outputs": list(names[1]),
+        "parameters": cand.params,
+        "noise": {"q": cand.q, "Qc": _floats(cand.model.Qc), "R": _floats(cand.model.R),
+                  "method": "maximum likelihood of the steady-state Kalman filter's "
+                            "innovations (noise model (1)-(2)); mean NIS = p at the optimum"},
+        "excitation": excitation,
+        "consistency": {"halves_nrmse_drop_pct": drops, "threshold": V.CONSISTENCY_DROP},
+        **ev,
+        **cand.extra,
+    }
+    if requested == "auto":
+        report["auto"] = auto_note
+    if run_filter:
+        t = time.perf_counter()
+        report["fuzzy_ukf"] = _fuzzy_ukf(cand.model, u, y, ntr, T)
+        timing["fuzzy_ukf"] = time.perf_counter() - t
+    report["timing_s"] = timing
+    return Identification(model=cand.model, q=cand.q, Qc=cand.model.Qc, R=cand.model.R, T=T,
+                          kind=cand.kind, order=cand.order, motor=cand.motor, report=report,
+                          traces=traces)

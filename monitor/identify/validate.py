@@ -1,0 +1,221 @@
+"""What a practitioner checks before trusting a model, and the refusals of bad captures.
+
+Refusals (each an IdentifyError with one line saying what to record instead):
+
+* non-finite samples, or u and y of different lengths;
+* too short: fewer than MIN_SAMPLES samples, or (after the fit) a training part shorter
+  than MIN_TIME_CONSTANTS of the model's slowest time constant;
+* not exciting enough: an input that does not move (std below 1e-6 of its RMS), that
+  changes fewer than MIN_CHANGES times, or that is not persistently exciting of the order
+  the model needs (the smallest singular value of the block Hankel matrix of the centred
+  inputs with 2 n + 1 rows below 1e-7 of the largest: a sine is exciting of order 2 only);
+  and, after the fit, a training fit below MIN_FIT % (the input moves the output too
+  little against the noise);
+* a fault or outage inside the capture: the same model structure fitted separately on the
+  first and the second half must explain the other half nearly as well as its own: the
+  simulation fit (NRMSE, each model with its own best initial state) of the other half's
+  model may be at most CONSISTENCY_DROP points below the half's own (a healthy capture
+  gives 0 to 4 points, whatever the noise, as the fit is relative to the output's
+  variation; a 10 % loss of effectiveness in the middle gives well over 100). Also a
+  hold-out fit more than HOLDOUT_DROP points below the training fit (a change inside the
+  hold-out tail);
+* a structure that does not fit: a training fit below MIN_FIT with residuals correlated
+  with the input (and a halves drop below STRUCTURE_DROP: an order too small also fits
+  the halves somewhat differently, a fault makes them differ by far more).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.stats
+from numpy.typing import NDArray
+
+from monitor.identify.errors import IdentifyError
+from monitor.identify.excitation import RECORDING_ADVICE
+from monitor.identify.lti import dsim
+
+Array = NDArray[np.float64]
+
+__all__ = [
+    "CONFIDENCE",
+    "check_capture",
+    "check_excitation",
+    "consistency_drop",
+    "cross_correlation_test",
+    "nrmse",
+    "whiteness_test",
+]
+
+MIN_SAMPLES = 1000
+MIN_TIME_CONSTANTS = 10.0
+MIN_CHANGES = 10
+MIN_FIT = 30.0
+CONSISTENCY_DROP = 10.0
+STRUCTURE_DROP = 50.0
+HOLDOUT_DROP = 25.0
+CONFIDENCE = 0.99
+LAGS = 25
+
+
+def check_capture(u: Array, y: Array, T: float, holdout: float) -> tuple[Array, Array]:
+    """Shapes, finiteness and the minimum length; returns float (N, m) and (N, p) arrays."""
+    if not (math.isfinite(T) and T > 0):
+        raise IdentifyError(f"sample period must be a positive number of seconds, got {T!r}")
+    if not 0.0 < holdout < 0.9:
+        raise IdentifyError(f"holdout must be a fraction in (0, 0.9), got {holdout!r}")
+    ua = np.asarray(u, dtype=float)
+    ya = np.asarray(y, dtype=float)
+    ua = ua[:, None] if ua.ndim == 1 else ua
+    ya = ya[:, None] if ya.ndim == 1 else ya
+    if ua.ndim != 2 or ya.ndim != 2 or ua.shape[0] != ya.shape[0]:
+        raise IdentifyError(f"inputs {ua.shape} and outputs {ya.shape} must be (N, m) and "
+                            "(N, p) arrays of the same N: resample both onto one clock")
+    for name, arr in (("input", ua), ("output", ya)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            k = int(np.argwhere(bad)[0][0])
+            raise IdentifyError(
+                f"{int(bad.sum())} non-finite {name} samples (first at {k * T:.3f} s): "
+                "record without gaps or cut the capture to a gap-free stretch")
+    N = ua.shape[0]
+    need = MIN_SAMPLES
+    if need > N:
+        raise IdentifyError(
+            f"capture too short: {N * T:.3g} s ({N} samples at {1 / T:.4g} Hz); record at "
+            f"least {need * T:.3g} s, better 60 s, with the voltage command varying")
+    return ua, ya
+
+
+def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, object]:
+    """Refuse an input that cannot identify a model of `order` states; report PE."""
+    rms = np.sqrt(np.mean(u**2, axis=0))
+    sd = np.std(u, axis=0)
+    for j in range(u.shape[1]):
+        if sd[j] <= 1e-6 * max(float(rms[j]), 1e-300):
+            raise IdentifyError(
+                f"input '{names[j]}' is constant ({u[0, j]:.4g}) over the capture, so nothing "
+                f"can be identified: {RECORDING_ADVICE}")
+        du = np.abs(np.diff(u[:, j]))
+        changes = int(np.sum(du > 1e-3 * (float(np.ptp(u[:, j])) + 1e-300)))
+        if changes < MIN_CHANGES:
+            raise IdentifyError(
+                f"input '{names[j]}' changes only {changes} times: {RECORDING_ADVICE}")
+    L = 2 * order + 1
+    uc = (u - u.mean(axis=0)) / sd
+    N, m = uc.shape
+    H = np.lib.stride_tricks.sliding_window_view(uc, L, axis=0).reshape(N - L + 1, m * L)
+    s = np.linalg.svd(H / math.sqrt(H.shape[0]), compute_uv=False)
+    ratio = float(s[-1] / s[0])
+    pe = int(np.sum(s > 1e-7 * s[0]))
+    if ratio < 1e-7:
+        raise IdentifyError(
+            f"the input is persistently exciting of order {pe // m} only, a {order}-state "
+            f"model needs {L} (a sine gives 2): {RECORDING_ADVICE}")
+    return {"persistent_excitation_rows": L, "hankel_singular_ratio": ratio}
+
+
+def nrmse(y: Array, yhat: Array) -> list[float]:
+    """Fit per output, 100 (1 - ||y - yhat|| / ||y - mean(y)||) %."""
+    num = np.linalg.norm(y - yhat, axis=0)
+    den = np.linalg.norm(y - y.mean(axis=0), axis=0)
+    return [float(100.0 * (1.0 - a / b)) if b > 0 else float("nan") for a, b in zip(num, den,
+                                                                                     strict=True)]
+
+
+def _acf(x: Array, lags: int) -> Array:
+    x = x - x.mean()
+    d = float(x @ x)
+    return np.array([float(x[k:] @ x[:x.size - k]) / d for k in range(1, lags + 1)])
+
+
+def whiteness_test(w: Array, lags: int = LAGS, dof_used: int = 0) -> dict[str, object]:
+    """Autocorrelation of each normalised innovation with the CONFIDENCE band, and the
+    Ljung-Box statistic Q = N (N+2) sum r_k^2 / (N - k), chi-square with lags - dof_used
+    degrees of freedom. Passes when every output's p-value is above 1 - CONFIDENCE."""
+    N, p = w.shape
+    band = float(scipy.stats.norm.ppf(0.5 + CONFIDENCE / 2) / math.sqrt(N))
+    acfs, qs, pv = [], [], []
+    k = np.arange(1, lags + 1)
+    for i in range(p):
+        r = _acf(w[:, i], lags)
+        q = float(N * (N + 2) * np.sum(r**2 / (N - k)))
+        acfs.append(r.tolist())
+        qs.append(q)
+        pv.append(float(scipy.stats.chi2.sf(q, max(1, lags - dof_used))))
+    return {
+        "lags": lags,
+        "confidence": CONFIDENCE,
+        "band": band,
+        "autocorrelation": acfs,
+        "ljung_box_q": qs,
+        "p_value": pv,
+        "variance": [float(v) for v in np.var(w, axis=0)],
+        "passed": bool(min(pv) > 1 - CONFIDENCE),
+    }
+
+
+def cross_correlation_test(w: Array, u: Array, lags: int = LAGS) -> dict[str, object]:
+    """Correlation of each normalised innovation with past inputs (lags 0..lags) with the
+    CONFIDENCE band, and the joint test: N R^2 of the regression of the innovation on the
+    lagged centred inputs is chi-square with rank(regressors) degrees of freedom when the
+    innovation is white and independent of the input (valid for a coloured input, unlike a
+    sum of squared correlations). Passes when every output's p-value is above
+    1 - CONFIDENCE."""
+    N, p = w.shape
+    m = u.shape[1]
+    uc = u - u.mean(axis=0)
+    band = float(scipy.stats.norm.ppf(0.5 + CONFIDENCE / 2) / math.sqrt(N))
+    X = np.column_stack([uc[lags - k:N - k, j] for j in range(m) for k in range(lags + 1)])
+    X = X / (np.std(X, axis=0) + 1e-300)
+    values, stats, pv = [], [], []
+    for i in range(p):
+        e = w[:, i] - w[:, i].mean()
+        per_u = []
+        for j in range(m):
+            uj = uc[:, j]
+            den = math.sqrt(float(e @ e) * float(uj @ uj)) or 1.0
+            per_u.append([float(e[k:] @ uj[:N - k]) / den for k in range(lags + 1)])
+        values.append(per_u)
+        ee = e[lags:]
+        coef, _, rank, _ = np.linalg.lstsq(X, ee, rcond=1e-8)
+        fit = X @ coef
+        r2 = float(fit @ fit) / float(ee @ ee)
+        stat = ee.size * r2
+        stats.append(stat)
+        pv.append(float(scipy.stats.chi2.sf(stat, max(1, int(rank)))))
+    return {
+        "lags": lags,
+        "confidence": CONFIDENCE,
+        "band": band,
+        "correlation": values,
+        "statistic": stats,
+        "p_value": pv,
+        "passed": bool(min(pv) > 1 - CONFIDENCE),
+    }
+
+
+def fitted_x0_sim(A: Array, B: Array, C: Array, u: Array, y: Array) -> Array:
+    """Simulated output of (A, B, C) on a record from its best (least-squares) initial
+    state."""
+    n = A.shape[0]
+    N, p = y.shape
+    ys = dsim(A, B, C, u)
+    Phi = np.column_stack([dsim(A, np.zeros((n, 1)), C, np.zeros((N, 1)), np.eye(n)[i]).ravel()
+                           for i in range(n)])
+    coef, *_ = np.linalg.lstsq(Phi, (y - ys).ravel(), rcond=None)
+    return np.asarray(ys + (Phi @ coef).reshape(N, p))
+
+
+def consistency_drop(first: tuple[Array, Array, Array], second: tuple[Array, Array, Array],
+                     halves: tuple[tuple[Array, Array], tuple[Array, Array]]) -> list[float]:
+    """Per half: how many NRMSE points the other half's model fits it worse than its own
+    (the largest over the outputs)."""
+    out = []
+    for own, other, (u, y) in ((first, second, halves[0]), (second, first, halves[1])):
+        f_own = nrmse(y, fitted_x0_sim(*own, u, y))
+        f_other = nrmse(y, fitted_x0_sim(*other, u, y))
+        out.append(max(a - b for a, b in zip(f_own, f_other, strict=True)))
+    return out
