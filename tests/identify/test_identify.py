@@ -171,8 +171,9 @@ def test_innovations_are_white_with_unit_variance(which: str, request) -> None:
     assert rep["mean_nis_kalman_holdout"] == pytest.approx(p, rel=0.1)
     for v in rep["whiteness"]["variance"]:
         assert v == pytest.approx(1.0, rel=0.1)
-    # The monitor's own filter agrees, and sees no fault in the healthy capture.
-    assert rep["fuzzy_ukf"]["mean_nis_holdout"] == pytest.approx(p, rel=0.2)
+    # The monitor's own filter sees no fault in the healthy capture. Its NIS divides by
+    # S plus the consequents' variance (gamma^ is uncertain too), so it sits below p.
+    assert 0.5 * p < rep["fuzzy_ukf"]["mean_nis_holdout"] < 1.2 * p
     assert max(rep["fuzzy_ukf"]["gamma_mean_holdout"]) < 0.05
 
 
