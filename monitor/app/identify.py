@@ -122,6 +122,7 @@ def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
         mp: DCMotorParameters = ident.motor
         model.update(kind="dc_motor", J=mp.J, b=mp.b, Ke=mp.Ke, Ki=mp.Ki, Ra=mp.Ra, La=mp.La,
                      process_noise=float(ident.q),
+                     speed_noise_ratio=float(ident.report.get("speed_noise_ratio_kappa", 1.0)),
                      output_sigma=float(math.sqrt(float(ident.R[0, 0]))))
     else:
         md = ident.model

@@ -776,6 +776,7 @@ def dc_motor(
     params: DCMotorParameters | None = None,
     q: float = 1.44,
     r: float = 0.25,
+    speed_noise_ratio: float = 1.0,
 ) -> ContinuousDescriptor:
     """The DC motor (63-67) as a continuous descriptor model, states [i, omega, theta].
 
@@ -787,7 +788,10 @@ def dc_motor(
     equation Ra i + Ke omega = u (index 1). The paper's printed (67) writes Ke/La in the
     first row with the wrong sign and 1 in place of omega in the third; (63)-(65) are used.
     `q` is the process-noise intensity per second on each state (the paper's Q = 1.44 I
-    read at its T = 1 s), `r` the current-sensor variance in A^2 (R = 0.25).
+    read at its T = 1 s), `r` the current-sensor variance in A^2 (R = 0.25);
+    `speed_noise_ratio` scales the intensity on speed and angle relative to the current's
+    (1 in the paper; `monitor.identify` fits it, since a J known only up to scale rescales
+    the speed state).
     """
     p = params or DCMotorParameters()
     for name in ("J", "b", "Ke", "Ki", "Ra"):
@@ -802,7 +806,9 @@ def dc_motor(
     # Q is given on the physical states; in descriptor form the noise enters E x' so
     # scale it by E to keep the paper's per-state intensity where E is invertible.
     Eq = np.diag([p.La if p.La > 0 else 1.0, p.J, 1.0])
-    Qc = Eq @ (q * np.eye(3)) @ Eq
+    if not (math.isfinite(speed_noise_ratio) and speed_noise_ratio > 0):
+        raise ModelError(f"speed_noise_ratio must be positive, got {speed_noise_ratio}")
+    Qc = Eq @ (q * np.diag([1.0, speed_noise_ratio, speed_noise_ratio])) @ Eq
     return ContinuousDescriptor(
         E=E,
         A=A,

@@ -125,13 +125,10 @@ def _fit_motor(u: Array, y: Array, T: float, template: DCMotorParameters,
     sub, _ = subspace_model(u, y, 2)
     fit = fit_dc_motor(u, y, T, template, sub)
     prm = fit.params
-    base = dc_motor(prm, q=fit.q, r=fit.r)
-    # dc_motor's Qc = q E I E; the fitted speed-noise ratio kappa: q E diag(1, k, k) E.
-    Q0 = np.diag([1.0, fit.kappa, fit.kappa])
-    model = ContinuousDescriptor(E=base.E, A=base.A, B=base.B, C=base.C,
-                                 Qc=fit.q * base.E @ Q0 @ base.E, R=base.R,
-                                 state_names=base.state_names, input_names=names[0],
-                                 output_names=names[1])
+    base = dc_motor(prm, q=fit.q, r=fit.r, speed_noise_ratio=fit.kappa)
+    model = ContinuousDescriptor(E=base.E, A=base.A, B=base.B, C=base.C, Qc=base.Qc,
+                                 R=base.R, state_names=base.state_names,
+                                 input_names=names[0], output_names=names[1])
     params = {k: {"value": float(getattr(prm, k)),
                   "std": float(getattr(prm, k)) * fit.log_std[k]} for k in
               ("La", "Ra", "b", "Ke", "Ki")}

@@ -219,7 +219,8 @@ def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
     try:
         if spec.kind == "dc_motor":
             params = replace(DCMotorParameters(), **spec.motor)
-            return dc_motor(params, q=spec.process_noise, r=spec.output_sigma[0] ** 2)
+            return dc_motor(params, q=spec.process_noise, r=spec.output_sigma[0] ** 2,
+                            speed_noise_ratio=spec.speed_noise_ratio)
         from monitor.estimation.model import model_from_matrices
 
         return model_from_matrices(

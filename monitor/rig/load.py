@@ -295,8 +295,10 @@ def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
                        f"names {m} input(s) and {p} output(s)")
         motor = {k: t.number(k) for k in _MOTOR_KEYS if k in t.data}
         q = t.number("process_noise", 1.44, at_least=0.0)
+        kappa = t.number("speed_noise_ratio", 1.0, positive=True)
         sigma = t.number("output_sigma", 0.5, positive=True)
-        return ModelSpec("dc_motor", motor=motor, process_noise=q, output_sigma=(sigma,)), rate
+        return ModelSpec("dc_motor", motor=motor, process_noise=q, speed_noise_ratio=kappa,
+                         output_sigma=(sigma,)), rate
     if kind == "state_space":
         domain = t.take("domain", str, "continuous")
         if domain not in ("continuous", "discrete"):

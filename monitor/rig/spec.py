@@ -71,6 +71,7 @@ class ModelSpec:
     kind: ModelKind = "dc_motor"
     motor: Mapping[str, float] = field(default_factory=dict)  # J, b, Ke, Ki, Ra, La
     process_noise: float = 1.44
+    speed_noise_ratio: float = 1.0
     output_sigma: tuple[float, ...] = (0.5,)
     domain: Literal["continuous", "discrete"] = "continuous"
     matrices: Mapping[str, tuple[tuple[float, ...], ...]] = field(default_factory=dict)
