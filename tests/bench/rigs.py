@@ -101,7 +101,9 @@ def run_case(model: ContinuousDescriptor, truth: ContinuousDescriptor, scenario:
     rep = np.empty(N, dtype=np.int64)
     t0 = time.perf_counter()
     for k in range(N):
-        gk = float(est.step(run.u[k], run.y[k], T).gamma.max())
+        # y[k] is measured before u[k] is applied: the input over the step ending at y[k]
+        # is u[k-1] (on a bus, the latest command received before the output frame)
+        gk = float(est.step(run.u[max(k - 1, 0)], run.y[k], T).gamma.max())
         g[k] = gk
         clf.update(float(run.t[k]), gk)
         rep[k] = int(clf.state)
