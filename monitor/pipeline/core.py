@@ -41,7 +41,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import can
 import numpy as np
@@ -66,7 +66,10 @@ from monitor.estimation.model import (
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import Counters
 from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
-from monitor.sinks.base import Sink
+from monitor.sinks import base as sinks
+
+if TYPE_CHECKING:
+    from monitor.sinks.base import Sink
 
 __all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 
@@ -197,7 +200,8 @@ class MonitorPipeline:
         publisher); by default the pipeline starts its own."""
         self.db = db
         self.cfg = cfg or MonitorConfig()
-        self.sink: Sink = sink if sink is not None else Sink()
+        # the module, not the class: sinks import the events of this package
+        self.sink: Sink = sink if sink is not None else sinks.Sink()
         self.counters = counters if counters is not None else Counters()
         self.nodes: dict[int, NodeMonitor] = {}
         self._warn = _RateLimitedLog()

@@ -3,10 +3,7 @@ retention by count and total size."""
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import re
 import time
 import uuid
 from collections.abc import Mapping, Sequence
@@ -15,13 +12,13 @@ from typing import Any, Final
 
 import rerun as rr
 
+from monitor.files import FileSeries
 from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet, RerunSink
 
 __all__ = ["RotatingRerunSink"]
 
 _log = logging.getLogger(__name__)
 
-_PREFIX_RE: Final = re.compile(r"[A-Za-z0-9_.-]+")
 _RETRY_MAX_S: Final = 60.0
 
 
@@ -92,14 +89,6 @@ class RotatingRerunSink(RecordingOutlet):
             raise ValueError("max_bytes must be >= 1 (or None)")
         if max_age_s is not None and not max_age_s > 0:
             raise ValueError("max_age_s must be > 0 (or None)")
-        if keep is not None and keep < 1:
-            raise ValueError("keep must be >= 1 (or None)")
-        if max_total_bytes is not None and (
-            max_total_bytes < 1 or (max_bytes is not None and max_total_bytes < max_bytes)
-        ):
-            raise ValueError("max_total_bytes must be >= max_bytes (or None)")
-        if not _PREFIX_RE.fullmatch(prefix):
-            raise ValueError(f"prefix must match [A-Za-z0-9_.-]+: {prefix!r}")
         self.directory = Path(directory)
         self.max_bytes = max_bytes
         self.max_age_s = None if max_age_s is None else float(max_age_s)
@@ -109,16 +98,16 @@ class RotatingRerunSink(RecordingOutlet):
         self.recording_id = recording_id if recording_id is not None else uuid.uuid4().hex
         self.rotations = 0
         """Files closed by rotation so far."""
-        self._pattern = re.compile(re.escape(prefix) + r"-(\d{8}T\d{6})-(\d{4,})\.rrd")
         self._flush_interval_s = float(flush_interval_s)
         self._closed = False
         self._last_flush = time.monotonic()
         self._retry_at = 0.0
         self._retry_s = 1.0
 
-        self.directory.mkdir(parents=True, exist_ok=True)
-        self._seq = 1 + max((seq for _, seq, _ in self._scan()), default=-1)
-        path = self._next_path()
+        self._series = FileSeries(directory, prefix, ".rrd", keep=keep,
+                                  max_total_bytes=max_total_bytes, max_bytes=max_bytes,
+                                  label="rerun sink")
+        path = self._series.next_path()
         common: dict[str, Any] = {
             "application_id": application_id, "recording_id": self.recording_id,
             "nodes": nodes, "f1": f1, "f2": f2, "batch_size": batch_size,
@@ -131,7 +120,7 @@ class RotatingRerunSink(RecordingOutlet):
         self._enabled = rr.is_enabled(self._file.recording)
         self._live: RerunSink | None = None
         try:
-            self._prune()
+            self._series.prune(self._path)
             if connect_url is not None:
                 self._live = RerunSink(connect_url=connect_url, **common)
         except BaseException:
@@ -197,7 +186,7 @@ class RotatingRerunSink(RecordingOutlet):
         return the path being written (the old one if the new one could not be created)."""
         if self._closed:
             return self._path
-        path = self._next_path()
+        path = self._series.next_path()
         started = time.monotonic()
         old = self._path
         try:
@@ -220,11 +209,11 @@ class RotatingRerunSink(RecordingOutlet):
         _log.info(
             "rerun sink: closed %s (%s bytes) in %.3f s, recording to %s",
             old,
-            self._size(old),
+            FileSeries.size(old),
             self._opened - started,
             path,
         )
-        self._prune()
+        self._series.prune(self._path)
         return path
 
     def close(self, timeout_s: float = 10.0) -> None:
@@ -260,7 +249,7 @@ class RotatingRerunSink(RecordingOutlet):
 
     def files(self) -> list[Path]:
         """The files of this pattern in the directory, oldest first (the current one last)."""
-        return [p for _, _, p in self._scan()]
+        return self._series.files()
 
     # -- internals --------------------------------------------------------------------------
 
@@ -273,60 +262,7 @@ class RotatingRerunSink(RecordingOutlet):
         if self.max_age_s is not None and now - self._opened >= self.max_age_s:
             return True
         if self.max_bytes is not None:
-            size = self._size(self._path)
+            size = FileSeries.size(self._path)
             # removed under us: start a new file rather than write into an unlinked one
             return size is None or size >= self.max_bytes
         return False
-
-    @staticmethod
-    def _size(path: Path) -> int | None:
-        try:
-            return os.stat(path).st_size
-        except OSError:
-            return None
-
-    def _scan(self) -> list[tuple[str, int, Path]]:
-        """(UTC stamp, sequence number, path) of this pattern's files, oldest first."""
-        out: list[tuple[str, int, Path]] = []
-        try:
-            names = os.listdir(self.directory)
-        except OSError:
-            return out
-        for name in names:
-            m = self._pattern.fullmatch(name)
-            if m is not None:
-                out.append((m.group(1), int(m.group(2)), self.directory / name))
-        out.sort()
-        return out
-
-    def _next_path(self) -> Path:
-        with contextlib.suppress(OSError):  # if it fails, creating the file reports it
-            self.directory.mkdir(parents=True, exist_ok=True)
-        stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
-        while True:
-            path = self.directory / f"{self.prefix}-{stamp}-{self._seq:04d}.rrd"
-            self._seq += 1
-            if not path.exists():
-                return path
-
-    def _prune(self) -> None:
-        """Delete the oldest closed files beyond ``keep`` and ``max_total_bytes``."""
-        if self.keep is None and self.max_total_bytes is None:
-            return
-        closed = [p for _, _, p in self._scan() if p != self._path]
-        sizes = [self._size(p) or 0 for p in closed]
-        count = len(closed) + 1  # with the current file
-        total = sum(sizes)
-        room = (
-            None if self.max_total_bytes is None else self.max_total_bytes - (self.max_bytes or 0)
-        )
-        for p, size in zip(closed, sizes, strict=True):
-            if (self.keep is None or count <= self.keep) and (room is None or total <= room):
-                break
-            try:
-                p.unlink(missing_ok=True)
-                _log.info("rerun sink: deleted %s (%d bytes)", p, size)
-            except OSError as exc:
-                _log.warning("rerun sink: cannot delete %s: %s", p, exc)
-            count -= 1
-            total -= size
