@@ -19,6 +19,7 @@ import logging
 import sys
 import time
 from contextlib import suppress
+from pathlib import Path
 from typing import Any
 
 import can
@@ -30,6 +31,7 @@ from monitor.app.notify import Notifier
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.faults import socket_drops
+from monitor.bus.rawlog import RotatingBusLog
 from monitor.bus.rigcodec import RigCodec
 from monitor.errors import UsageError
 from monitor.pipeline import Counters, MonitorPipeline
@@ -88,6 +90,20 @@ def _freshness(db: MotorDatabase | RigCodec, path: str | None) -> FreshnessSaver
     return FreshnessSaver(db.secoc, path, FRESHNESS_SAVE_PERIOD_S)
 
 
+def _raw_log(args: argparse.Namespace) -> RotatingBusLog | None:
+    if not args.raw_dir:
+        return None
+    if not Path(args.raw_dir).is_dir():
+        raise UsageError(f"--raw-dir: directory {args.raw_dir} does not exist")
+    try:
+        return RotatingBusLog(args.raw_dir, suffix=f".{args.raw_format}",
+                              max_bytes=int(args.rotate_mb * 2**20),
+                              max_age_s=args.rotate_minutes * 60.0, keep=args.keep,
+                              max_total_bytes=int(args.max_total_gb * 2**30))
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"--raw-dir: cannot start the raw bus log: {exc}") from None
+
+
 def run_live(args: argparse.Namespace) -> int:
     rig = options.rig(args)
     db = options.database(args, rig)
@@ -99,6 +115,7 @@ def run_live(args: argparse.Namespace) -> int:
         MonitorPipeline(db, cfg)
         live = _LiveBus(args)
         try:
+            raw = _raw_log(args)
             recording = outputs.rerun_sink(args, cfg)
             events = outputs.event_lines(args.events, to_stdout=False)
         except BaseException:
@@ -112,8 +129,10 @@ def run_live(args: argparse.Namespace) -> int:
         sink = FanOut(sinks)
         pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)
         try:
-            _loop(args, pipe, sink, live, fresh, stop)
+            _loop(args, pipe, sink, live, fresh, stop, raw)
         finally:
+            if raw is not None:
+                raw.stop()
             if fresh is not None:
                 failed = fresh.final()
                 if failed is not None:
@@ -130,7 +149,8 @@ def run_live(args: argparse.Namespace) -> int:
 
 
 def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _LiveBus,
-          fresh: FreshnessSaver | None, stop: StopOnSignals) -> None:
+          fresh: FreshnessSaver | None, stop: StopOnSignals,
+          raw: RotatingBusLog | None) -> None:
     where = f"{args.interface or '<config>'}:{args.channel or '<config>'}"
     log.warning("monitoring %s, nodes %s", where,
                 "all" if pipe.cfg.nodes is None else pipe.cfg.nodes)
@@ -150,6 +170,8 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                 last_tick = now
                 pipe.tick(now)
                 sink.maybe_flush(mono)
+                if raw is not None:
+                    raw.maybe_flush(mono)
                 if fresh is not None:
                     fresh.maybe_save(mono)
                 drops = None if live.bus is None else socket_drops(live.bus)
@@ -188,6 +210,8 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                 backoff = 0.1
                 down_since = None
             if msg is not None:
+                if raw is not None:
+                    raw(msg)  # every frame, whatever the pipeline makes of it
                 pipe.feed(msg)
     finally:
         notifier.stopping("flushing the recording")
@@ -220,6 +244,12 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     r.add_argument("--secoc-state", default=None, metavar="FILE",
                    help="persist SecOC freshness here (with --key): restarts resume at once")
     r.add_argument("--max-total-gb", type=options.positive_float, default=20.0,
-                   help="recordings in DIR never exceed this, GiB (default 20)")
+                   help="recordings in DIR never exceed this, GiB (default 20; the same for "
+                   "the raw logs in --raw-dir)")
+    r.add_argument("--raw-dir", default=None, metavar="DIR",
+                   help="write every received frame to rotating bus logs in DIR (the lossless "
+                   "record: replay re-diagnoses them), same rotation and retention")
+    r.add_argument("--raw-format", choices=("blf", "log"), default="blf",
+                   help="raw bus log format: Vector BLF (default) or candump .log")
     options.add_monitor_options(r)
     r.set_defaults(func=run_live)

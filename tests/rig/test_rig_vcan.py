@@ -33,8 +33,9 @@ wait_for() {  # FILE PATTERN SECONDS
 }
 candump -L vcan0 > cap.log 2> candump.err &
 DUMP=$!
+mkdir -p raw
 motor-monitor run --interface socketcan --channel vcan0 --rig "$RIG" --nodes 2 \
-    --events "$OUT/ev.jsonl" 2> mon.err &
+    --events "$OUT/ev.jsonl" --raw-dir "$OUT/raw" 2> mon.err &
 MON=$!
 if wait_for mon.err "monitoring" 150; then echo "ready=1"
 else echo "ready=0"; kill $MON $DUMP; exit 3; fi
@@ -97,3 +98,12 @@ def test_user_rig_on_vcan(vcan: RunOnVcan, tmp_path: Path) -> None:
                                                             for e in live]
     # candump prints microseconds: the same frames, to its resolution
     assert all(abs(a["t"] - b["t"]) <= 2e-6 for a, b in zip(again, live, strict=True))
+
+    # The monitor's own raw record (BLF, kernel timestamps) replays to exactly the live
+    # events: the raw bus is the record a diagnosis can be re-run from.
+    (raw,) = (tmp_path / "raw").glob("bus-*.blf")
+    rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(raw), "--rig", str(RIG),
+                          "--nodes", "2"], capture_output=True, text=True, timeout=300)
+    assert rep.returncode == 0, rep.stderr
+    from_raw = [json.loads(x) for x in rep.stdout.splitlines()]
+    assert from_raw == events
