@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import entry_points
 
-from monitor.app import calibrate, identify, replay, run
+from monitor.app import calibrate, identify, replay, run, status
 from monitor.app.options import OneLineParser
 from monitor.errors import MonitorError
 
@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_command(sub)
     calibrate.add_command(sub)
     identify.add_command(sub)
+    status.add_command(sub)
     for ep in sorted(entry_points(group=COMMANDS_GROUP), key=lambda e: e.name):
         ep.load()(sub)
     return p

@@ -33,11 +33,14 @@ from monitor.bus.codec import MotorDatabase
 from monitor.bus.faults import socket_drops
 from monitor.bus.rawlog import RotatingBusLog
 from monitor.bus.rigcodec import RigCodec
+from monitor.bus.stats import BusStats
 from monitor.errors import UsageError
 from monitor.pipeline import Counters, MonitorPipeline
 from monitor.pipeline import counters as C
 from monitor.sinks.base import FanOut, Sink
+from monitor.sinks.journal import JournalSink, journal_available
 from monitor.sinks.log import LogSink
+from monitor.sinks.metrics import MetricsSink
 from monitor.sinks.publisher import BusPublisher
 
 __all__ = ["add_command", "run_live"]
@@ -122,14 +125,23 @@ def run_live(args: argparse.Namespace) -> int:
             live.drop()
             raise
         counters = Counters()
+        bus_stats = BusStats(bitrate=float(args.bitrate or args.nominal_bitrate))
         sinks: list[Sink] = [LogSink()]
+        if journal_available():
+            sinks.append(JournalSink())
+        if args.metrics:
+            try:
+                sinks.append(MetricsSink(args.metrics, bus=bus_stats))
+            except ValueError as exc:
+                live.drop()
+                raise UsageError(f"--metrics: {exc}") from None
         if isinstance(db, MotorDatabase):  # MonitorDiagnosis frames exist on our bus only
             sinks.append(BusPublisher(db, live.send, counters))
         sinks += [s for s in (recording, events) if s is not None]
         sink = FanOut(sinks)
         pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)
         try:
-            _loop(args, pipe, sink, live, fresh, stop, raw)
+            _loop(args, pipe, sink, live, fresh, stop, raw, bus_stats)
         finally:
             if raw is not None:
                 raw.stop()
@@ -150,7 +162,7 @@ def run_live(args: argparse.Namespace) -> int:
 
 def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _LiveBus,
           fresh: FreshnessSaver | None, stop: StopOnSignals,
-          raw: RotatingBusLog | None) -> None:
+          raw: RotatingBusLog | None, bus_stats: BusStats) -> None:
     where = f"{args.interface or '<config>'}:{args.channel or '<config>'}"
     log.warning("monitoring %s, nodes %s", where,
                 "all" if pipe.cfg.nodes is None else pipe.cfg.nodes)
@@ -212,6 +224,7 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
             if msg is not None:
                 if raw is not None:
                     raw(msg)  # every frame, whatever the pipeline makes of it
+                bus_stats(msg)
                 pipe.feed(msg)
     finally:
         notifier.stopping("flushing the recording")
@@ -251,5 +264,11 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    "record: replay re-diagnoses them), same rotation and retention")
     r.add_argument("--raw-format", choices=("blf", "log"), default="blf",
                    help="raw bus log format: Vector BLF (default) or candump .log")
+    r.add_argument("--metrics", default=None, metavar="FILE.prom",
+                   help="write Prometheus metrics here every 5 s (node_exporter's textfile "
+                   "collector directory); `motor-monitor status` reads them")
+    r.add_argument("--nominal-bitrate", type=int, default=500_000,
+                   help="the bus's bit rate for the bus-load figure when --bitrate is not "
+                   "given (default 500000; vcan has none)")
     options.add_monitor_options(r)
     r.set_defaults(func=run_live)

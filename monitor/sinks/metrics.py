@@ -1,0 +1,171 @@
+"""Bus and monitor health for operators: Prometheus / OpenMetrics text through
+node_exporter's textfile collector.
+
+`MetricsSink` keeps the latest figures it is handed (per node: health state, gamma^, the
+windowed NIS, estimation latency; the pipeline's counters; the bus statistics of
+`monitor.bus.stats.BusStats`) and every `period_s` writes them to a ``.prom`` file with
+`prometheus_client.write_to_textfile` (a temporary file renamed over the old one, so
+node_exporter never reads half a file and the hardened unit needs no IP socket). The
+exposition is prometheus_client's; the names:
+
+    motor_monitor_node_health_state{node}          0 fault_free .. 4 model_mismatch
+    motor_monitor_node_gamma{node}                 latest gamma^
+    motor_monitor_node_nis{node}                   windowed NIS (p when the model fits)
+    motor_monitor_node_samples_total{node}
+    motor_monitor_estimation_latency_seconds       histogram: frame timestamp to estimate
+    motor_monitor_events_total{name}               every pipeline counter (frames/received,
+                                                   rejected/<reason>, bus/errors/<condition>,
+                                                   e2e/lost_frames, bus/socket_drops, ...)
+    motor_monitor_bus_load_ratio                   share of the bit rate, last second
+    motor_monitor_bus_frames_total / _error_frames_total
+    motor_monitor_id_frames_total{id}, motor_monitor_id_period_seconds{id},
+    motor_monitor_id_jitter_seconds{id}            per arbitration ID
+    motor_monitor_up, motor_monitor_last_write_timestamp_seconds
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+
+from prometheus_client import CollectorRegistry, Histogram, write_to_textfile
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+from monitor.bus.stats import BusStats
+from monitor.pipeline.events import Sample
+from monitor.sinks.base import Sink
+
+__all__ = ["MetricsSink"]
+
+log = logging.getLogger(__name__)
+
+PREFIX = "motor_monitor"
+_LATENCY_BUCKETS = (1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 1.0)
+
+
+class _Figures(Collector):
+    """The latest figures, as metric families at collect time (counters mirrored, not
+    re-counted: the pipeline's counters are the one source)."""
+
+    def __init__(self, bus: BusStats | None) -> None:
+        self.bus = bus
+        self.counters: Mapping[str, int] = {}
+        self.nodes: dict[int, Sample] = {}
+        self.samples: dict[int, int] = {}
+        self.nis: dict[int, float] = {}
+
+    def collect(self) -> Iterator[Metric]:
+        up = GaugeMetricFamily(f"{PREFIX}_up", "1 while the monitor runs")
+        up.add_metric([], 1.0)
+        yield up
+        written = GaugeMetricFamily(f"{PREFIX}_last_write_timestamp_seconds",
+                                    "when this file was written (Unix time)")
+        written.add_metric([], time.time())
+        yield written
+        ev = CounterMetricFamily(f"{PREFIX}_events", "the pipeline's counters: every frame's "
+                                 "outcome, bus errors, publication", labels=["name"])
+        for name, value in sorted(self.counters.items()):
+            ev.add_metric([name], float(value))
+        yield ev
+        state = GaugeMetricFamily(f"{PREFIX}_node_health_state", "0 fault_free, 1 fault, "
+                                  "2 outage, 3 no_data, 4 model_mismatch", labels=["node"])
+        gamma = GaugeMetricFamily(f"{PREFIX}_node_gamma", "estimated loss of effectiveness",
+                                  labels=["node"])
+        nis = GaugeMetricFamily(f"{PREFIX}_node_nis", "normalised innovation squared, "
+                                "windowed", labels=["node"])
+        samples = CounterMetricFamily(f"{PREFIX}_node_samples", "estimated samples",
+                                      labels=["node"])
+        for n, s in sorted(self.nodes.items()):
+            state.add_metric([str(n)], float(int(s.state)))
+            gamma.add_metric([str(n)], s.gamma)
+            nis.add_metric([str(n)], self.nis.get(n, math.nan))
+            samples.add_metric([str(n)], float(self.samples.get(n, 0)))
+        yield from (state, gamma, nis, samples)
+        bus = self.bus
+        if bus is None:
+            return
+        load = GaugeMetricFamily(f"{PREFIX}_bus_load_ratio", "share of the bit rate the "
+                                 "frames took over the last second (worst-case stuffing)")
+        load.add_metric([], bus.load)
+        frames = CounterMetricFamily(f"{PREFIX}_bus_frames", "frames received")
+        frames.add_metric([], float(bus.frames))
+        errors = CounterMetricFamily(f"{PREFIX}_bus_error_frames", "error frames received")
+        errors.add_metric([], float(bus.error_frames))
+        per = CounterMetricFamily(f"{PREFIX}_id_frames", "frames per arbitration ID",
+                                  labels=["id"])
+        period = GaugeMetricFamily(f"{PREFIX}_id_period_seconds", "mean spacing of an ID's "
+                                   "frames", labels=["id"])
+        jitter = GaugeMetricFamily(f"{PREFIX}_id_jitter_seconds", "standard deviation of an "
+                                   "ID's frame spacing", labels=["id"])
+        for (fid, ext), st in sorted(bus.ids.items()):
+            label = f"0x{fid:08X}" if ext else f"0x{fid:03X}"
+            per.add_metric([label], float(st.frames))
+            period.add_metric([label], st.period_s)
+            jitter.add_metric([label], st.jitter_s)
+        yield from (load, frames, errors, per, period, jitter)
+
+
+class MetricsSink(Sink):
+    """Writes the monitor's figures to `path` (a ``.prom`` file in node_exporter's textfile
+    directory) every `period_s`, and at close. `live` measures estimation latency (frame
+    timestamp to estimate, wall clock): off for replays."""
+
+    def __init__(self, path: str | Path, *, bus: BusStats | None = None,
+                 period_s: float = 5.0, live: bool = True, nis_window_s: float = 2.0) -> None:
+        self.path = Path(path)
+        if self.path.suffix != ".prom":
+            raise ValueError(f"{self.path}: node_exporter's textfile collector reads *.prom")
+        if not self.path.parent.is_dir():
+            raise ValueError(f"{self.path.parent}: no such directory")
+        self.period_s = period_s
+        self.live = live
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.figures = _Figures(bus)
+        self.registry.register(self.figures)
+        self.latency = Histogram(f"{PREFIX}_estimation_latency_seconds", "from a frame's "
+                                 "timestamp to its estimate (wall clock)",
+                                 buckets=_LATENCY_BUCKETS, registry=self.registry)
+        self._nis_window_s = nis_window_s
+        self._nis_t: dict[int, float] = {}
+        self._last = -math.inf
+        self._failing = False
+
+    def on_sample(self, sample: Sample) -> None:
+        f = self.figures
+        n = sample.node
+        f.nodes[n] = sample
+        f.samples[n] = f.samples.get(n, 0) + 1
+        prev, last_t = f.nis.get(n), self._nis_t.get(n)
+        self._nis_t[n] = sample.t
+        if prev is None or prev != prev or last_t is None:
+            f.nis[n] = sample.nis
+        else:  # exponential average with a time constant of nis_window_s
+            a = 1.0 - math.exp(-max(sample.t - last_t, 0.0) / self._nis_window_s)
+            f.nis[n] = prev + a * (sample.nis - prev)
+        if self.live:
+            self.latency.observe(max(0.0, time.time() - sample.t))
+
+    def on_counters(self, t: float, counters: Mapping[str, int]) -> None:
+        self.figures.counters = dict(counters)
+
+    def maybe_flush(self, now_monotonic: float) -> None:
+        if now_monotonic - self._last >= self.period_s:
+            self._last = now_monotonic
+            self.flush()
+
+    def flush(self) -> None:
+        try:
+            write_to_textfile(str(self.path), self.registry)
+        except OSError as exc:  # logged once per burst; the monitor keeps running
+            if not self._failing:
+                log.error("cannot write metrics to %s: %s", self.path, exc)
+            self._failing = True
+        else:
+            self._failing = False
+
+    def close(self) -> None:
+        self.flush()
