@@ -43,6 +43,7 @@ import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
 
+from monitor.app.replay import feed_log
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.pipeline import DiagnosisEvent, MonitorConfig
 from sim_ecu import VirtualECU
@@ -324,13 +325,7 @@ def ecu_sent(stderr: str) -> dict[str, int]:
 
 def offline_events(mdb: MotorDatabase, frames: Iterable[can.Message]) -> list[DiagnosisEvent]:
     events: list[DiagnosisEvent] = []
-    pipe = pipeline(mdb, MonitorConfig(nodes=(0,)), events=events)
-    last_tick = -np.inf
-    for msg in frames:
-        pipe.feed(msg)
-        if msg.timestamp - last_tick >= 0.05:
-            last_tick = msg.timestamp
-            pipe.tick(msg.timestamp)
+    feed_log(pipeline(mdb, MonitorConfig(nodes=(0,)), events=events), frames)
     return events
 
 

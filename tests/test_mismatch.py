@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import can
 
+from monitor.app.replay import feed_log
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.diagnosis import HealthState
 from monitor.pipeline import DiagnosisEvent, MonitorConfig
@@ -36,13 +37,7 @@ def _diagnose(db: MotorDatabase, frames: list[can.Message]) -> tuple[
         list[DiagnosisEvent], list[can.Message]]:
     events: list[DiagnosisEvent] = []
     sent: list[can.Message] = []
-    pipe = pipeline(db, MonitorConfig(nodes=(0,)), events=events, sent=sent)
-    last = -1.0
-    for m in frames:
-        pipe.feed(m)
-        if m.timestamp - last >= 0.05:
-            last = m.timestamp
-            pipe.tick(m.timestamp)
+    feed_log(pipeline(db, MonitorConfig(nodes=(0,)), events=events, sent=sent), frames)
     return events, sent
 
 

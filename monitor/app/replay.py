@@ -8,7 +8,7 @@ import argparse
 import math
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import suppress
 from pathlib import Path
 from struct import error as StructError
@@ -61,7 +61,7 @@ def _frames(path: Path, reader: can.io.generic.MessageReader) -> Iterator[can.Me
             reader.stop()
 
 
-def feed_log(pipe: MonitorPipeline, frames: Iterator[can.Message]) -> int:
+def feed_log(pipe: MonitorPipeline, frames: Iterable[can.Message]) -> int:
     """Every frame into `pipe`, with its timeouts checked in bus time; returns the count."""
     last_tick = -math.inf
     n = 0

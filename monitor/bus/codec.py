@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from importlib import resources
@@ -97,6 +97,7 @@ __all__ = [
     "e2e_data_id",
     "frame_id",
     "load_database",
+    "load_dbcs",
 ]
 
 DEFAULT_DBC_NAME: Final = "motor.dbc"
@@ -457,14 +458,20 @@ def load_database(
     decoded, with freshness values accepted up to `secoc_window` ahead of the last one.
     """
     p = default_dbc_path() if path is None else Path(path)
-    try:
-        db = cantools.database.load_file(p, database_format="dbc", strict=True)
-    except FileNotFoundError:
-        raise CodecError(f"{p}: file not found") from None
-    except OSError as exc:
-        raise CodecError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    except Exception as exc:  # cantools/textparser raise many types for a bad DBC
-        raise CodecError(f"{p}: not a valid DBC: {one_line(exc)}") from None
-    if not isinstance(db, Database):
-        raise CodecError(f"{p}: not a CAN database")
-    return MotorDatabase(db, str(p), secoc_key, secoc_window=secoc_window)
+    return MotorDatabase(load_dbcs([p]), str(p), secoc_key, secoc_window=secoc_window)
+
+
+def load_dbcs(paths: Sequence[Path]) -> Database:
+    """One cantools database (strict: overlapping signals are errors) from one or more DBC
+    files; any problem is one `CodecError` line naming the file."""
+    db = Database(strict=True)
+    for p in paths:
+        try:
+            db.add_dbc_file(str(p))
+        except FileNotFoundError:
+            raise CodecError(f"{p}: file not found") from None
+        except OSError as exc:
+            raise CodecError(f"{p}: cannot read: {exc.strerror or exc}") from None
+        except Exception as exc:  # cantools/textparser raise many types for a bad DBC
+            raise CodecError(f"{p}: not a valid DBC: {one_line(exc)}") from None
+    return db

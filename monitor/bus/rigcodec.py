@@ -28,14 +28,14 @@ from cantools.database.can import Database, Message, Signal
 from cantools.database.can.formats.arxml import AutosarEnd2EndProperties, AutosarMessageSpecifics
 from numpy.typing import NDArray
 
-from monitor.bus.codec import Decoded, Rejected, RejectReason
+from monitor.bus.codec import Decoded, Rejected, RejectReason, load_dbcs
 from monitor.bus.errors import CodecError
 from monitor.errors import one_line
 
 if TYPE_CHECKING:
     import can
 
-__all__ = ["Resolver", "RigCodec", "RigMessage", "load_dbcs"]
+__all__ = ["Resolver", "RigCodec", "RigMessage", "load_rig_dbcs"]
 
 
 @dataclass(frozen=True)
@@ -67,18 +67,9 @@ class _Route:
     limits: tuple[tuple[str, float, float], ...]
 
 
-def load_dbcs(paths: Sequence[Path]) -> Database:
-    """One cantools database from one or more DBC files; any problem is one line."""
-    db = Database()
-    for p in paths:
-        try:
-            db.add_dbc_file(str(p))
-        except FileNotFoundError:
-            raise CodecError(f"{p}: file not found") from None
-        except OSError as exc:
-            raise CodecError(f"{p}: cannot read: {exc.strerror or exc}") from None
-        except Exception as exc:  # cantools/textparser raise many types for a bad DBC
-            raise CodecError(f"{p}: not a valid DBC: {one_line(exc)}") from None
+def load_rig_dbcs(paths: Sequence[Path]) -> Database:
+    """`load_dbcs`, and at least one message in them."""
+    db = load_dbcs(paths)
     if not db.messages:
         raise CodecError(f"{', '.join(map(str, paths))}: no messages")
     return db

@@ -15,7 +15,7 @@ from cantools.database.can import Database, Message, Signal
 
 from monitor.bus.codec import MotorDatabase, load_database
 from monitor.bus.errors import CodecError
-from monitor.bus.rigcodec import RigCodec, RigMessage, load_dbcs
+from monitor.bus.rigcodec import RigCodec, RigMessage, load_rig_dbcs
 from monitor.errors import MonitorError
 from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, ModelError, dc_motor
 from monitor.rig.spec import Rig, SignalRef
@@ -186,11 +186,13 @@ def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
         try:
             return load_database(rig.dbc[0], secoc_key=secoc_key)
         except CodecError as exc:
+            if rig.source is None:  # our rig with --dbc: the error names the file already
+                raise
             raise fail("bus.dbc", str(exc)) from None
     if secoc_key is not None:
         raise fail("bus", "SecOC (--key) is available on our own bus only, not on a rig's DBC")
     try:
-        db = load_dbcs(rig.dbc)
+        db = load_rig_dbcs(rig.dbc)
     except CodecError as exc:
         raise fail("bus.dbc", str(exc)) from None
     resolve, found = _resolver(rig, db, fail)

@@ -10,6 +10,7 @@ import can
 import pytest
 
 from monitor.app.options import monitor_config
+from monitor.app.replay import feed_log
 from monitor.pipeline import DiagnosisEvent, MonitorPipeline
 from monitor.rig import build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
@@ -27,14 +28,9 @@ def _run(rig_name: str, scenario: str, node: int, *, drop: int = 0
     ecu = RigECU(None, build_decoder(rig), rig, node, load_scenario(RIGS / scenario), seed=5)
     events: list[DiagnosisEvent] = []
     pipe = pipeline(codec, monitor_config(NO_OVERRIDES, rig), events=events)
-    last = -1.0
-    for i, msg in enumerate(ecu.frames(start_time=1000.0)):
-        if drop and i % drop == 7:
-            continue  # a lossy bus
-        pipe.feed(msg)
-        if msg.timestamp - last >= 0.05:
-            last = msg.timestamp
-            pipe.tick(msg.timestamp)
+    frames = ecu.frames(start_time=1000.0)
+    # a lossy bus drops every `drop`-th frame
+    feed_log(pipe, (m for i, m in enumerate(frames) if not (drop and i % drop == 7)))
     return pipe, events
 
 
