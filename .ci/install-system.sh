@@ -9,10 +9,14 @@
 #   systemd          systemd-analyze (unit file checks), systemd-networkd (vcan0 at boot)
 #   gcc, libc6-dev   build the ahead-of-time estimator kernel (python -m monitor.estimation.kernels_aot)
 #   mesa-vulkan-drivers  software Vulkan for the headless Rerun viewer (tests/test_viewer.py)
+#   mmdebstrap       builds the small Debian root file system of the User-Mode Linux guest that
+#                    runs the units under a real systemd (tests/systemd_guest; built once, cached
+#                    in ~/.cache/motor-monitor/systemd-guest/)
 # Run as root, or as a user with sudo.  Packages already installed are skipped.
 set -euo pipefail
 
-PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev mesa-vulkan-drivers)
+PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev mesa-vulkan-drivers
+          mmdebstrap)
 
 if [[ "$(id -u)" -eq 0 ]]; then
     SUDO=()
@@ -35,9 +39,10 @@ if [[ ${#missing[@]} -eq 0 ]]; then
     echo "install-system.sh: already installed: ${PACKAGES[*]}"
 else
     echo "install-system.sh: installing: ${missing[*]}"
-    "${SUDO[@]}" apt-get update
+    "${SUDO[@]}" apt-get update -qq
     "${SUDO[@]}" env DEBIAN_FRONTEND=noninteractive \
-        apt-get install -y --no-install-recommends "${missing[@]}"
+        apt-get install -y -qq -o Dpkg::Use-Pty=0 --no-install-recommends "${missing[@]}" \
+        >/dev/null
 fi
 
 # Sanity checks: the UML kernel and its vcan module must be where tests/vcan_harness.py looks.
@@ -46,7 +51,7 @@ uml_version="$(/usr/bin/linux.uml --version)"
 vcan_ko="/usr/lib/uml/modules/${uml_version}/kernel/drivers/net/can/vcan.ko"
 test -f "$vcan_ko" || { echo "install-system.sh: $vcan_ko missing" >&2; exit 1; }
 export PATH="$PATH:/usr/sbin:/sbin"
-for tool in insmod ip candump cansend systemd-analyze; do
+for tool in insmod ip candump cansend systemd-analyze mmdebstrap; do
     command -v "$tool" >/dev/null \
         || { echo "install-system.sh: $tool missing" >&2; exit 1; }
 done
