@@ -30,9 +30,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
+
+from monitor.estimation.jit import njit
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -40,7 +41,7 @@ IntArray = NDArray[np.int64]
 __all__ = ["FuzzyConfig", "SelfConstructingFuzzySystem", "fire", "memberships"]
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def memberships(z: float, centres: Array, count: int) -> tuple[int, int, float, float]:
     """Triangular partition on one input: (j0, j1, mu0, mu1), mu0 + mu1 = 1.
 
@@ -57,7 +58,7 @@ def memberships(z: float, centres: Array, count: int) -> tuple[int, int, float, 
     return j, j + 1, 1.0 - w1, w1
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def fire(
     z: Array, centres: Array, counts: IntArray, max_mf: int,
     rule_idx: IntArray, rule_w: Array,
@@ -88,7 +89,7 @@ def fire(
     return nf
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def infer(cons: Array, rule_idx: IntArray, rule_w: Array, nf: int, out: Array) -> None:
     """Weighted-mean output (17), (29), (51) of the firing rules into out (m,)."""
     m = cons.shape[1]

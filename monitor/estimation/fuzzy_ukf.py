@@ -115,12 +115,12 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, fire, infer
+from monitor.estimation.jit import njit
 from monitor.estimation.model import DiscreteModel
 from monitor.estimation.ukf import sigma_weights, spd_inverse, ukf_predict, ukf_update
 
@@ -222,7 +222,7 @@ class EstimatorOutput:
     structure_event: bool = False
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def _rule_variance(var: Array, rule_idx: IntArray, rule_w: Array, nf: int, a: int) -> float:
     """sum xi_j^2 var_j over the firing rules: the part of the variance of the fuzzy output
     gamma^_a = sum xi_j a_j that the rules' own deviations (independent) contribute."""
@@ -239,7 +239,7 @@ def ring_slot_size(n: int, m: int, p: int) -> int:
     return 2 * n + n * n + n * m + 3 * p + 3 * m + 1 + n * p + p * p
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def _fuzzy_ukf_step(
     mdl: Array, u: Array, y: Array, prm: Array, st: Array,
     centres: Array, counts: IntArray, cons: Array, var: Array, rule_idx: IntArray, rule_w: Array,

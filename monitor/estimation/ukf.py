@@ -36,9 +36,10 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from numpy.typing import NDArray
+
+from monitor.estimation.jit import njit
 
 Array = NDArray[np.float64]
 
@@ -126,7 +127,7 @@ def unscented_transform(
 # --------------------------------------------------------------------------- kernels
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def chol_lower(P: Array, L: Array) -> int:
     """Lower Cholesky factor of P into L; returns the number of clamped pivots.
 
@@ -160,7 +161,7 @@ def chol_lower(P: Array, L: Array) -> int:
     return repairs
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def spd_inverse(S: Array, L: Array, Sinv: Array) -> int:
     """Inverse of a small symmetric positive definite matrix through its Cholesky factor."""
     p = S.shape[0]
@@ -180,7 +181,7 @@ def spd_inverse(S: Array, L: Array, Sinv: Array) -> int:
     return rep
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def ukf_predict(
     x: Array, P: Array, A: Array, b: Array, Q: Array, delta: float, wi: float,
     L: Array, d: Array, x_out: Array, P_out: Array,
@@ -215,7 +216,7 @@ def ukf_predict(
     return rep
 
 
-@numba.njit(cache=True, nogil=True)
+@njit
 def ukf_update(
     xp: Array, Pp: Array, C: Array, yoff: Array, R: Array, y: Array, delta: float, wi: float,
     L: Array, Ls: Array, s: Array, dy: Array, Pyy: Array, Pyy_inv: Array, Pxy: Array,
