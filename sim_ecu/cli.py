@@ -34,7 +34,7 @@ from monitor.bus.secoc import load_key
 from monitor.errors import MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.rig import Rig, build_decoder, builtin_rig, load_rig
-from sim_ecu.ecu import ECUStats, VirtualECU, load_motor_parameters
+from sim_ecu.ecu import DEFAULT_MAX_CATCH_UP, ECUStats, VirtualECU, load_motor_parameters
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import BUILTIN_SCENARIOS, load_scenario
 
@@ -88,6 +88,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="run length in s (default: the scenario's; 0: until stopped). Past the "
         "scenario's end its last inputs hold",
     )
+    p.add_argument(
+        "--max-catch-up",
+        type=int,
+        default=DEFAULT_MAX_CATCH_UP,
+        metavar="N",
+        help=f"late samples sent back to back when the process falls behind schedule "
+        f"(default {DEFAULT_MAX_CATCH_UP}); further behind, the missed samples are skipped "
+        "(their alive counters advance, as a real ECU's would) and counted as overruns. A "
+        "large N sends every sample, late, on a loaded machine",
+    )
     p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     p.add_argument("--no-truth", action="store_true", help="do not send SimTruth frames")
     p.add_argument("--dbc", metavar="PATH", help="DBC file (default: the packaged motor.dbc)")
@@ -118,6 +128,9 @@ def _check_args(args: argparse.Namespace) -> float | None:
                         ("--voltage-rate", args.voltage_rate)):
         if not (math.isfinite(value) and value > 0):
             raise UsageError(f"{flag} must be a positive number of Hz, got {value:g}")
+    if args.max_catch_up < 1:
+        raise UsageError(f"--max-catch-up must be a positive number of samples, "
+                         f"got {args.max_catch_up}")
     if args.seed < 0:
         raise UsageError(f"--seed must be >= 0, got {args.seed}")
     if args.bitrate is not None and args.bitrate <= 0:
@@ -223,10 +236,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                         seed=args.seed,
                         truth=not args.no_truth,
                         motor=motor,
+                        max_catch_up=args.max_catch_up,
                     )
                 else:
                     ecu = RigECU(bus, db, rig, args.node, scenario, seed=args.seed,
-                                 input_rate=args.voltage_rate)
+                                 input_rate=args.voltage_rate,
+                                 max_catch_up=args.max_catch_up)
             except MonitorError as exc:
                 print(f"{PROG}: error: {exc}", file=sys.stderr)
                 return EXIT_USAGE
