@@ -1,13 +1,23 @@
-"""`motor-monitor replay LOG`: a recorded bus (candump .log, Vector .asc or .blf), run
-through the same pipeline as a live one, as fast as it goes. Diagnosis events go to
-standard output as JSON lines (or to --events)."""
+"""`motor-monitor replay PATH...`: recorded buses (candump .log, Vector .asc or .blf), run
+through the same pipeline as a live one, as fast as it goes.
+
+One log file: its diagnosis events go to standard output as JSON lines (or to --events),
+its recording to --rrd FILE. Several logs, a directory or a glob pattern, or --out DIR:
+the archive replay of `monitor.archive` (each log's events and, with --rrd, recording under
+--out, a summary table and a fleet overview; --jobs N local processes or --cluster ADDRESS,
+a Dask cluster). Exit status: 0 every log replayed, 1 some log could not be (its row in the
+summary says why), 2 a mistake in the command line or the configuration.
+"""
 
 from __future__ import annotations
 
 import argparse
+import glob
 import math
+import os
 import sys
 import time
+import zlib
 from collections.abc import Iterable, Iterator
 from contextlib import suppress
 from pathlib import Path
@@ -15,12 +25,13 @@ from struct import error as StructError
 from typing import Any
 
 import can
+from can.io.blf import BLFParseError
 
 from monitor.app import options, outputs
-from monitor.errors import MonitorError
+from monitor.errors import MonitorError, UsageError, one_line
 from monitor.pipeline import MonitorPipeline
 from monitor.pipeline import counters as C
-from monitor.sinks.base import FanOut, Sink
+from monitor.sinks.base import Sink
 from monitor.sinks.log import LogSink
 
 __all__ = ["LOG_SUFFIXES", "LogError", "add_command", "feed_log", "read_log", "replay_frames",
@@ -46,16 +57,21 @@ def read_log(path: Path) -> Iterator[can.Message]:
         raise LogError(f"{path}: no such file")
     try:
         reader = can.LogReader(str(path))
-    except (OSError, ValueError) as exc:
-        raise LogError(f"{path}: cannot read log ({exc})") from None
+    except _READ_ERRORS as exc:
+        raise LogError(f"{path}: cannot read log ({one_line(exc)})") from None
     return _frames(path, reader)
+
+
+# what python-can's readers raise on a damaged file: bad text or numbers, short records,
+# a BLF that is no BLF or whose compressed objects are broken
+_READ_ERRORS = (ValueError, IndexError, OSError, StructError, zlib.error, BLFParseError)
 
 
 def _frames(path: Path, reader: can.io.generic.MessageReader) -> Iterator[can.Message]:
     try:
         yield from reader
-    except (ValueError, IndexError, OSError, StructError) as exc:
-        raise LogError(f"{path}: malformed log ({exc})") from None
+    except _READ_ERRORS as exc:
+        raise LogError(f"{path}: malformed log ({one_line(exc)})") from None
     finally:
         with suppress(Exception):
             reader.stop()
@@ -80,33 +96,115 @@ def replay_frames(pipe: MonitorPipeline, path: Path) -> int:
     return feed_log(pipe, read_log(path))
 
 
+def _is_one_log(args: argparse.Namespace) -> bool:
+    """One file named, no --out: today's single replay (stdout, --events, --rrd FILE)."""
+    if args.out is not None or len(args.paths) != 1:
+        return False
+    path = args.paths[0]
+    return not glob.has_magic(path) and not os.path.isdir(path)
+
+
 def run_replay(args: argparse.Namespace) -> int:
-    rig = options.rig(args)
-    db = options.database(args, rig)
-    cfg = options.monitor_config(args, rig)
-    frames = read_log(Path(args.log))
-    sinks: list[Sink] = [LogSink()]
-    recording = outputs.rerun_sink(args, cfg)
-    events = outputs.event_lines(args.events, to_stdout=True)
-    sinks += [s for s in (recording, events) if s is not None]
-    sink = FanOut(sinks)
-    pipe = MonitorPipeline(db, cfg, sink=sink)
-    t0 = time.perf_counter()
-    try:
-        n = feed_log(pipe, frames)
-    finally:
-        sink.close()
-    el = time.perf_counter() - t0
-    c = pipe.counters
+    if _is_one_log(args):
+        return _replay_one_log(args)
+    return _replay_archive(args)
+
+
+def _replay_one_log(args: argparse.Namespace) -> int:
+    from monitor.archive.engine import ReplaySettings, monitor_setup, per_frame_engine
+
+    if args.rrd is True:
+        raise UsageError("--rrd: give the recording's file name (or --out DIR for one "
+                         "recording per log)")
+    if args.jobs is not None or args.cluster is not None:
+        raise UsageError("--jobs and --cluster replay logs into --out DIR: give --out DIR")
+    setup = monitor_setup(ReplaySettings.from_args(args))
+
+    def open_sinks() -> list[Sink]:
+        sinks: list[Sink] = [LogSink()]
+        recording = outputs.rerun_sink(args, setup.cfg)
+        events = outputs.event_lines(args.events, to_stdout=True)
+        return sinks + [s for s in (recording, events) if s is not None]
+
+    run = per_frame_engine(Path(args.paths[0]), setup, open_sinks)
+    n, el = run.frames, run.feed_s
+    c = C.Counters(run.counters)
     print(f"motor-monitor: replayed {n} frames in {el:.2f} s ({n / max(el, 1e-9):.0f} frames/s): "
           f"{c.get(C.SAMPLES_ESTIMATED, 0)} estimated, {c.rejected_total()} rejected",
           file=sys.stderr)
     return 0
 
 
+def _replay_archive(args: argparse.Namespace) -> int:
+    from monitor.archive.engine import ReplaySettings, monitor_setup
+    from monitor.archive.inputs import find_logs
+    from monitor.archive.run import require_cluster_extra, run_archive
+
+    if args.out is None:
+        raise UsageError("several logs (a directory or a pattern) need --out DIR for their "
+                         "events, recordings and summary")
+    if args.events is not None:
+        raise UsageError("--events names one file: with --out DIR each log's events go to "
+                         "DIR/<log>.events.jsonl")
+    if args.connect is not None:
+        raise UsageError("--connect streams one log to a viewer: with --out DIR give --rrd "
+                         "for one recording per log")
+    if args.rrd is not None and args.rrd is not True:
+        raise UsageError(f"--rrd takes no file name with --out DIR (each log gets its own "
+                         f"DIR/<log>.rrd): {args.rrd!r}")
+    if args.jobs is not None and args.cluster is not None:
+        raise UsageError("--jobs and --cluster exclude each other (local processes, or the "
+                         "cluster's workers)")
+    if args.cluster is not None:
+        require_cluster_extra()
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out: {out} is not a directory")
+    settings = ReplaySettings.from_args(args)
+    setup = monitor_setup(settings)  # a bad rig, DBC, threshold or key file: one line now
+    setup.decoder()
+    logs = find_logs(args.paths)
+    t0 = time.perf_counter()
+    done = run_archive(logs, settings, out, rrd=args.rrd is True, jobs=args.jobs or 1,
+                       cluster=args.cluster)
+    el = time.perf_counter() - t0
+    n, failed = done.frames, len(done.failed)
+    print(f"motor-monitor: replayed {len(done.results) - failed} of {len(done.results)} logs "
+          f"({failed} failed), {n} frames in {el:.2f} s ({n / max(el, 1e-9):.0f} frames/s); "
+          f"summary: {', '.join(str(p) for p in done.written)}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _jobs(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
+    return n
+
+
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
-    p = sub.add_parser("replay", help="run a candump .log, .asc or .blf file as fast as possible")
-    p.add_argument("log", help="log file")
-    p.add_argument("--events", default=None, help="JSON lines to this file (default: stdout)")
+    p = sub.add_parser("replay", conflict_handler="resolve",
+                       help="run candump .log, .asc or .blf files (or directories, or patterns "
+                       "of them) as fast as possible")
+    p.add_argument("paths", nargs="+", metavar="PATH",
+                   help="a log file; several, directories (their .log, .asc and .blf files, "
+                   "recursively) or glob patterns replay the archive into --out DIR")
+    p.add_argument("--events", default=None,
+                   help="one log: JSON lines to this file (default: stdout)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="each log's events (and recording) under DIR, named after the log's "
+                   "path, and the summary (summary.parquet, summary.csv, fleet.png)")
+    p.add_argument("--jobs", type=_jobs, default=None, metavar="N",
+                   help="replay N logs at once in local processes (default 1)")
+    p.add_argument("--cluster", default=None, metavar="ADDRESS",
+                   help="replay on the Dask cluster whose scheduler is at ADDRESS, e.g. "
+                   "tcp://10.0.0.5:8786 (the archive extra; workers share the paths)")
     options.add_monitor_options(p)
+    # replaces the option's file-only form: with --out, a bare --rrd records every log
+    p.add_argument("--rrd", nargs="?", const=True, default=None, metavar="FILE",
+                   help="one log: record to this .rrd file; with --out: --rrd alone records "
+                   "each log to DIR/<log>.rrd")
     p.set_defaults(func=run_replay)

@@ -1,0 +1,205 @@
+"""The per-file engine: one bus log in, its diagnosis out, behind one small interface so
+that another engine (a columnar one) can take the per-frame pipeline's place.
+
+An engine is a callable `(path, setup, open_sinks, progress) -> EngineRun`:
+
+* it reads the log at `path` and raises `LogError` (one line naming the file) if it cannot;
+  it calls `open_sinks()` only once the log has opened, so a log that cannot be opened
+  creates or overwrites no output, and it closes what `open_sinks` returned, always;
+* it hands the sinks the pipeline's events (health transitions to the JSON lines, samples
+  to the Rerun recording; an engine may feed a recording in whole columns instead);
+* it calls `progress(n)` now and then with the frames read since its previous call;
+* it returns an `EngineRun`: frames read, the counters (every frame's outcome, the names of
+  `monitor.pipeline.counters`), every transition, each node's samples and worst NIS, and
+  the log's first and last timestamps. The summary is built from these alone.
+
+`per_frame_engine` is today's engine: `read_log` into `feed_log` through `MonitorPipeline`.
+
+The options that configure the monitor travel to worker processes and cluster workers as
+`ReplaySettings` (file names and numbers, nothing bound to a process) and are turned into
+a `MonitorSetup` once per process. Every log gets a new pipeline (alive counters, the
+estimators) and, with a SecOC key, a new decoder: no state leaks from one log into the
+next, so a log's result does not depend on which worker ran it or after which log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Protocol
+
+import can
+
+from monitor.app import options
+from monitor.app.replay import feed_log, read_log
+from monitor.bus.codec import MotorDatabase
+from monitor.bus.rigcodec import RigCodec
+from monitor.pipeline import MonitorConfig, MonitorPipeline
+from monitor.pipeline.events import DiagnosisEvent, Sample
+from monitor.rig import Rig
+from monitor.sinks.base import FanOut, Sink
+
+__all__ = ["PROGRESS_EVERY", "EngineRun", "FrameProgress", "MonitorSetup", "NodeStats",
+           "PerFileEngine", "ReplaySettings", "RunRecorder", "monitor_setup", "per_frame_engine"]
+
+PROGRESS_EVERY = 8192
+"""Frames between two progress reports of an engine."""
+
+FrameProgress = Callable[[int], None]
+"""Told the number of frames read since its previous call."""
+
+
+@dataclass(frozen=True)
+class ReplaySettings:
+    """The monitor options of `replay` (`options.add_monitor_options`) that configure the
+    monitor, as plain values a worker process can rebuild the monitor from. File names
+    must name the same files on every worker."""
+
+    rig: str | None = None
+    dbc: str | None = None
+    nodes: tuple[int, ...] | None = None
+    rate: float | None = None
+    thresholds: str | None = None
+    key: str | None = None
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> ReplaySettings:
+        return cls(**{name: getattr(args, name, None) for name in cls.__dataclass_fields__})
+
+    def namespace(self) -> argparse.Namespace:
+        """The options as `monitor.app.options` reads them."""
+        return argparse.Namespace(**{name: getattr(self, name)
+                                     for name in self.__dataclass_fields__})
+
+
+@dataclass(frozen=True)
+class MonitorSetup:
+    """What the options build: the rig and the monitor's configuration, shared by every log
+    of a process, and each log's decoder."""
+
+    settings: ReplaySettings
+    rig: Rig
+    cfg: MonitorConfig
+    shared_decoder: MotorDatabase | RigCodec | None = None
+    """Without a SecOC key a decoder keeps no state between frames beyond its DBC: one
+    serves every log (parsing the DBC takes longer than a short log)."""
+
+    def decoder(self) -> MotorDatabase | RigCodec:
+        """The decoder for the next log: the shared one, or with a key a fresh one (SecOC
+        freshness must not carry from one log into another)."""
+        if self.shared_decoder is not None:
+            return self.shared_decoder
+        return options.database(self.settings.namespace(), self.rig)
+
+
+@lru_cache(maxsize=4)
+def monitor_setup(settings: ReplaySettings) -> MonitorSetup:
+    """The setup of `settings`, built once per process (raises `MonitorError` on a bad
+    option, as the command line does)."""
+    ns = settings.namespace()
+    rig = options.rig(ns)
+    cfg = options.monitor_config(ns, rig)
+    shared = options.database(ns, rig) if settings.key is None else None
+    return MonitorSetup(settings, rig, cfg, shared)
+
+
+@dataclass
+class NodeStats:
+    """What a node did in one log: estimated samples and the largest normalised innovation
+    squared (NaN before any sample)."""
+
+    samples: int = 0
+    worst_nis: float = math.nan
+
+
+@dataclass
+class EngineRun:
+    """What an engine reports about one log; everything the summary needs."""
+
+    frames: int
+    counters: Mapping[str, int]
+    transitions: Sequence[DiagnosisEvent]
+    nodes: Mapping[int, NodeStats]
+    t_first: float | None
+    t_last: float | None
+    feed_s: float = 0.0
+    """Seconds spent on the frames (reading, decoding, estimating, the sinks), without
+    setting up the monitor."""
+
+
+class PerFileEngine(Protocol):
+    """One log through the monitor (see the module docstring)."""
+
+    def __call__(self, path: Path, setup: MonitorSetup, open_sinks: Callable[[], list[Sink]],
+                 progress: FrameProgress | None = None) -> EngineRun: ...
+
+
+@dataclass
+class RunRecorder(Sink):
+    """A sink that keeps what the summary needs of the per-frame pipeline's events."""
+
+    transitions: list[DiagnosisEvent] = field(default_factory=list)
+    nodes: dict[int, NodeStats] = field(default_factory=dict)
+
+    def on_transition(self, event: DiagnosisEvent) -> None:
+        self.transitions.append(event)
+
+    def on_sample(self, sample: Sample) -> None:
+        stats = self.nodes.get(sample.node)
+        if stats is None:
+            stats = self.nodes[sample.node] = NodeStats()
+        stats.samples += 1
+        nis = sample.nis
+        if nis == nis and not nis <= stats.worst_nis:  # NaN never; the first sample always
+            stats.worst_nis = nis
+
+
+class _Span:
+    """Passes frames through, noting the first and last timestamps and reporting progress."""
+
+    def __init__(self, progress: FrameProgress | None) -> None:
+        self.first: float | None = None
+        self.last: float | None = None
+        self.progress = progress
+
+    def over(self, frames: Iterable[can.Message]) -> Iterator[can.Message]:
+        report = self.progress
+        pending = 0
+        for msg in frames:
+            if self.first is None:
+                self.first = msg.timestamp
+            self.last = msg.timestamp
+            yield msg
+            if report is not None:
+                pending += 1
+                if pending == PROGRESS_EVERY:
+                    report(pending)
+                    pending = 0
+        if report is not None and pending:
+            report(pending)
+
+
+def per_frame_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], list[Sink]],
+                     progress: FrameProgress | None = None) -> EngineRun:
+    """The log through `MonitorPipeline` frame by frame (`read_log`, `feed_log`)."""
+    db = setup.decoder()
+    frames = read_log(path)  # LogError here, before any output is opened
+    recorder = RunRecorder()
+    sink = FanOut([recorder, *open_sinks()])
+    try:
+        pipe = MonitorPipeline(db, setup.cfg, sink=sink)
+        span = _Span(progress)
+        t0 = time.perf_counter()
+        n = feed_log(pipe, span.over(frames))
+    finally:
+        sink.close()
+    feed_s = time.perf_counter() - t0  # with the sinks' last flush, as a run would wait
+    for node in pipe.nodes:
+        recorder.nodes.setdefault(node, NodeStats())
+    return EngineRun(frames=n, counters=dict(pipe.counters), transitions=recorder.transitions,
+                     nodes=recorder.nodes, t_first=span.first, t_last=span.last, feed_s=feed_s)

@@ -1,0 +1,112 @@
+"""What one log's replay gives the archive summary: `LogResult`, built from an engine's
+`EngineRun` (or from the reason a log could not be read). Plain, picklable data: results
+travel back from worker processes and cluster workers."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from monitor.archive.engine import EngineRun
+from monitor.diagnosis.classifier import HealthState
+
+__all__ = ["STATES", "LogResult", "NodeResult", "Transition", "failed_result", "log_result",
+           "state_timeline"]
+
+STATES: tuple[str, ...] = tuple(s.label for s in HealthState)
+"""Every health state's label, in the order of their values on the bus."""
+
+INITIAL_STATE = HealthState.NO_DATA.label
+"""A node's state before its first transition (the classifier starts there)."""
+
+
+@dataclass(frozen=True)
+class Transition:
+    """A change of a node's health state at bus time `t`."""
+
+    t: float
+    previous: str
+    state: str
+    cause: str
+    gamma: float
+
+
+def state_timeline(transitions: tuple[Transition, ...], t_first: float,
+                   t_last: float) -> list[tuple[float, float, str]]:
+    """(start, end, state) for every stretch of one state of a node, covering [t_first,
+    t_last]; the node is in `INITIAL_STATE` until its first transition."""
+    stretches: list[tuple[float, float, str]] = []
+    start, state = t_first, INITIAL_STATE
+    for tr in transitions:
+        at = min(max(tr.t, start), t_last)
+        if at > start:
+            stretches.append((start, at, state))
+        start, state = at, tr.state
+    if t_last > start or not stretches:
+        stretches.append((start, t_last, state))
+    return stretches
+
+
+@dataclass(frozen=True)
+class NodeResult:
+    """One node of one log: seconds in each health state between the log's first and last
+    frame, its transitions, estimated samples, worst NIS (NaN without samples)."""
+
+    node: int
+    seconds_in_state: Mapping[str, float]
+    transitions: tuple[Transition, ...]
+    samples: int
+    worst_nis: float
+
+    def timeline(self, t_first: float, t_last: float) -> list[tuple[float, float, str]]:
+        """(start, end, state) for every stretch of one state, covering [t_first, t_last]."""
+        return state_timeline(self.transitions, t_first, t_last)
+
+
+@dataclass(frozen=True)
+class LogResult:
+    """One log of the run: replayed (`ok`) or not, with the reason."""
+
+    log: str
+    ok: bool
+    reason: str = ""
+    frames: int = 0
+    wall_s: float = 0.0
+    t_first: float | None = None
+    t_last: float | None = None
+    counters: Mapping[str, int] = field(default_factory=dict)
+    nodes: tuple[NodeResult, ...] = ()
+    events: str | None = None
+    rrd: str | None = None
+
+    @property
+    def duration_s(self) -> float:
+        """Bus time between the first and the last frame."""
+        if self.t_first is None or self.t_last is None:
+            return 0.0
+        return self.t_last - self.t_first
+
+
+def failed_result(log: str, reason: str, *, frames: int = 0, wall_s: float = 0.0) -> LogResult:
+    return LogResult(log=log, ok=False, reason=reason, frames=frames, wall_s=wall_s)
+
+
+def log_result(log: str, run: EngineRun, *, wall_s: float, events: str | None,
+               rrd: str | None) -> LogResult:
+    """The summary of one replayed log from what its engine reported."""
+    t_first = run.t_first
+    t_last = run.t_last
+    nodes: list[NodeResult] = []
+    for node in sorted(run.nodes):
+        stats = run.nodes[node]
+        transitions = tuple(Transition(e.t, e.previous, e.state, e.cause, e.gamma)
+                            for e in run.transitions if e.node == node)
+        seconds = dict.fromkeys(STATES, 0.0)
+        if t_first is not None and t_last is not None:
+            for start, end, state in state_timeline(transitions, t_first, t_last):
+                seconds[state] = seconds.get(state, 0.0) + (end - start)
+        nodes.append(NodeResult(node=node, seconds_in_state=seconds, transitions=transitions,
+                                samples=stats.samples, worst_nis=stats.worst_nis))
+    return LogResult(log=log, ok=True, frames=run.frames, wall_s=wall_s, t_first=t_first,
+                     t_last=t_last, counters=dict(sorted(run.counters.items())),
+                     nodes=tuple(nodes), events=events, rrd=rrd)
