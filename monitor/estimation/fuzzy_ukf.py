@@ -71,7 +71,8 @@ from monitor.estimation.ukf import sigma_weights, spd_inverse, ukf_predict, ukf_
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["KERNEL_LAYOUT", "EstimatorOutput", "FuzzyUKF", "FuzzyUKFConfig", "select_kernel"]
+__all__ = ["KERNEL_LAYOUT", "EstimatorOutput", "FuzzyUKF", "FuzzyUKFConfig", "ManySteps",
+           "select_kernel", "step_many"]
 
 _log = logging.getLogger(__name__)
 
@@ -565,3 +566,145 @@ class FuzzyUKF:
 
 
 _KERNEL = select_kernel()
+
+
+# ----------------------------------------------------------------------------- many samples
+
+
+@njit
+def _fuzzy_ukf_loop(
+    blocks: Array, coefs: Array, bidx: IntArray, dts: Array, U: Array, Y: Array, prm: Array,
+    st: Array, centres: Array, counts: IntArray, cons: Array, var: Array, rule_idx: IntArray,
+    rule_w: Array, wk: Array, out: Array, n: int, m: int, p: int, max_mf: int,
+    clock: Array, nis_threshold: float, dwell: float, start: int,
+    gamma_out: Array, yest_out: Array, nis_out: Array,
+) -> int:
+    """`_fuzzy_ukf_step` -- eqs (50)-(54) around (15)-(49), see the module docstring -- for
+    samples start, start + 1, ... of (U, Y, dts), in compiled code.
+
+    Sample i runs with model block ``blocks[bidx[i]]`` (the ZOH model (63)-(65) for its
+    dt) and NIS coefficient ``coefs[bidx[i]]``, exactly what `FuzzyUKF.step` passes. clock =
+    [time, time of the last structure event]. Stops after the first sample that needs
+    Python: a structure-learning event (20)-(22) is due (clock[2] = 1) or gamma^ is NaN
+    (clock[2] = 2); returns the index after the last sample run.
+    """
+    o_stats = m + 3 * n + 2 * p
+    o_yest = m + 3 * n + 3 * p + 3
+    N = U.shape[0]
+    clock[2] = 0.0
+    for i in range(start, N):
+        b = bidx[i]
+        prm[0] = dts[i]
+        prm[5] = coefs[b]
+        _fuzzy_ukf_step(blocks[b], U[i], Y[i], prm, st, centres, counts, cons, var, rule_idx,
+                        rule_w, wk, out, n, m, p, max_mf)
+        clock[0] += dts[i]
+        nan = False
+        for a in range(m):
+            gamma_out[i, a] = out[a]
+            if out[a] != out[a]:
+                nan = True
+        for r in range(p):
+            yest_out[i, r] = out[o_yest + r]
+        nis_out[i] = out[o_stats]
+        if out[o_stats + 1] > nis_threshold and clock[0] - clock[1] >= dwell:
+            clock[2] = 1.0
+            return i + 1
+        if nan:
+            clock[2] = 2.0
+            return i + 1
+    return N
+
+
+@dataclass
+class ManySteps:
+    """What `step_many` ran: samples [0, count) of its input, per sample gamma^ (count, m),
+    the output estimate y_est (count, p), the NIS, the rule count after the sample and
+    whether a structure-learning event followed it. `stopped_on_nan`: sample count - 1 gave a
+    NaN gamma^ (the caller restarts the estimator, as the pipeline does)."""
+
+    count: int
+    gamma: Array
+    y_est: Array
+    nis: Array
+    rules: IntArray
+    structure_event: NDArray[np.bool_]
+    stopped_on_nan: bool
+
+
+def step_many(est: FuzzyUKF, u: Array, y: Array, dt: Array) -> ManySteps:
+    """`est.step(u[i], y[i], dt[i])` for every row i, with the same results, the samples
+    stepped in one compiled loop (`_fuzzy_ukf_loop`: the same kernel, eqs (50)-(54) around
+    (15)-(49)) that returns to Python only for a structure-learning event (20)-(22) and
+    stops at a NaN gamma^. Without the JIT (AOT or interpreted kernel) it calls `est.step`
+    row by row. Leaves `est` as the last `step` would, `est.out` included.
+    """
+    N = int(u.shape[0])
+    n, m, p = est._dims
+    gamma = np.zeros((N, m))
+    y_est = np.zeros((N, p))
+    nis = np.zeros(N)
+    rules = np.zeros(N, np.int64)
+    event = np.zeros(N, np.bool_)
+    if N == 0:
+        return ManySteps(0, gamma, y_est, nis, rules, event, False)
+    if np.any(~(dt > 0.0)):
+        raise ValueError(f"dt must be positive, got {dt[~(dt > 0.0)][0]}")
+    if est.kernel_name != "jit":
+        for i in range(N):
+            out = est.step(u[i], y[i], float(dt[i]))
+            gamma[i] = out.gamma
+            y_est[i] = out.y_est
+            nis[i] = out.nis
+            rules[i] = out.rules
+            event[i] = out.structure_event
+            if out.gamma.max() != out.gamma.max():
+                return ManySteps(i + 1, gamma, y_est, nis, rules, event, True)
+        return ManySteps(N, gamma, y_est, nis, rules, event, False)
+    U = np.ascontiguousarray(u, dtype=np.float64)
+    Y = np.ascontiguousarray(y, dtype=np.float64)
+    dts = np.ascontiguousarray(dt, dtype=np.float64)
+    if est._needs_init:
+        est._u[:] = U[0]
+        est._y[:] = Y[0]
+        est._init_from_sample(est._u, est._y)
+    uniq, inv = np.unique(dts, return_inverse=True)
+    entries = []
+    for d in uniq.tolist():
+        blk = est._blocks.get(d)
+        entries.append(blk if blk is not None else est._block(d))
+    blocks = np.ascontiguousarray(np.stack([e[0] for e in entries]))
+    coefs = np.array([e[1] for e in entries])
+    bidx = inv.astype(np.int64).reshape(-1)
+    clock = np.array([est._time, est._last_event, 0.0])
+    fz = est.fuzzy
+    cfg = est.config
+    i = 0
+    nan = False
+    while i < N:
+        start = i
+        i = _fuzzy_ukf_loop(blocks, coefs, bidx, dts, U, Y, est._prm, est._st, fz.centres,
+                            fz.counts, fz.cons, fz.var, fz.rule_idx, fz.rule_w, est._wk,
+                            est._out, n, m, p, fz.max_mf, clock, cfg.nis_threshold, cfg.dwell,
+                            start, gamma, y_est, nis)
+        rules[start:i] = est.out.rules
+        est.steps += i - start
+        est._time = float(clock[0])
+        est.out.structure_event = False
+        if clock[2] == 1.0:  # the event follows sample i - 1, as in step()
+            est._structure_event()
+            est.out.structure_event = True
+            est.out.rules = fz.rule_count
+            rules[i - 1] = est.out.rules
+            event[i - 1] = True
+            clock[1] = est._last_event
+            if gamma[i - 1].max() != gamma[i - 1].max():
+                nan = True
+        elif clock[2] == 2.0:
+            nan = True
+        if nan:
+            break
+    est.out.nis = float(nis[i - 1])
+    est._u[:] = U[i - 1]
+    est._y[:] = Y[i - 1]
+    return ManySteps(i, gamma, y_est, nis, rules, event, nan)
