@@ -19,7 +19,10 @@ if [[ ! -x .venv/bin/python ]]; then
 fi
 .venv/bin/python -m pip install -q --upgrade pip
 spec="."
-[[ $# -gt 0 && -n "$1" ]] && spec=".[$1]"
+extras="${1:-}"
+# The development install also has the archive replay's extra (Dask, tqdm), which its tests use.
+[[ ",$extras," == *,dev,* && ",$extras," != *,archive,* ]] && extras="$extras,archive"
+[[ -n "$extras" ]] && spec=".[$extras]"
 # setuptools announces every editable install with a multi-line notice (a warning category
 # of its own, not a problem): a quiet install should not make a newcomer scroll past it.
 PYTHONWARNINGS="ignore:Editable installation" \
