@@ -1,0 +1,228 @@
+"""Compiled loops of the columnar replay: the per-frame pipeline's sequential rules, run
+over whole columns. Each mirrors a piece of `monitor.pipeline.core.MonitorPipeline` (and the
+classes it calls) statement by statement; tests/test_columnar.py holds them to the same
+results on every test log.
+
+* `ticks`: where `feed_log` calls ``pipe.tick`` (every `TICK_S` of bus time).
+* `admit`: `MonitorPipeline._on_output` up to the estimator step: no voltage yet,
+  non-monotonic time, a gap that restarts the estimator, the sample periods k
+  (`MonitorPipeline._periods`) and late samples.
+* `classify`: per node, samples and ticks in order: `OnlineClassifier.update` and
+  `mark_no_data` (eq (76) with hysteresis and dwell), `MismatchDetector.update` and
+  `reset`, the health-state transitions and the due `Diagnosis` of `_on_output` and
+  `tick`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from monitor.estimation.jit import njit
+
+__all__ = ["CLS_PARAMS", "CLS_STATE", "TICK_S", "admit", "classify", "ticks"]
+
+TICK_S = 0.05
+"""Bus time between timeout checks: `monitor.app.replay.TICK_S` (a test checks they agree)."""
+
+F8 = NDArray[np.float64]
+I8 = NDArray[np.int64]
+B1 = NDArray[np.bool_]
+
+# classify state vector (floats; NaN stands for None)
+CLS_STATE = ("state", "cand", "cand_since", "away_since", "cls_last_t", "avg", "out_since",
+             "in_since", "flagged", "last_publish", "last_t")
+CLS_PARAMS = ("f1", "f2", "f1_up", "f1_down", "f2_up", "f2_down", "dwell", "mm_a", "mm_lo",
+              "mm_hi", "mm_dwell", "p", "publish_period", "silence_timeout")
+
+
+@njit
+def ticks(t: F8, last: F8, out_idx: I8) -> int:
+    """Frames after which `feed_log` ticks: ``t - last_tick >= TICK_S``. `last[0]` carries
+    the last tick's time between chunks; returns how many indices were written."""
+    k = 0
+    lt = last[0]
+    for i in range(t.shape[0]):
+        if t[i] - lt >= 0.05:
+            lt = t[i]
+            out_idx[k] = i
+            k += 1
+    last[0] = lt
+    return k
+
+
+@njit
+def admit(t: F8, lost: I8, seen: B1, last: F8, rate: float, max_gap: float,
+          jitter_fraction: float, status: I8, k_out: I8, restart: B1, jitter: B1) -> None:
+    """Per output sample: status 0 admitted, 1 no voltage yet, 2 time does not advance; k
+    sample periods since the previous one; restart after a gap over max_gap; jitter (late
+    sample without a counter). last[0]: the node's last admitted time (NaN: none)."""
+    lt = last[0]
+    for i in range(t.shape[0]):
+        restart[i] = False
+        jitter[i] = False
+        k_out[i] = 1
+        if not seen[i]:
+            status[i] = 1
+            continue
+        if lt != lt:
+            k = 1
+        else:
+            dt = t[i] - lt
+            if not dt > 0.0:
+                status[i] = 2
+                continue
+            if dt > max_gap:
+                restart[i] = True
+                k = 1
+            else:
+                k_time = dt * rate
+                if lost[i] < 0:
+                    k = max(1, int(np.rint(k_time)))
+                    if abs(k_time - k) > jitter_fraction:
+                        jitter[i] = True
+                else:
+                    kc = lost[i] + 1
+                    if k_time < 12.0:
+                        k = kc
+                    else:
+                        k = kc + 16 * max(0, int(np.rint((k_time - kc) / 16.0)))
+        status[i] = 0
+        k_out[i] = k
+        lt = t[i]
+    last[0] = lt
+
+
+@njit
+def _reported(s: F8) -> int:
+    if s[8] != 0.0 and s[0] != 3.0:
+        return 4
+    return int(s[0])
+
+
+@njit
+def _enter(s: F8, state: int) -> bool:
+    s[1] = -1.0
+    s[3] = math.nan
+    if state == int(s[0]):
+        return False
+    s[0] = float(state)
+    return True
+
+
+@njit
+def _cls_update(s: F8, prm: F8, t: float, value: float) -> None:
+    """`OnlineClassifier.update` (eq (76), hysteresis, dwell) on the state vector."""
+    if value != value:
+        return
+    if not t >= s[4]:
+        return
+    s[4] = t
+    st = int(s[0])
+    if ((st == 0 and value < prm[2]) or (st == 1 and prm[3] <= value <= prm[4])
+            or (st == 2 and value > prm[5])):
+        s[1] = -1.0
+        s[3] = math.nan
+        return
+    c = 0 if value < prm[0] else (1 if value <= prm[1] else 2)
+    if st == 3:
+        _enter(s, c)
+        return
+    if s[3] != s[3]:
+        s[3] = t
+    if c != int(s[1]):
+        s[1] = float(c)
+        s[2] = t
+    slack = 1e-9 + abs(t) * 1e-15
+    if t - s[2] >= prm[6] - slack:
+        _enter(s, c)
+        return
+    if t - s[3] >= prm[6] - slack:
+        _enter(s, 1 if st != 1 else c)
+
+
+@njit
+def _mm_reset(s: F8, prm: F8) -> None:
+    s[5] = prm[11]
+    s[6] = math.nan
+    s[7] = math.nan
+    s[8] = 0.0
+
+
+@njit
+def _mm_update(s: F8, prm: F8, t: float, nis: float) -> int:
+    """`MismatchDetector.update`: 1 when the flag rises, -1 when it falls, else 0."""
+    if nis != nis:
+        return 0
+    s[5] += prm[7] * (nis - s[5])
+    if prm[8] <= s[5] <= prm[9]:
+        s[6] = math.nan
+        if s[7] != s[7]:
+            s[7] = t
+        if s[8] != 0.0 and t - s[7] >= prm[10]:
+            s[8] = 0.0
+            return -1
+    else:
+        s[7] = math.nan
+        if s[6] != s[6]:
+            s[6] = t
+        if s[8] == 0.0 and t - s[6] >= prm[10]:
+            s[8] = 1.0
+            return 1
+    return 0
+
+
+@njit
+def classify(is_tick: B1, t: F8, g: F8, nis: F8, reset_before: B1, nan: B1, s: F8,
+             prm: F8, state_out: I8, ev: I8, prev_out: I8, cause: I8, counts: I8) -> None:
+    """One node's samples and ticks in bus order (see the module docstring).
+
+    Per item: state_out the reported state after it; ev 0 nothing, 1 a transition (and its
+    Diagnosis), 2 a Diagnosis only; prev_out the state before a transition; cause 0
+    estimate, 1 model, 2 silence. counts += [nodes/model_mismatch, nodes/silent].
+    """
+    for i in range(t.shape[0]):
+        ev[i] = 0
+        ti = t[i]
+        if is_tick[i]:
+            lt = s[10]
+            silent = lt != lt or ti - lt >= prm[13]
+            if silent and int(s[0]) != 3:
+                prev = _reported(s)
+                if ti > s[4]:
+                    s[4] = ti
+                _enter(s, 3)
+                _mm_reset(s, prm)
+                counts[1] += 1
+                ev[i] = 1
+                prev_out[i] = prev
+                cause[i] = 2
+                s[9] = ti
+            elif silent and ti - s[9] >= prm[12]:
+                ev[i] = 2
+                s[9] = ti
+            state_out[i] = _reported(s)
+            continue
+        s[10] = ti
+        if reset_before[i]:
+            _mm_reset(s, prm)
+        if nan[i]:
+            _mm_reset(s, prm)
+            state_out[i] = _reported(s)
+            continue
+        prev = _reported(s)
+        _cls_update(s, prm, ti, g[i])
+        if _mm_update(s, prm, ti, nis[i]) == 1:
+            counts[0] += 1
+        new = _reported(s)
+        if new != prev:
+            ev[i] = 1
+            prev_out[i] = prev
+            cause[i] = 1 if (prev == 4 or new == 4) else 0
+            s[9] = ti
+        elif ti - s[9] >= prm[12]:
+            ev[i] = 2
+            s[9] = ti
+        state_out[i] = new

@@ -1,0 +1,515 @@
+"""`replay_file`: one bus log through decode, estimation and diagnosis a chunk at a time.
+
+The columnar counterpart of ``feed_log(MonitorPipeline(db, cfg, sink=sink), read_log(path))``
+with the same diagnosis events, the same counters and the same samples (see the package
+docstring for what differs: only when counter snapshots reach the sink).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from monitor.bus.faults import describe_error_frame
+from monitor.columnar import kernels as K
+from monitor.columnar.decode import REASONS, DecodedChunk, NotColumnar, RouteTable
+from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, LogReadError, read_chunks
+from monitor.columnar.sinks import SampleColumns, SinkRouter
+from monitor.diagnosis import HealthState, MismatchDetector, OnlineClassifier
+from monitor.errors import MonitorError
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, step_many
+from monitor.estimation.model import DiscreteModel
+from monitor.pipeline import MonitorConfig
+from monitor.pipeline import counters as C
+from monitor.pipeline.counters import Counters
+from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent
+from monitor.sinks.base import Sink
+
+__all__ = ["ReplayResult", "replay_chunks", "replay_file"]
+
+log = logging.getLogger("motor_monitor")
+
+_STATES = tuple(HealthState)
+
+
+@dataclass
+class ReplayResult:
+    """What a replay of one log did.
+
+    frames: frames read; counters: the pipeline's counters at the end; events: every
+    health-state transition, in order; nodes: per node its final state, gamma^, rules and
+    samples (as `MonitorPipeline.summary` gives them); columnar: False when the file went
+    through the per-frame path, `fallback` says why.
+    """
+
+    path: Path | None
+    frames: int
+    counters: dict[str, int]
+    events: list[DiagnosisEvent]
+    nodes: dict[int, dict[str, Any]] = field(default_factory=dict)
+    columnar: bool = True
+    fallback: str | None = None
+
+
+class _Node:
+    """One node's estimator, held inputs and diagnosis state between chunks."""
+
+    def __init__(self, node: int, model: DiscreteModel, cfg: MonitorConfig,
+                 cls_prm: NDArray[np.float64]) -> None:
+        self.node = node
+        self.model = model
+        self.cfg = cfg
+        self.T = 1.0 / cfg.rate
+        self.est = FuzzyUKF(model, cfg.estimator)
+        self.u = np.zeros(model.m)
+        self.u_seen = np.zeros(model.m, np.bool_)
+        self.truth = math.nan
+        self.has_truth = False
+        self.last_admit = np.array([math.nan])
+        s = np.zeros(len(K.CLS_STATE))
+        s[:] = [3.0, -1.0, 0.0, math.nan, -math.inf, 0.0, math.nan, math.nan, 0.0,
+                -math.inf, math.nan]
+        s[5] = cls_prm[11]
+        self.s = s
+        self.gamma = np.zeros(model.m)  # the estimator's latest gamma^ (fresh: zeros)
+        self.rules = self.est.out.rules
+        self.samples = 0
+
+    def restart(self) -> None:
+        self.est = FuzzyUKF(self.model, self.cfg.estimator)
+        self.gamma = np.zeros(self.model.m)
+        self.rules = self.est.out.rules
+
+
+def _cls_params(cfg: MonitorConfig, p: int) -> NDArray[np.float64]:
+    c = OnlineClassifier(cfg.thresholds, dwell_s=cfg.dwell_s, hysteresis=cfg.hysteresis)
+    mm = MismatchDetector(p, cfg.rate, window_s=cfg.mismatch_window_s,
+                          dwell_s=cfg.mismatch_dwell_s)
+    lo, hi = mm.band
+    return np.array([c._f1, c._f2, c._f1_up, c._f1_down, c._f2_up, c._f2_down, c._dwell,
+                     mm._a, lo, hi, mm.dwell_s, float(p), cfg.publish_period_s,
+                     cfg.silence_timeout_s])
+
+
+def _held(has: NDArray[np.bool_], values: NDArray[np.float64], carried: float,
+          seen: bool) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The latest value at every row (this row's if it has one), and whether there is one."""
+    idx = np.where(has, np.arange(len(has)), -1)
+    np.maximum.accumulate(idx, out=idx)
+    got = idx >= 0
+    val = np.where(got, values[np.maximum(idx, 0)], carried)
+    return val, got | seen
+
+
+class _Replay:
+    def __init__(self, db: Any, cfg: MonitorConfig, sink: Sink) -> None:
+        self.cfg = cfg
+        self.sink = sink
+        self.model = cfg.plant().discretize(1.0 / cfg.rate)
+        self.table = RouteTable.of(db, self.model.m, self.model.p)
+        self.secoc = bool(getattr(db, "secoc_enabled", False))
+        self.router = SinkRouter(sink)
+        self.counters = Counters()
+        self.nodes: dict[int, _Node] = {}
+        self.cls_prm = _cls_params(cfg, self.model.p)
+        self.tracker: dict[int, int] = {}
+        self.last_tick = np.array([-math.inf])
+        self.offset = 0
+        self.events: list[DiagnosisEvent] = []
+        self.warned: set[str] = set()
+        FuzzyUKF(self.model, cfg.estimator)  # compiled kernels loaded before the first chunk
+        for n in cfg.nodes or ():
+            self._node(n)
+
+    def _node(self, n: int) -> _Node:
+        nm = self.nodes.get(n)
+        if nm is None:
+            nm = _Node(n, self.model, self.cfg, self.cls_prm)
+            self.nodes[n] = nm
+        return nm
+
+    def _warn(self, key: str, text: str) -> None:
+        if key not in self.warned:  # the first of each kind per file (per-frame: rate-limited)
+            self.warned.add(key)
+            log.warning("%s", text)
+
+    # ------------------------------------------------------------------------------ chunk
+
+    def chunk(self, c: FrameChunk) -> None:
+        n = len(c)
+        if n == 0:
+            return
+        cnt = self.counters
+        cnt.inc(C.FRAMES_RECEIVED, n)
+        events: list[tuple[int, int, int, Any]] = []  # (key, node order, seq, event)
+        for i in np.flatnonzero(c.error).tolist():
+            self._error_frame(c, i, events)
+        dec = self.table.decode(c)
+        rej = dec.code[(dec.code > 0) & ~c.error]
+        if len(rej):
+            for code, k in enumerate(np.bincount(rej).tolist()):
+                if k:
+                    reason = REASONS[code]
+                    cnt.inc(C.rejected(reason), k)
+                    self._warn(reason, f"frame rejected ({reason}): {k} in a chunk")
+        acc = np.flatnonzero(dec.code == 0)
+        routes = self.table.routes
+        r_kind = np.array([r.kind for r in routes] or [""], dtype=object)
+        r_node = np.array([r.node for r in routes] or [0], np.int64)
+        r_stream = np.array([r.stream for r in routes] or [0], np.int64)
+        ra = dec.route[acc]
+        kind = r_kind[ra]
+        is_diag = kind == "diagnosis"
+        is_sync = kind == "sync"
+        if is_diag.any():
+            cnt.inc(C.IGNORED_DIAGNOSIS, int(is_diag.sum()))
+        if is_sync.any():
+            cnt.inc(C.SAMPLES_SECOC_SYNC if self.secoc else C.IGNORED_SECOC_SYNC,
+                    int(is_sync.sum()))
+        keep = ~(is_diag | is_sync)
+        acc, ra = acc[keep], ra[keep]
+        node = r_node[ra]
+        wanted = self.cfg.nodes
+        if wanted is not None:
+            ok = np.isin(node, np.array(wanted, np.int64))
+            if (~ok).any():
+                cnt.inc(C.IGNORED_NODE, int((~ok).sum()))
+            acc, ra, node = acc[ok], ra[ok], node[ok]
+        first_pos: dict[int, int] = {}
+        if len(node):
+            uniq, first = np.unique(node, return_index=True)
+            for nd, f in sorted(zip(uniq.tolist(), first.tolist(), strict=True),
+                                key=lambda x: x[1]):
+                if nd not in self.nodes:
+                    first_pos[nd] = int(acc[f])
+                self._node(nd)
+        # alive counters, per (kind, node) stream, in frame order
+        lost = np.full(n, -1, np.int64)
+        ctr = dec.counter[acc]
+        has_c = ctr >= 0
+        if has_c.any():
+            ci = acc[has_c]
+            sid = r_stream[ra[has_c]]
+            cv = ctr[has_c]
+            order = np.lexsort((ci, sid))
+            s_sid, s_c = sid[order], cv[order]
+            prev = np.empty_like(s_c)
+            prev[1:] = s_c[:-1]
+            start = np.ones(len(s_c), np.bool_)
+            start[1:] = s_sid[1:] != s_sid[:-1]
+            for j in np.flatnonzero(start).tolist():
+                prev[j] = self.tracker.get(int(s_sid[j]), -1)
+            ends = np.flatnonzero(np.append(start[1:], True))
+            for j in ends.tolist():
+                self.tracker[int(s_sid[j])] = int(s_c[j])
+            step = (s_c - prev) % 16
+            first_seen = prev < 0
+            repeated = (step == 0) & ~first_seen
+            jump = (step > 1) & ~first_seen
+            lost_s = np.where(jump, step - 1, 0)
+            rep = np.zeros(len(cv), np.bool_)
+            rep[order] = repeated
+            lz = np.zeros(len(cv), np.int64)
+            lz[order] = lost_s
+            lost[ci] = lz
+            if repeated.any():
+                cnt.inc(C.E2E_REPEATED, int(repeated.sum()))
+                self._warn("repeat", f"repeated alive counters: {int(repeated.sum())} frames")
+            if jump.any():
+                cnt.inc(C.E2E_COUNTER_JUMPS, int(jump.sum()))
+                cnt.inc(C.E2E_LOST_FRAMES, int(lost_s.sum()))
+            drop = np.zeros(len(acc), np.bool_)
+            drop[np.flatnonzero(has_c)[rep]] = True
+            acc, ra, node = acc[~drop], ra[~drop], node[~drop]
+        tick_idx = np.zeros(n, np.int64)
+        nt = K.ticks(c.t, self.last_tick, tick_idx)
+        tick_idx = tick_idx[:nt]
+        order_of = {nd: k for k, nd in enumerate(self.nodes)}
+        for nd, nm in self.nodes.items():
+            sel = node == nd
+            self._node_chunk(nm, c, dec, acc[sel], ra[sel], lost, tick_idx,
+                             first_pos.get(nd, -1), order_of[nd], events)
+        self.offset += n
+        events.sort(key=lambda e: (e[0], e[1], e[2]))
+        for _, _, _, ev in events:
+            if isinstance(ev, DiagnosisEvent):
+                cnt.inc(C.transition(ev.state))
+                self.events.append(ev)
+                self.sink.on_transition(ev)
+            elif isinstance(ev, Diagnosis):
+                self.sink.on_diagnosis(ev)
+            else:
+                self.sink.on_bus_event(ev)
+        self.sink.on_counters(float(c.t[-1]), cnt)
+
+    def _error_frame(self, c: FrameChunk, i: int, events: list[tuple[int, int, int, Any]]
+                     ) -> None:
+        names = describe_error_frame(c.message(i))
+        self.counters.inc(C.BUS_ERROR_FRAMES)
+        for name in names:
+            self.counters.inc(C.bus_error(name))
+        text = "CAN error frame: " + ", ".join(names)
+        severe = any(x in ("bus_off", "controller/rx_overflow") or x.endswith("error_passive")
+                     for x in names)
+        self._warn("errframe-" + ",".join(names), text)
+        events.append((2 * (self.offset + i), -1, len(events),
+                       BusEvent(float(c.t[i]), text, "ERROR" if severe else "WARN")))
+
+    def _node_chunk(self, nm: _Node, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
+                    ra: NDArray[np.int64], lost_all: NDArray[np.int64],
+                    tick_idx: NDArray[np.int64], created: int, order: int,
+                    events: list[tuple[int, int, int, Any]]) -> None:
+        cnt = self.counters
+        cfg = self.cfg
+        m = self.model.m
+        routes = self.table.routes
+        t_fr = c.t[fr]
+        u_fr = dec.u[fr]
+        has_u = ~np.isnan(u_fr)
+        any_u = has_u.any(axis=1)
+        if any_u.any():
+            cnt.inc(C.SAMPLES_VOLTAGE, int(any_u.sum()))
+            first_in = np.array([r.inputs[0][0] if r.inputs else 0 for r in routes], np.int64)
+            vi = np.flatnonzero(any_u)
+            volts = u_fr[vi, first_in[ra[vi]]]
+            self.router.voltages(nm.node, t_fr[vi], volts)
+        held_u = np.empty_like(u_fr)
+        seen = np.ones(len(fr), np.bool_)
+        for a in range(m):
+            v, s = _held(has_u[:, a], u_fr[:, a], float(nm.u[a]), bool(nm.u_seen[a]))
+            held_u[:, a] = v
+            seen &= s
+        tr = dec.truth[fr]
+        has_t = ~np.isnan(tr)
+        if has_t.any():
+            cnt.inc(C.SAMPLES_TRUTH, int(has_t.sum()))
+        held_t, got_t = _held(has_t, tr, nm.truth, nm.has_truth)
+        n_out = np.array([len(r.outputs) for r in routes], np.int64)
+        is_out = n_out[ra] > 0
+        oi = np.flatnonzero(is_out)
+        # everything held at this chunk's end, and at every frame (for ticks)
+        prev_u = nm.u.copy()
+        g0, r0 = nm.gamma.copy(), nm.rules
+        if len(fr):
+            nm.u[:] = held_u[-1]
+            nm.u_seen |= has_u.any(axis=0)
+            nm.truth = float(held_t[-1])
+            nm.has_truth = bool(got_t[-1])
+        t_o = t_fr[oi]
+        status = np.zeros(len(oi), np.int64)
+        kk = np.ones(len(oi), np.int64)
+        restart = np.zeros(len(oi), np.bool_)
+        jitter = np.zeros(len(oi), np.bool_)
+        K.admit(t_o, lost_all[fr[oi]], seen[oi], nm.last_admit, cfg.rate, cfg.max_gap_s,
+                cfg.jitter_fraction, status, kk, restart, jitter)
+        if (status == 1).any():
+            cnt.inc(C.SAMPLES_NO_VOLTAGE, int((status == 1).sum()))
+        if (status == 2).any():
+            cnt.inc(C.TIME_NON_MONOTONIC, int((status == 2).sum()))
+        if jitter.any():
+            cnt.inc(C.TIME_JITTER, int(jitter.sum()))
+        A = np.flatnonzero(status == 0)
+        oA = oi[A]
+        kA = kk[A]
+        rA = restart[A]
+        if rA.any():
+            cnt.inc(C.ESTIMATOR_RESTARTS, int(rA.sum()))
+        pt = kA[~rA] - 1
+        if (pt > 0).any():
+            cnt.inc(C.SAMPLES_PREDICTED_THROUGH, int(pt[pt > 0].sum()))
+        U = held_u[oA]
+        Y = np.nan_to_num(dec.y[fr[oA]], nan=0.0)
+        dts: NDArray[np.float64] = (kA * nm.T).astype(np.float64)
+        nA = len(A)
+        gam = np.zeros((nA, m))
+        yest = np.zeros(nA)
+        nis = np.zeros(nA)
+        rules = np.zeros(nA, np.int64)
+        isnan = np.zeros(nA, np.bool_)
+        i = 0
+        n_events = 0
+        while i < nA:
+            if rA[i]:
+                nm.restart()
+            nxt = np.flatnonzero(rA[i + 1:])
+            end = i + 1 + int(nxt[0]) if len(nxt) else nA
+            res = step_many(nm.est, U[i:end], Y[i:end], dts[i:end])
+            j = i + res.count
+            gam[i:j] = res.gamma[:res.count]
+            yest[i:j] = res.y_est[:res.count, 0]
+            nis[i:j] = res.nis[:res.count]
+            rules[i:j] = res.rules[:res.count]
+            n_events += int(res.structure_event[:res.count].sum())
+            nm.gamma = gam[j - 1].copy()
+            nm.rules = int(rules[j - 1])
+            if res.stopped_on_nan:
+                isnan[j - 1] = True
+                nm.restart()
+            i = j
+        nm.samples += nA
+        if nA:
+            cnt.inc(C.SAMPLES_ESTIMATED, nA)
+        if isnan.any():
+            cnt.inc(C.ESTIMATOR_NAN, int(isnan.sum()))
+        if n_events:
+            cnt.inc(C.ESTIMATOR_STRUCTURE_EVENTS, n_events)
+        gmax = gam.max(axis=1) if nA else np.zeros(0)
+        # samples and ticks in bus order: a tick follows the feed of its frame
+        pos_s = fr[oA]
+        tk = tick_idx[tick_idx >= created] if created >= 0 else tick_idx
+        keys = np.concatenate([2 * pos_s, 2 * tk + 1])
+        order_k = np.argsort(keys, kind="stable")
+        is_tick = np.concatenate([np.zeros(nA, np.bool_), np.ones(len(tk), np.bool_)])[order_k]
+        tt = np.concatenate([c.t[pos_s], c.t[tk]])[order_k]
+        gg = np.concatenate([gmax, np.zeros(len(tk))])[order_k]
+        ni = np.concatenate([nis, np.zeros(len(tk))])[order_k]
+        rb = np.concatenate([rA, np.zeros(len(tk), np.bool_)])[order_k]
+        nn = np.concatenate([isnan, np.zeros(len(tk), np.bool_)])[order_k]
+        L = len(keys)
+        st_out = np.zeros(L, np.int64)
+        ev = np.zeros(L, np.int64)
+        prev = np.zeros(L, np.int64)
+        cause = np.zeros(L, np.int64)
+        counts = np.zeros(2, np.int64)
+        K.classify(is_tick, tt, gg, ni, rb, nn, nm.s, self.cls_prm, st_out, ev, prev, cause,
+                   counts)
+        if counts[0]:
+            cnt.inc(C.NODES_MODEL_MISMATCH, int(counts[0]))
+        if counts[1]:
+            cnt.inc(C.NODES_SILENT, int(counts[1]))
+        # samples to the sinks, as columns
+        sample_of = order_k[~is_tick]  # item -> sample index, in order
+        st_sample = np.zeros(nA, np.int64)
+        st_sample[sample_of] = st_out[~is_tick]
+        good = ~isnan
+        if good.any():
+            self.router.samples(nm.node, SampleColumns(
+                t=c.t[pos_s][good], measured=Y[good, 0], estimated=yest[good],
+                gamma=gmax[good], rules=rules[good], state=st_sample[good], nis=nis[good],
+                true_gamma=np.where(got_t[oA], held_t[oA], np.nan)[good]))
+        # transitions and due diagnoses
+        if not ev.any():
+            return
+        sample_idx = np.full(L, -1, np.int64)
+        sample_idx[~is_tick] = sample_of
+        last_sample = np.maximum.accumulate(np.where(~is_tick, np.arange(L), -1))
+        tick_keys = keys[order_k]
+        for item in np.flatnonzero(ev).tolist():
+            if not is_tick[item]:
+                s_i = int(sample_idx[item])
+                g_vec, rl, u_vec = gam[s_i], int(rules[s_i]), U[s_i]
+            else:
+                ls = int(last_sample[item])
+                if ls >= 0:
+                    s_i = int(sample_idx[ls])
+                    if isnan[s_i]:  # restarted after it
+                        g_vec, rl = np.zeros(m), self._fresh_rules
+                    else:
+                        g_vec, rl = gam[s_i], int(rules[s_i])
+                else:
+                    g_vec, rl = g0, r0
+                fpos = int(tick_keys[item] // 2)
+                k_fr = int(np.searchsorted(fr, fpos, side="right")) - 1
+                u_vec = held_u[k_fr] if k_fr >= 0 else prev_u
+            j = int(np.argmax(g_vec))
+            g = float(g_vec.max())
+            fv = float(g_vec[j] * u_vec[j])
+            t_ev = float(tt[item])
+            state = _STATES[int(st_out[item])]
+            key = int(tick_keys[item])
+            if ev[item] == 1:
+                p_state = _STATES[int(prev[item])]
+                why = ("estimate", "model", "silence")[int(cause[item])]
+                events.append((key, order, len(events), DiagnosisEvent(
+                    t=t_ev, node=nm.node, state=state.label, previous=p_state.label, gamma=g,
+                    fault_volts=fv, rules=rl, cause=why)))
+            events.append((key, order, len(events),
+                           Diagnosis(nm.node, t_ev, state, g, fv, rl)))
+
+    @functools.cached_property
+    def _fresh_rules(self) -> int:
+        return FuzzyUKF(self.model, self.cfg.estimator).out.rules
+
+    def result(self, path: Path | None) -> ReplayResult:
+        nodes = {n: {"state": _STATES[_reported(nm.s)].label, "gamma": float(nm.gamma.max()),
+                     "rules": nm.rules, "samples": nm.samples}
+                 for n, nm in sorted(self.nodes.items())}
+        return ReplayResult(path, self.offset, dict(sorted(self.counters.items())),
+                            list(self.events), nodes)
+
+
+def _reported(s: NDArray[np.float64]) -> int:
+    """`NodeMonitor.state`: model_mismatch while flagged, unless no data."""
+    return 4 if s[8] != 0.0 and s[0] != 3.0 else int(s[0])
+
+
+def replay_chunks(chunks: Iterable[FrameChunk], db: Any, cfg: MonitorConfig | None = None,
+                  sink: Sink | None = None) -> ReplayResult:
+    """`replay_file` on chunks already in memory (no fallback: `NotColumnar` is raised)."""
+    rp = _Replay(db, cfg or MonitorConfig(), sink if sink is not None else Sink())
+    for c in chunks:
+        rp.chunk(c)
+    return rp.result(None)
+
+
+def replay_file(path: str | Path, db: Any, cfg: MonitorConfig | None = None,
+                sink: Sink | None = None, *, chunk_frames: int = DEFAULT_CHUNK_FRAMES
+                ) -> ReplayResult:
+    """Replay the bus log at `path` (candump .log, .asc, .blf) through decode, estimation
+    and diagnosis, a chunk of `chunk_frames` frames at a time, into `sink`.
+
+    `db` is the rig's frame decoder (`MotorDatabase` or `RigCodec`, as
+    `monitor.rig.build_decoder` makes it), `cfg` the monitor's configuration. Gives the
+    per-frame path's events and counters. A file this path cannot take (SecOC: per-frame
+    freshness state) goes through the per-frame path instead, said in one log line and in
+    `ReplayResult.fallback`. Raises `monitor.columnar.reader.LogReadError` (a
+    `MonitorError`) for a file that cannot be read. Does not close `sink`.
+    """
+    p = Path(path)
+    cfg = cfg or MonitorConfig()
+    the_sink = sink if sink is not None else Sink()
+    try:
+        rp = _Replay(db, cfg, the_sink)
+    except NotColumnar as exc:
+        log.warning("columnar replay: %s: %s; replaying it frame by frame", p, exc)
+        return _per_frame(p, db, cfg, the_sink, str(exc))
+    for c in read_chunks(p, chunk_frames):
+        rp.chunk(c)
+    return rp.result(p)
+
+
+def _per_frame(path: Path, db: Any, cfg: MonitorConfig, sink: Sink, why: str) -> ReplayResult:
+    from monitor.pipeline import MonitorPipeline
+
+    events: list[DiagnosisEvent] = []
+
+    class _Keep(Sink):
+        def on_transition(self, event: DiagnosisEvent) -> None:
+            events.append(event)
+
+    from monitor.sinks.base import FanOut
+
+    pipe = MonitorPipeline(db, cfg, sink=FanOut([sink, _Keep()]))
+    n = _feed(pipe, path)
+    s = pipe.summary()
+    return ReplayResult(path, n, dict(pipe.counters), events, s["nodes"], columnar=False,
+                        fallback=why)
+
+
+def _feed(pipe: Any, path: Path) -> int:
+    """`monitor.app.replay.feed_log` of `read_log(path)`, python-can's reader, exactly the
+    per-frame path (imported late: that module may import this package)."""
+    from monitor.app.replay import feed_log, read_log
+
+    try:
+        return int(feed_log(pipe, read_log(path)))
+    except MonitorError as exc:
+        raise LogReadError(str(exc)) from None
