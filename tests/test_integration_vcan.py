@@ -8,7 +8,8 @@ monitor's JSON-lines events and its Rerun recording. The replay tests run
 
 Oracle: the SimTruth frames carry the true loss of effectiveness gamma; its class under
 F1 = 0.15, F2 = 0.85 (eq 76) is what the MonitorDiagnosis frames and the events must follow:
-the new state within ``DELAY_BOUND_S`` of each true change, and no other state at any other
+the new state within ``DELAY_BOUND_S`` of each true change in sample time (the events; the
+frames get ``FRAME_LAG_S`` more for the daemon's scheduling), and no other state at any other
 time (from the first sample on: no start-up transient is tolerated). Inside the window after
 a true change the state may pass through the fault band (outage -> fault -> fault_free) or
 flicker while the estimate settles; that is printed, not failed.
@@ -66,6 +67,11 @@ LABELS = {FAULT_FREE: "fault_free", FAULT: "fault", OUTAGE: "outage", NO_DATA: "
 #: Bound on truth change -> diagnosis (product target 0.15 s; UML syscalls and the 10 Hz
 #: steady publication add delay).
 DELAY_BOUND_S = 0.5
+#: Extra room for a MonitorDiagnosis frame's own lag behind the sample it reports: in the test
+#: the daemon shares the guest's one CPU with the ECUs and candump, and on a loaded machine it
+#: processes the socket's backlog late. The estimator's delay itself (in sample time, from
+#: the events) is held to DELAY_BOUND_S by `check_event_sequence`.
+FRAME_LAG_S = 0.5
 #: Hand-over from no_data to the first estimate, left out of the frame-by-frame comparison.
 STARTUP_S = 0.1
 #: The monitor turns a node no_data after 0.5 s without current frames.
@@ -162,15 +168,16 @@ def disagreements(
 ) -> tuple[int, list[str]]:
     """Diagnosis frames whose state is not the true class, while the ECU runs.
 
-    Left out: the first `skip_start` s after the first truth frame and `DELAY_BOUND_S`
-    after each true change. Returns (frames compared, descriptions of mismatches).
+    Left out: the first `skip_start` s after the first truth frame and `DELAY_BOUND_S` +
+    `FRAME_LAG_S` after each true change. Returns (frames compared, descriptions of mismatches).
     """
     times = [t for t, _ in truth]
     start, end = times[0] + skip_start, times[-1]
     settle = [t for t, _, _ in class_changes(truth)]
     compared, bad = 0, []
     for td, state, g in diag:
-        if not start <= td <= end or any(tc <= td < tc + DELAY_BOUND_S for tc in settle):
+        if not start <= td <= end or any(tc <= td < tc + DELAY_BOUND_S + FRAME_LAG_S
+                                         for tc in settle):
             continue
         compared += 1
         expected = true_class(truth[bisect.bisect_right(times, td) - 1][1])
@@ -192,7 +199,7 @@ def check_follows_truth(cap: Capture, node: int, label: str, skip_start: float =
         print(f"[{label}] node {node}: true {LABELS[prev]} -> {LABELS[new]} at "
               f"{t - t_first:.2f} s, diagnosed after {shown}")
     for t, prev, new, delay in delays:
-        assert delay is not None and 0.0 <= delay <= DELAY_BOUND_S, (
+        assert delay is not None and 0.0 <= delay <= DELAY_BOUND_S + FRAME_LAG_S, (
             f"{label}: {LABELS[prev]} -> {LABELS[new]} at {t - t_first:.2f} s: delay {delay}"
         )
     startup = [f"{td - t_first:.2f}s {LABELS[s]}" for td, s, _ in diag
@@ -202,7 +209,7 @@ def check_follows_truth(cap: Capture, node: int, label: str, skip_start: float =
               f"{startup[0]} .. {startup[-1]} ({len(startup)} frames)")
     compared, bad = disagreements(truth, diag, skip_start)
     # The monitor publishes at 10 Hz (more at changes): expect most of those frames.
-    span = truth[-1][0] - t_first - skip_start - DELAY_BOUND_S * len(delays)
+    span = truth[-1][0] - t_first - skip_start - (DELAY_BOUND_S + FRAME_LAG_S) * len(delays)
     assert compared >= 0.8 * 10 * span, f"{label}: {compared} diagnosis frames in {span:.1f} s"
     assert not bad, f"{label}: {len(bad)} of {compared} diagnosis frames disagree: {bad[:5]}"
 
