@@ -7,9 +7,9 @@ Every reader gives exactly the frames python-can's `can.LogReader` gives for the
   python-can's speed. It follows `can.io.canutils.CanutilsLogReader` rule for rule: an ID
   longer than 3 digits is extended, an ID with the error flag *and* the bus-error bit is an
   error frame (ID 0, no data), any other error-flagged ID is an extended data frame, ``#R``
-  remote, ``##`` CAN FD. Timestamps are converted exactly (Clinger's fast path: at most 15
-  significant digits and 22 decimals, one correctly rounded division, which is what
-  Python's ``float`` gives); a line the scanner does not take as plain (odd hex digits,
+  remote, ``##`` CAN FD. Timestamps are converted exactly (Clinger's fast path: a decimal
+  mantissa of at most 2^53 and at most 22 decimals, one correctly rounded division, which
+  is what Python's ``float`` gives); a line the scanner does not take as plain (odd hex digits,
   exponents, more digits, anything unexpected) sends its whole chunk through python-can's
   own reader instead, so the result never differs, and a malformed file raises the same
   error.
@@ -239,13 +239,14 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
             elif 48 <= ch <= 57:
                 if digits > 0 or ch != 48:
                     digits += 1
-                mant = mant * 10 + (ch - 48) if digits <= 15 else mant
+                if digits <= 17:
+                    mant = mant * 10 + (ch - 48)
                 if dot:
                     frac += 1
             else:
                 return -1
             j += 1
-        if j >= e or digits > 15 or frac > 22 or j == i + 1:
+        if j >= e or digits > 17 or mant > 9007199254740992 or frac > 22 or j == i + 1:
             return -1
         j += 1  # ')'
         if j >= e or not _is_space(buf[j]):

@@ -396,6 +396,8 @@ class _Replay:
                 gamma=gmax[good], rules=rules[good], state=st_sample[good], nis=nis[good],
                 true_gamma=np.where(got_t[oA], held_t[oA], np.nan)[good]))
         # transitions and due diagnoses
+        if not self.router.wants_diagnosis:
+            ev[ev == 2] = 0
         if not ev.any():
             return
         sample_idx = np.full(L, -1, np.int64)
@@ -431,8 +433,9 @@ class _Replay:
                 events.append((key, order, len(events), DiagnosisEvent(
                     t=t_ev, node=nm.node, state=state.label, previous=p_state.label, gamma=g,
                     fault_volts=fv, rules=rl, cause=why)))
-            events.append((key, order, len(events),
-                           Diagnosis(nm.node, t_ev, state, g, fv, rl)))
+            if self.router.wants_diagnosis:
+                events.append((key, order, len(events),
+                               Diagnosis(nm.node, t_ev, state, g, fv, rl)))
 
     @functools.cached_property
     def _fresh_rules(self) -> int:

@@ -74,7 +74,10 @@ class SinkRouter:
         self.rerun: list[Any] = []
         self.rows: list[Sink] = []
         self.volt_rows: list[Sink] = []
-        for s in _leaves(sink):
+        leaves = _leaves(sink)
+        self.wants_diagnosis = any(type(s).on_diagnosis is not Sink.on_diagnosis for s in leaves)
+        """Whether any sink takes the due `Diagnosis` (else they are not even built)."""
+        for s in leaves:
             if hasattr(s, "on_sample_columns"):
                 self.columns.append(s)
             elif _rerun_buffers(s):
