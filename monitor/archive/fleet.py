@@ -11,6 +11,7 @@ in the NIS grey, lightened.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -52,19 +53,26 @@ def write_fleet_png(path: Path, results: Sequence[LogResult]) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
+    dirs = [os.path.dirname(os.path.abspath(r.log)) for r in results]
+    common = os.path.commonpath(dirs) if dirs else ""
+
+    def label(r: LogResult) -> str:  # the log's path below the directory all share
+        return os.path.relpath(os.path.abspath(r.log), common)
+
     rows: list[tuple[str, LogResult, int | None]] = []
     for r in results:
         if r.ok and r.nodes:
-            rows += [(f"{r.log}  node {n.node}", r, i) for i, n in enumerate(r.nodes)]
+            rows += [(f"{label(r)}  node {n.node}", r, i) for i, n in enumerate(r.nodes)]
         else:
-            rows.append((r.log, r, None))
+            rows.append((label(r), r, None))
     n_rows = max(len(rows), 1)
     height = min(1.6 + 0.32 * n_rows, _MAX_HEIGHT_IN)
     fig, ax = plt.subplots(figsize=(12.0, height))
     longest = max((r.duration_s for r in results if r.ok), default=0.0) or 1.0
     for y, (_, r, i) in enumerate(rows):
         if i is None:
-            text = f"failed: {r.reason}" if not r.ok else "no node in this log"
+            text = (f"failed: {r.reason.removeprefix(r.log + ': ')}" if not r.ok
+                    else "no node in this log")
             ax.text(0.005 * longest, y, text, va="center", ha="left", fontsize=7,
                     color=_rgb(_FAILED_COLOUR), clip_on=True)
             continue
@@ -77,6 +85,7 @@ def write_fleet_png(path: Path, results: Sequence[LogResult]) -> None:
     ax.set_ylim(len(rows) - 0.5, -0.5)
     ax.set_xlim(0.0, longest)
     ax.set_xlabel("time since the log's first frame (s)")
+    ax.set_ylabel(f"log below {common}, node", fontsize=8)
     ok = sum(1 for r in results if r.ok)
     ax.set_title(f"fleet health: {ok} of {len(results)} logs replayed")
     ax.legend(handles=[Patch(color=_rgb(STATE_COLOURS[s]), label=s) for s in STATES],

@@ -40,17 +40,19 @@ from monitor.errors import MonitorError, UsageError, one_line
 from monitor.pipeline import MonitorConfig
 from monitor.sinks.base import Sink
 
-__all__ = ["CLUSTER_TIMEOUT_S", "FLEET_PNG", "SUMMARY_CSV", "SUMMARY_PARQUET", "ArchiveRun",
-           "cluster_client", "replay_one", "require_cluster_extra", "run_archive",
-           "write_summary"]
+__all__ = ["CONNECT_TIMEOUT_S", "FLEET_PNG", "SUMMARY_CSV", "SUMMARY_PARQUET",
+           "WORKER_TIMEOUT_S", "ArchiveRun", "cluster_client", "replay_one",
+           "require_cluster_extra", "run_archive", "write_summary"]
 
 _log = logging.getLogger("monitor.archive")
 
 SUMMARY_PARQUET = "summary.parquet"
 SUMMARY_CSV = "summary.csv"
 FLEET_PNG = "fleet.png"
-CLUSTER_TIMEOUT_S = 30.0
-"""How long to wait for the scheduler to answer, and for its first worker."""
+CONNECT_TIMEOUT_S = 10.0
+"""How long to wait for the scheduler to answer."""
+WORKER_TIMEOUT_S = 60.0
+"""How long to wait for the cluster's first worker."""
 
 
 def _open_outputs(events: Path | None, rrd: Path | None,
@@ -121,13 +123,13 @@ def cluster_client(address: str) -> Iterator[Executor]:
     from distributed import Client
 
     try:
-        client = Client(address, timeout=f"{CLUSTER_TIMEOUT_S}s", set_as_default=False)
+        client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
     except (OSError, TimeoutError, ValueError, TypeError) as exc:
         raise UsageError(f"--cluster: cannot reach a Dask scheduler at {address} "
                          f"({one_line(exc)})") from None
     try:
         try:
-            client.wait_for_workers(1, timeout=CLUSTER_TIMEOUT_S)
+            client.wait_for_workers(1, timeout=WORKER_TIMEOUT_S)
         except (TimeoutError, OSError) as exc:
             raise UsageError(f"--cluster: the Dask scheduler at {address} has no worker "
                              f"(start one: dask worker {address}) ({one_line(exc)})") from None
@@ -185,7 +187,9 @@ def run_archive(logs: Sequence[LogInput], settings: ReplaySettings, out: Path, *
     sizes = {i: _size(log.path) for i, log in enumerate(logs)}
 
     def done(i: int, result: LogResult, bar: ProgressBar, *, counted: bool = False) -> None:
-        result = replace(result, log=logs[i].log)
+        # named as found, also in the reason (the worker was given the absolute path)
+        result = replace(result, log=logs[i].log,
+                         reason=result.reason.replace(str(logs[i].path), logs[i].log))
         results[i] = result
         bar.log_done(sizes[i], result.frames, counted=counted)
         if not result.ok:
