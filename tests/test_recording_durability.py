@@ -6,6 +6,8 @@
 * SIGTERM: the child closes its sink; ``rerun rrd verify`` passes and every sample is there.
 * Rotation by size and by age: every file passes ``rerun rrd verify``, the oldest are deleted
   beyond ``keep``/``max_total_bytes``, and the files together hold exactly what was logged.
+* Compaction of rotated files: the result verifies and holds every row; it never blocks the
+  caller; a failure (or a slow optimiser at close) keeps the file as written.
 * Memory stays bounded over many rotations.
 """
 
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import gc
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -20,6 +23,7 @@ import time
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -27,10 +31,12 @@ import pytest
 from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
+from monitor.sinks import compact
 from monitor.sinks.base import Sink
 from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
 from monitor.sinks.rotation import RotatingRerunSink
 from monitor.sinks.salvage import salvage_rrd
+from tests.test_rerun_sink import rows
 
 RERUN_EXE = Path(sys.executable).with_name("rerun")
 ROOT = Path(__file__).resolve().parents[1]
@@ -467,6 +473,144 @@ def test_rotation_arguments_are_checked(tmp_path: Path) -> None:
                    {"max_bytes": 100, "max_total_bytes": 50}):  # fmt: skip
         with pytest.raises(ValueError):
             RotatingRerunSink(tmp_path / "x", **kwargs)
+
+
+# -- compaction of rotated files ------------------------------------------------------------------
+
+
+def _fake_rerun(tmp_path: Path, optimize: str) -> Path:
+    """A ``rerun`` CLI whose ``rrd optimize`` runs the shell code `optimize` (arguments: rrd
+    optimize IN -o OUT ...), everything else the real one."""
+    exe = tmp_path / "fake-rerun"
+    exe.write_text(f"""#!/bin/sh
+if [ "$2" = optimize ]; then
+{optimize}
+fi
+exec {compact.rerun_cli()} "$@"
+""")
+    exe.chmod(0o755)
+    return exe
+
+
+def test_rotated_files_are_compacted_with_the_same_rows(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each rotated file (and the last, at close) is rewritten by ``rerun rrd optimize``: it
+    verifies, has a few times fewer chunks, and holds every row (row ids, times, values, the
+    blueprint) of the file as the rotation closed it."""
+    written = tmp_path / "as-written"
+    written.mkdir()
+    real = compact.compact_rrd
+
+    def keep_a_copy(p: Path, **kwargs: Any) -> int:
+        shutil.copyfile(p, written / p.name)
+        return real(p, **kwargs)
+
+    monkeypatch.setattr(compact, "compact_rrd", keep_a_copy)
+    out = tmp_path / "rec"
+    sink = RotatingRerunSink(out, max_bytes=None, max_age_s=None, keep=None, nodes=(0, 1),
+                             batch_size=128, compactor=compact.Compactor(),
+                             recording_id="compacted")
+    assert sink.compactor is not None
+    n = 3000
+    for part in range(3):
+        _feed(sink, part * n, n, settle=False)
+        if part < 2:
+            sink.rotate()
+    sink.close()
+    assert sink.compactor.stats.compacted == 3 and sink.compactor.stats.failed == 0
+    files = sink.files()
+    assert [p.name for p in files] == sorted(p.name for p in written.iterdir())
+    result = _verify(files)
+    assert result.returncode == 0, result.stderr
+    for p in files:
+        before = written / p.name
+        assert rows(p) == rows(before), p
+        n_before = sum(1 for _ in RrdReader(before).stream())
+        n_after = sum(1 for _ in RrdReader(p).stream())
+        assert n_after < n_before / 3, (p, n_before, n_after)
+        assert p.stat().st_size < before.stat().st_size
+    for node in (0, 1):
+        _, g = _union(files, node)
+        np.testing.assert_array_equal(g, np.arange(3 * n))
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary file
+
+
+def test_compaction_never_blocks_and_a_failure_keeps_the_file(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    exe = _fake_rerun(tmp_path, "  sleep 1; echo 'error: no space left' >&2; exit 3")
+    out = tmp_path / "rec"
+    sink = RotatingRerunSink(out, max_bytes=None, max_age_s=None, keep=None, nodes=(0,),
+                             compactor=compact.Compactor(exe=exe))
+    _feed(sink, 0, 500, settle=False)
+    started = time.monotonic()
+    first = sink.rotate()  # closes the first file and queues it
+    sink.flush()
+    assert time.monotonic() - started < 0.9  # the loop did not wait for the 1 s compaction
+    assert sink.compactor is not None and sink.compactor.pending() == 1
+    closed = sink.files()[0]
+    data = closed.read_bytes()
+    _feed(sink, 500, 500, settle=False)
+    with caplog.at_level("WARNING"):
+        sink.close()
+    assert sink.compactor.stats.failed == 2  # the rotated file and the last one
+    assert "no space left" in caplog.text and "kept as written" in caplog.text
+    assert closed.read_bytes() == data  # untouched
+    assert [p.name for p in sink.files()] == [closed.name, first.name]
+    assert _verify(sink.files()).returncode == 0
+    _, g = _union(sink.files())
+    np.testing.assert_array_equal(g, np.arange(1000))
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("kind", ["fails", "garbage", "no_cli", "file_changed", "deleted"])
+def test_a_failed_compaction_keeps_the_original(tmp_path: Path, kind: str) -> None:
+    path = tmp_path / "rec.rrd"
+    with RerunSink(rrd_path=path, nodes=(0,), batch_size=100) as sink:
+        for k in range(1000):
+            sink.add_sample(0, T0 + k * 1e-3, 1.0, 1.0, float(k), 1, 0, 1.0)
+    data = path.read_bytes()
+    optimize, why = {
+        "fails": ("  echo 'Error: cannot decode' >&2; exit 1", "Error: cannot decode"),
+        "garbage": ('  echo not a recording > "$5"; exit 0', "verify"),  # refused by verify
+        # a valid result, but the original changed or was deleted (retention) meanwhile
+        "file_changed": ('  cp "$3" "$5"; printf x >> "$3"; exit 0', "changed"),
+        "deleted": ('  cp "$3" "$5"; rm "$3"; exit 0', "No such file"),
+        "no_cli": ("", "cannot run"),
+    }[kind]
+    exe = tmp_path / "missing" if kind == "no_cli" else _fake_rerun(tmp_path, optimize)
+    with pytest.raises(compact.CompactionError, match=why):
+        compact.compact_rrd(path, exe=exe)
+    if kind == "file_changed":
+        assert path.read_bytes() == data + b"x"  # what the other writer made of it, as it is
+    elif kind == "deleted":
+        assert not path.exists()  # not brought back
+    else:
+        assert path.read_bytes() == data
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_close_gives_up_on_a_slow_compaction_and_leftovers_are_swept(tmp_path: Path) -> None:
+    exe = _fake_rerun(tmp_path, '  echo partial > "$5"; exec sleep 60')
+    out = tmp_path / "rec"
+    sink = RotatingRerunSink(out, max_bytes=None, max_age_s=None, keep=None, nodes=(0,),
+                             compactor=compact.Compactor(exe=exe), compact_wait_s=0.5)
+    _feed(sink, 0, 300, settle=False)
+    sink.rotate()
+    _feed(sink, 300, 300, settle=False)
+    started = time.monotonic()
+    sink.close()
+    assert time.monotonic() - started < 5.0  # 0.5 s, then the optimiser is stopped
+    assert sink.compactor is not None and sink.compactor.stats.abandoned >= 1
+    files = sink.files()
+    assert _verify(files).returncode == 0  # kept as written
+    # a killed daemon's leftover temporary file goes at the next start
+    leftover = out / f".{files[0].name}.compacting.rrd"
+    leftover.write_bytes(b"partial")
+    again = RotatingRerunSink(out, max_bytes=None, max_age_s=None, keep=None, nodes=(0,),
+                              compactor=compact.Compactor())
+    assert not leftover.exists()
+    again.close()
+    assert again.compactor is not None and again.compactor.stats.compacted == 1
 
 
 # -- memory -------------------------------------------------------------------------------------

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import gc
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -27,7 +29,7 @@ from rerun.chunk import Chunk, RrdReader
 from monitor.diagnosis import HealthState
 from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
 from monitor.sinks.base import Sink
-from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
+from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RUNS, RerunSink, run_ends
 from monitor.sinks.rotation import RotatingRerunSink
 
 T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
@@ -144,26 +146,76 @@ def test_recording_and_blueprint_stores(recorded: Path) -> None:
     } <= names
 
 
+def _latest_at(t: NDArray[np.float64], v: NDArray[np.float64],
+               at: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The value a latest-at query (the viewer's at a time cursor) gives at each time `at`."""
+    i = np.searchsorted(t, at, side="right") - 1
+    assert np.all(i >= 0), "a time before the first row"
+    return v[i]
+
+
 def test_samples_read_back_exactly(recorded: Path) -> None:
     ents = _read(recorded)
     k = np.arange(N)
     expected_t = T0 + k * DT
     for node in (0, 1):
         vals = np.array([_values(i, node) for i in range(N)], dtype=np.float64)
+        t_samples, _ = _series(ents[f"/motor/{node}/gamma/estimate"])
         for col, suffix in enumerate(
             ["current/measured", "current/estimated", "gamma/estimate", "rules", "health", "nis"]
         ):
             t, v = _series(ents[f"/motor/{node}/{suffix}"])
+            if suffix in RUNS:
+                # piecewise constant: recorded as its runs; the same latest value at every
+                # sample, the same line (straight or stepped), first and last sample included
+                assert len(v) < N // 10, suffix
+                np.testing.assert_array_equal(_latest_at(t, v, t_samples), vals[:, col])
+                np.testing.assert_array_equal(np.interp(t_samples, t, v), vals[:, col])
+                np.testing.assert_array_equal(t[[0, -1]], t_samples[[0, -1]])
+                continue
             assert len(v) == N, suffix
             np.testing.assert_array_equal(v, vals[:, col], err_msg=suffix)
             np.testing.assert_allclose(t, expected_t, rtol=0, atol=1e-6)
     t, v = _series(ents["/motor/0/gamma/estimate"])
     assert v[-1] == _values(N - 1, 0)[2] == (N - 1) / N
-    # the true gamma exists only where it was given
+    # the true gamma exists only where it was given; constant, so a few rows span it
     t, v = _series(ents["/motor/0/gamma/true"])
-    assert len(v) == N and np.all(v == 0.5)
+    assert np.all(v == 0.5) and len(v) < N // 10
+    np.testing.assert_allclose(t[[0, -1]], expected_t[[0, -1]], rtol=0, atol=1e-6)
     assert "/motor/1/gamma/true" not in ents
     assert "/motor/1/gamma/true" not in _static_entities(recorded)
+
+
+def test_run_ends_keep_the_line() -> None:
+    nan = math.nan
+    assert list(run_ends(np.array([1.0]))) == [True]
+    assert list(run_ends(np.array([1.0]), previous=1.0)) == [True]  # the last row: always
+    assert list(run_ends(np.array([1.0, 1.0, 1.0, 2.0, 2.0]), previous=1.0)) == [
+        False, False, True, True, True]
+    assert list(run_ends(np.array([1.0, 1.0, 1.0]), previous=nan)) == [True, False, True]
+    assert len(run_ends(np.zeros(0))) == 0
+    # in batches, with the last value of each carried over, like the sink
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        n = int(rng.integers(1, 300))
+        v = rng.integers(0, 3, size=n).cumsum() * (rng.random(n) < 0.05)
+        v = np.repeat(v, rng.integers(1, 9, size=n))[:n].astype(np.float64)
+        t = np.arange(n, dtype=np.float64)
+        cuts = np.sort(rng.choice(np.arange(1, n), size=min(n - 1, 4), replace=False)) if n > 1 \
+            else np.zeros(0, dtype=np.int64)
+        kept_t: list[NDArray[np.float64]] = []
+        kept_v: list[NDArray[np.float64]] = []
+        previous = math.nan
+        for tb, vb in zip(np.split(t, cuts), np.split(v, cuts), strict=True):
+            keep = run_ends(vb, previous)
+            previous = float(vb[-1])
+            kept_t.append(tb[keep])
+            kept_v.append(vb[keep])
+        tk, vk = np.concatenate(kept_t), np.concatenate(kept_v)
+        assert tk[0] == 0 and tk[-1] == n - 1
+        np.testing.assert_array_equal(np.interp(t, tk, vk), v)  # the straight line
+        np.testing.assert_array_equal(_latest_at(tk, vk, t), v)  # the stepped one
+        assert len(tk) <= 2 * (np.count_nonzero(np.diff(v)) + 1) + len(cuts)
 
 
 def test_thresholds_span_the_data_and_step(recorded: Path) -> None:
@@ -295,6 +347,38 @@ def test_memory_bounded_and_buffers_reused(tmp_path: Path) -> None:
     assert all(len(b) == 64 for b in buffers)
     # 10^5 samples of 8 float64 would be 6.4 MB if they were kept
     assert after - before < 256 * 1024, (before, after)
+
+
+def test_runs_in_small_batches_cost_about_a_row_a_second(tmp_path: Path) -> None:
+    """At the default 0.1 s flush a run that goes on sends a row a second, not one a batch;
+    what was held back goes at `switch_file` and `close`, so every line reaches the end of
+    its file's data, and each line is still the line through every sample."""
+    first, second = tmp_path / "a.rrd", tmp_path / "b.rrd"
+    sink = RerunSink(rrd_path=first, nodes=(0,))
+    start = time.monotonic() + 10.0
+    sink.maybe_flush(start)
+    n = 1000  # 10 s at 100 Hz
+    changes = (300, 505, 700, 701, 702, 950)
+    health = np.cumsum(np.isin(np.arange(2 * n), changes)) % 3
+    truth = np.where(health == 1, 0.4, 0.0)
+    for k in range(2 * n):
+        if k == n:
+            sink.switch_file(second)
+        sink.add_sample(0, T0 + k * 0.01, 1.0, 1.0, 0.5, 2, int(health[k]), 1.0,
+                        true_gamma=float(truth[k]))
+        sink.maybe_flush(start + (k + 1) * 0.01)
+    sink.close()
+    for path, part in ((first, slice(0, n)), (second, slice(n, 2 * n))):
+        ents = _read(path)
+        t_samples, _ = _series(ents["/motor/0/gamma/estimate"])
+        assert len(t_samples) == n
+        for suffix, full in (("health", health[part]), ("gamma/true", truth[part]),
+                             ("rules", np.full(n, 2.0)), ("gamma/F1", np.full(n, 0.15))):
+            t, v = _series(ents[f"/motor/0/{suffix}"])
+            assert len(v) <= 10 + 2 + 2 * len(changes), (suffix, len(v))
+            np.testing.assert_array_equal(t[[0, -1]], t_samples[[0, -1]])
+            np.testing.assert_array_equal(_latest_at(t, v, t_samples), full, err_msg=suffix)
+            np.testing.assert_array_equal(np.interp(t_samples, t, v), full, err_msg=suffix)
 
 
 # -- live streaming to a headless gRPC receiver -------------------------------------------
@@ -506,3 +590,158 @@ def test_rotating_sink_streams_live_across_rotations(tmp_path: Path) -> None:
     parts = [_series(_read(p)["/motor/0/gamma/estimate"])[1] for p in files]
     np.testing.assert_array_equal(np.concatenate(parts), np.arange(n))
     assert {RrdReader(p).recordings()[0].recording_id for p in files} == {sink.recording_id}
+
+
+# -- the flush interval and compaction ------------------------------------------------------
+
+
+def _gamma_rows(path: Path) -> int:
+    with contextlib.suppress(Exception):  # maybe in the middle of a write
+        return len(_series(_read(path).get("/motor/0/gamma/estimate", []))[1])
+    return -1
+
+
+@pytest.mark.parametrize("kind", ["one file", "rotating"])
+def test_a_larger_flush_interval_is_honoured(tmp_path: Path, kind: str) -> None:
+    """--record-flush-s 2: the buffers wait 2 s of the caller's clock, then all go at once."""
+    sink: RerunSink | RotatingRerunSink
+    if kind == "one file":
+        sink = RerunSink(rrd_path=tmp_path / "slow.rrd", nodes=(0,), flush_interval_s=2.0)
+        path = tmp_path / "slow.rrd"
+    else:
+        sink = RotatingRerunSink(tmp_path, max_bytes=None, max_age_s=None, keep=None,
+                                 nodes=(0,), flush_interval_s=2.0)
+        path = sink.path
+    assert sink.flush_interval_s == 2.0
+    start = time.monotonic() + 10.0
+    sink.maybe_flush(start)  # the clock starts here (nothing to send yet)
+    for batch in range(2):
+        for k in range(150):  # 1.5 s of 100 Hz
+            i = 150 * batch + k
+            sink.add_sample(0, T0 + i * 0.01, 1.0, 1.0, float(i), 1, 0, 1.0)
+            sink.maybe_flush(start + 2.0 * batch + k * 0.01)
+        sink.maybe_flush(start + 2.0 * batch + 1.99)
+        sink.recording.flush(timeout_sec=10)
+        assert _gamma_rows(path) == 150 * batch  # nothing of this batch yet
+        sink.maybe_flush(start + 2.0 * (batch + 1))
+        sink.recording.flush(timeout_sec=10)
+        assert _gamma_rows(path) == 150 * (batch + 1)
+    sink.close()
+    _, v = _series(_read(path)["/motor/0/gamma/estimate"])
+    np.testing.assert_array_equal(v, np.arange(300))
+
+
+def _parse(*extra: str) -> argparse.Namespace:
+    from monitor.app.cli import build_parser
+
+    return build_parser().parse_args(["run", "--interface", "virtual", *extra])
+
+
+def test_run_wires_the_flush_interval_and_compaction(tmp_path: Path) -> None:
+    from monitor.app import outputs
+    from monitor.pipeline import MonitorConfig
+
+    rrd = ("--rrd", str(tmp_path / "one.rrd"))
+    raw = ("--raw-dir", str(tmp_path))
+    # the default stays 0.1 s, with or without the raw bus log
+    assert outputs.record_flush_s(_parse(*rrd)) == DEFAULT_FLUSH_INTERVAL_S == 0.1
+    assert outputs.record_flush_s(_parse(*rrd, *raw)) == DEFAULT_FLUSH_INTERVAL_S
+    assert outputs.record_flush_s(_parse(*rrd, "--record-flush-s", "0.25")) == 0.25
+    assert outputs.record_flush_s(_parse(*rrd, *raw, "--record-flush-s", "5")) == 5.0
+    cfg = MonitorConfig(nodes=(0,))
+    one = outputs.rerun_sink(_parse(*rrd, *raw, "--record-flush-s", "2"), cfg)
+    assert isinstance(one, RerunSink) and one.flush_interval_s == 2.0
+    one.close()
+    files = tmp_path / "files"
+    files.mkdir()
+    rotating = outputs.rerun_sink(_parse("--record-dir", str(files)), cfg)
+    assert isinstance(rotating, RotatingRerunSink)
+    assert rotating.flush_interval_s == DEFAULT_FLUSH_INTERVAL_S
+    assert rotating.compactor is not None  # rotated files are compacted
+    for k in range(100):
+        rotating.add_sample(0, T0 + k * 0.01, 1.0, 1.0, 0.0, 1, 0, 1.0)
+    rotating.rotate()
+    assert rotating.compactor.wait(60)
+    counters: dict[str, int] = {}
+    outputs.count_compactions(rotating, counters)
+    assert counters == {"recording/compacted": 1}
+    rotating.close()
+    outputs.count_compactions(one, counters)  # no compactor: nothing to count
+    assert counters == {"recording/compacted": 1}
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (("--rrd", "{tmp}/x.rrd", "--record-flush-s", "2"),
+     "--record-flush-s: 2 s needs --raw-dir (without the raw bus log a kill may lose at most "
+     "0.25 s of the recording)"),
+    (("--raw-dir", "{tmp}", "--record-flush-s", "2"),
+     "--record-flush-s: there is no recording file to flush (give --rrd or --record-dir)"),
+    (("--rrd", "{tmp}/x.rrd", "--record-flush-s", "0"),
+     "argument --record-flush-s: must be positive: '0'"),
+    (("--rrd", "{tmp}/x.rrd", "--record-flush-s", "nan"),
+     "argument --record-flush-s: must be positive: 'nan'"),
+    (("--rrd", "{tmp}/x.rrd", "--record-flush-s", "soon"),
+     "argument --record-flush-s: not a number: 'soon'"),
+])
+def test_flush_interval_mistakes_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                              extra: tuple[str, ...], message: str) -> None:
+    from monitor.app.cli import main
+
+    argv = ["run", "--interface", "virtual", "--channel", f"flush-{uuid.uuid4().hex}",
+            *(a.format(tmp=tmp_path) for a in extra)]
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse's own errors
+        rc = int(exc.code or 0)
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert [ln for ln in err.splitlines() if ln.strip()] == [
+        ln for ln in err.splitlines() if "error:" in ln], err
+    assert len(err.strip().splitlines()) == 1 and err.rstrip().endswith(
+        message if "argument" not in message else message + " (see motor-monitor run --help)"
+    ), err
+    assert not list(tmp_path.iterdir())  # nothing written
+
+
+def _plain(col: pa.Array) -> pa.Array:
+    """Time stamps as their integer nanoseconds (a datetime would drop them)."""
+    return col.cast(pa.int64()) if pa.types.is_timestamp(col.type) else col
+
+
+def rows(path: Path) -> dict[tuple[str, bool], list[str]]:
+    """Every row of every store of a recording (its row id, times and components), per
+    entity, in a canonical order: what compaction must keep."""
+    out: dict[tuple[str, bool], list[str]] = defaultdict(list)
+    reader = RrdReader(path)
+    for store in [*reader.recordings(), *reader.blueprints()]:
+        for chunk in reader.stream(store=store):
+            rb = chunk.to_record_batch()
+            columns = {name: _plain(rb.column(name)).to_pylist() for name in rb.schema.names}
+            for i in range(chunk.num_rows):
+                out[(chunk.entity_path, chunk.is_static)].append(
+                    repr(sorted((name, col[i]) for name, col in columns.items())))
+    return {key: sorted(rows) for key, rows in out.items()}
+
+
+def test_compact_rrd_keeps_every_row(tmp_path: Path) -> None:
+    """`compact_rrd` rewrites a whole recording (samples, voltages, events, counters, a
+    threshold change, the blueprint store) with the real ``rerun rrd optimize``: it verifies,
+    has a few times fewer chunks, is smaller, and holds every row of the file as written."""
+    from monitor.sinks.compact import compact_rrd
+
+    path, before = tmp_path / "run.rrd", tmp_path / "before.rrd"
+    sink = RerunSink(rrd_path=path, nodes=(0, 1), batch_size=128)
+    _write_run(sink)
+    sink.close()
+    shutil.copyfile(path, before)
+    saved = compact_rrd(path)
+    assert saved == before.stat().st_size - path.stat().st_size > 0
+    proc = subprocess.run([str(RERUN_EXE), "rrd", "verify", str(path)], capture_output=True)
+    assert proc.returncode == 0, proc.stderr
+    n_before = sum(1 for _ in RrdReader(before).stream())
+    n_after = sum(1 for _ in RrdReader(path).stream())
+    assert n_after < n_before / 3, (n_before, n_after)
+    assert rows(path) == rows(before)
+    assert {k[0] for k in rows(path)} >= {"/motor/0/gamma/estimate", "/motor/1/events",
+                                          "/monitor/counters/frames_ok"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["before.rrd", "run.rrd"]

@@ -5,25 +5,63 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import MutableMapping
 from pathlib import Path
 from typing import Any
 
 from monitor.errors import MonitorError, UsageError
 from monitor.pipeline import MonitorConfig
 from monitor.sinks.base import Sink
+from monitor.sinks.compact import Compactor
 from monitor.sinks.jsonl import JsonLinesSink
-from monitor.sinks.rerun import RerunSink
+from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
 from monitor.sinks.rotation import RotatingRerunSink
 
-__all__ = ["event_lines", "rerun_sink"]
+__all__ = ["MAX_UNBACKED_FLUSH_S", "count_compactions", "event_lines", "record_flush_s",
+           "rerun_sink"]
+
+MAX_UNBACKED_FLUSH_S = 0.25
+"""The longest recording flush interval without the raw bus log: what a SIGKILL may lose."""
+
+
+def record_flush_s(args: argparse.Namespace) -> float:
+    """``--record-flush-s`` (0.1 s by default, `DEFAULT_FLUSH_INTERVAL_S`). Longer than
+    `MAX_UNBACKED_FLUSH_S` only with ``--raw-dir``, whose raw bus log then bounds what a kill
+    loses; only with a file to write (``--rrd``/``--record-dir``)."""
+    given = getattr(args, "record_flush_s", None)
+    if given is None:
+        return DEFAULT_FLUSH_INTERVAL_S
+    if not (args.rrd or getattr(args, "record_dir", None)):
+        raise UsageError("--record-flush-s: there is no recording file to flush (give --rrd "
+                         "or --record-dir)")
+    if given > MAX_UNBACKED_FLUSH_S and not getattr(args, "raw_dir", None):
+        raise UsageError(f"--record-flush-s: {given:g} s needs --raw-dir (without the raw bus "
+                         f"log a kill may lose at most {MAX_UNBACKED_FLUSH_S:g} s of the "
+                         f"recording)")
+    return float(given)
+
+
+def count_compactions(recording: Sink | None, counters: MutableMapping[str, int]) -> None:
+    """Mirror the rotated files' compactions into `counters` (``recording/compacted``,
+    ``recording/compaction_failed``, once they happen), from the thread that owns them."""
+    compactor = getattr(recording, "compactor", None)
+    if compactor is None:
+        return
+    stats = compactor.stats
+    for name, value in (("recording/compacted", stats.compacted),
+                        ("recording/compaction_failed", stats.failed)):
+        if value:
+            counters[name] = value
 
 
 def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig) -> Sink | None:
     """Rotating files (--record-dir), one file (--rrd) and/or a live viewer (--connect), or
-    None when none is asked for."""
+    None when none is asked for. Rotated files are compacted in the background
+    (`monitor.sinks.compact`)."""
     record_dir = getattr(args, "record_dir", None)
     if args.rrd and record_dir:
         raise UsageError("--rrd and --record-dir exclude each other (one file, or rotating files)")
+    flush_interval_s = record_flush_s(args)
     if not (args.rrd or args.connect or record_dir):
         return None
     if args.rrd:
@@ -31,14 +69,16 @@ def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig) -> Sink | None:
         if not parent.is_dir():
             raise UsageError(f"--rrd: directory {parent} does not exist")
     common: dict[str, Any] = {"nodes": cfg.nodes or (), "f1": cfg.thresholds.f1,
-                              "f2": cfg.thresholds.f2, "connect_url": args.connect}
+                              "f2": cfg.thresholds.f2, "connect_url": args.connect,
+                              "flush_interval_s": flush_interval_s}
     try:
         if record_dir:
             if not Path(record_dir).is_dir():
                 raise UsageError(f"--record-dir: directory {record_dir} does not exist")
             return RotatingRerunSink(record_dir, max_bytes=int(args.rotate_mb * 2**20),
                                      max_age_s=args.rotate_minutes * 60.0, keep=args.keep,
-                                     max_total_bytes=int(args.max_total_gb * 2**30), **common)
+                                     max_total_bytes=int(args.max_total_gb * 2**30),
+                                     compactor=Compactor(), **common)
         return RerunSink(rrd_path=args.rrd, **common)
     except (ValueError, RuntimeError, OSError) as exc:
         raise MonitorError(f"cannot start the Rerun recording: {exc}") from None

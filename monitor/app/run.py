@@ -112,6 +112,7 @@ def run_live(args: argparse.Namespace) -> int:
     db = options.database(args, rig)
     fresh = _freshness(db, args.secoc_state)
     cfg = options.monitor_config(args, rig)
+    outputs.record_flush_s(args)  # its mistakes before anything opens
     with StopOnSignals() as stop:
         # Load the compiled estimator before the socket opens: frames arriving meanwhile
         # would pile up in the kernel's buffer and be dropped.
@@ -141,7 +142,7 @@ def run_live(args: argparse.Namespace) -> int:
         sink = FanOut(sinks)
         pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)
         try:
-            _loop(args, pipe, sink, live, fresh, stop, raw, bus_stats)
+            _loop(args, pipe, sink, live, fresh, stop, raw, bus_stats, recording)
         finally:
             if raw is not None:
                 raw.stop()
@@ -162,7 +163,7 @@ def run_live(args: argparse.Namespace) -> int:
 
 def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _LiveBus,
           fresh: FreshnessSaver | None, stop: StopOnSignals,
-          raw: RotatingBusLog | None, bus_stats: BusStats) -> None:
+          raw: RotatingBusLog | None, bus_stats: BusStats, recording: Sink | None) -> None:
     where = f"{args.interface or '<config>'}:{args.channel or '<config>'}"
     log.warning("monitoring %s, nodes %s", where,
                 "all" if pipe.cfg.nodes is None else pipe.cfg.nodes)
@@ -182,6 +183,7 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                 last_tick = now
                 pipe.tick(now)
                 sink.maybe_flush(mono)
+                outputs.count_compactions(recording, pipe.counters)
                 if raw is not None:
                     raw.maybe_flush(mono)
                 if fresh is not None:
@@ -264,6 +266,12 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    "record: replay re-diagnoses them), same rotation and retention")
     r.add_argument("--raw-format", choices=("blf", "log"), default="blf",
                    help="raw bus log format: Vector BLF (default) or candump .log")
+    r.add_argument("--record-flush-s", type=options.positive_float, default=None,
+                   metavar="SECONDS",
+                   help="hand the recording's buffers to the .rrd file (and --connect's "
+                   "viewer) this often: what a SIGKILL can lose from it (default 0.1; above "
+                   "0.25 only with --raw-dir, whose raw log keeps every frame; e.g. 2: larger "
+                   "batches, files ~3.5x smaller before compaction)")
     r.add_argument("--metrics", default=None, metavar="FILE.prom",
                    help="write Prometheus metrics here every 5 s (node_exporter's textfile "
                    "collector directory); `motor-monitor status` reads them")

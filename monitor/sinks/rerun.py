@@ -12,9 +12,21 @@ never comes before samples that precede it in time.
 The entity layout, the series styles and the default blueprint are in
 `monitor.sinks.blueprint`.
 
-The thresholds are sent with every gamma batch as two rows, at the first and the last time
-stamp of the batch, with step interpolation, so each threshold line spans exactly the data
-and a `RerunSink.set_thresholds` change shows up as a step where it took effect.
+The thresholds go with every gamma batch, at its first and last time stamp, with step
+interpolation, so each threshold line spans exactly the data and a `RerunSink.set_thresholds`
+change shows up as a step where it took effect.
+
+Piecewise-constant series (`RUNS`: the thresholds, the rule count, the health state, a
+simulator's true gamma) are recorded as their runs: of each batch only the rows that draw the
+line (`run_ends`: the first and the last row of every run of equal values) and the batch's
+last row, which extends the line to the end of the data -- while a run goes on, at most once
+a second (`_RUN_TAIL_S`; `close` and `switch_file` send the one held back, and a row that
+changes the value is never held; after a SIGKILL such a line may stop up to that much
+before the others, on a value that had not changed). The line through them, stepped or
+straight, is the line through every sample, the latest value at any time is the same, and
+the viewer draws them without its per-pixel averaging, which would slant a run's line
+between two changes (`_EXACT_LINE`). They were 3 of the 7 rows of every sample; the other
+series (measured and estimated current, gamma^, NIS, and the voltage) keep every sample.
 
 All data goes on one timeline, ``time``: a timestamp timeline of the bus time in float seconds
 since the Unix epoch (CAN kernel time stamps), sent as ``rr.TimeColumn("time",
@@ -42,9 +54,15 @@ it is (``rerun rrd verify --check-footers false``, ``rerun rrd print``, the view
 `monitor.sinks.salvage.salvage_rrd` cuts the torn message off in place, for strict readers
 (``rerun.chunk.RrdReader`` refuses the whole file otherwise).
 
-The price of flushing every 0.1 s is small chunks: each costs ~1 kB of Arrow framing in the
-file (a 10-row chunk of one scalar ~1.1 kB, a 1000-row one ~10 kB), and an entry in the footer
-manifest. ``rerun rrd optimize`` compacts a finished file (several times fewer chunks).
+Size. Every flush sends one chunk per entity, and a chunk costs ~1 kB besides its rows (its
+Arrow schema and metadata, LZ4-compressed like the rest of the message, and ~33 bytes of footer
+manifest); a row of a scalar costs 36 bytes before compression (16-byte row id, 8-byte time,
+8-byte float64 value, 4-byte list offset), ~16-24 after. One 100 Hz node (``python -m
+tests.bench.recording_size``, bytes per hour, against 38 MB for the candump ``.log`` of its
+frames and 12 MB for the ``.blf``): flushed every 0.1 s, 292 MB (framing, ~63 chunks/s); every
+2 s, which is sound when another record bounds what a kill may lose (``run --raw-dir``), 78 MB;
+compacted by ``rerun rrd optimize`` (`monitor.sinks.compact`: one chunk per entity and ~2 MiB),
+34-35 MB, the rows themselves: `RotatingRerunSink` compacts every file it closes.
 
 Week-long runs: `monitor.sinks.rotation.RotatingRerunSink` writes a directory of ``.rrd``
 files; when the current one exceeds a size or an age it is finished (footer) and recording
@@ -80,7 +98,7 @@ from monitor.sinks.blueprint import (
     series_style,
 )
 
-__all__ = ["DEFAULT_FLUSH_INTERVAL_S", "RecordingOutlet", "RerunSink"]
+__all__ = ["DEFAULT_FLUSH_INTERVAL_S", "RUNS", "RecordingOutlet", "RerunSink", "run_ends"]
 
 _log = logging.getLogger(__name__)
 
@@ -105,6 +123,35 @@ _LEVELS: Final[Mapping[str, str]] = {
     "TRACE": "TRACE",
 }
 
+RUNS: Final = ("gamma/true", "gamma/F1", "gamma/F2", "rules", "health")
+"""Series that are piecewise constant by nature (the truth a simulator sends, the thresholds,
+the estimator's rule count and the health state): recorded as their runs (`run_ends`), drawn
+without the viewer's zoom-dependent aggregation (`_EXACT_LINE`)."""
+
+_RUN_TAIL_S: Final = 1.0
+"""A `RUNS` series sends a row that only continues its run at most this often."""
+
+_EXACT_LINE: Final = rr.SeriesLines.from_fields(
+    aggregation_policy=rr.components.AggregationPolicy.Off)
+"""The viewer averages the points that fall into one pixel (its default for a dense series,
+where that keeps the line's shape). The two rows either side of a change, one sample apart,
+would be averaged into one point half-way, and the line from it to the run's far end would
+slant: the runs are drawn as they are, which is the line the samples draw."""
+
+
+def run_ends(v: Array, previous: float = math.nan) -> NDArray[np.bool_]:
+    """Which rows of `v` to keep so that the line through them, stepped or straight, is the
+    line through all of them: every row but those inside a run of equal values (equal to the
+    row before, ``previous`` for the first, and to the row after). The last row is kept, so
+    the line reaches the end of the data; the latest value at any time is unchanged."""
+    n = len(v)
+    same_before = np.empty(n, dtype=np.bool_)
+    same_after = np.zeros(n, dtype=np.bool_)
+    if n:
+        same_before[0] = v[0] == previous
+        same_before[1:] = v[1:] == v[:-1]
+        same_after[:-1] = same_before[1:]
+    return ~(same_before & same_after)
 
 
 class RecordingOutlet(Sink):
@@ -149,12 +196,15 @@ class _Node:
         "estimated",
         "gamma",
         "health",
+        "last",
         "measured",
         "n",
         "nis",
         "nv",
         "path",
+        "pending",
         "rules",
+        "sent_t",
         "t",
         "true_gamma",
         "true_styled",
@@ -174,6 +224,12 @@ class _Node:
         self.rules: Array = np.zeros(batch_size)
         self.health: Array = np.zeros(batch_size)
         self.nis: Array = np.zeros(batch_size)
+        self.last: dict[str, float] = {}
+        """The value of the last row of each series in `RUNS` so far (none yet: NaN)."""
+        self.pending: dict[str, tuple[float, float]] = {}
+        """A `RUNS` series' last row (time, value), held back: it only continued its run."""
+        self.sent_t: dict[str, float] = {}
+        """The time of the last row sent of each `RUNS` series."""
         self.true_styled = False
         self.nv = 0
         self.tv: Array = np.zeros(batch_size)
@@ -387,6 +443,7 @@ class RerunSink(RecordingOutlet):
         if self._closed:
             return
         self.flush()
+        self._send_pending()
         self._closed = True
         try:
             self._rec.flush(timeout_sec=timeout_s)
@@ -414,6 +471,7 @@ class RerunSink(RecordingOutlet):
         if self.rrd_path is None or self._connect_url is not None:
             raise ValueError("switch_file needs a sink with rrd_path and without connect_url")
         self.flush()
+        self._send_pending()
         try:
             self._rec.flush(timeout_sec=timeout_s)
         except RuntimeError as exc:
@@ -425,12 +483,19 @@ class RerunSink(RecordingOutlet):
         self._counters.clear()
         for st in self._nodes.values():
             st.true_styled = False
+            st.last.clear()  # the new file starts its runs anew
+            st.sent_t.clear()
             self._style_node(st)
         self._send_blueprint()
 
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def flush_interval_s(self) -> float:
+        """`maybe_flush` sends the buffers once this long has passed since the last flush."""
+        return self._flush_interval_s
 
     @property
     def nodes(self) -> tuple[int, ...]:
@@ -457,7 +522,11 @@ class RerunSink(RecordingOutlet):
 
     def _style(self, path: str, suffix: str) -> None:
         _, name, color, width, stepped = next(s for s in STYLES if s[0] == suffix)
-        self._rec.log(path, series_style(name, color, width, stepped), static=True)
+        style = series_style(name, color, width, stepped)
+        if suffix in RUNS:
+            self._rec.log(path, style, _EXACT_LINE, static=True)
+        else:
+            self._rec.log(path, style, static=True)
 
     def _new_node(self, node: int) -> _Node:
         """A node not announced in ``nodes``: add it and resend the blueprint."""
@@ -487,22 +556,52 @@ class RerunSink(RecordingOutlet):
         if not st.true_styled and given.any():
             st.true_styled = True
             self._style(path["gamma/true"], "gamma/true")
-        if given.all():
-            send(path["gamma/true"], indexes=index, columns=scalars(scalars=true_gamma))
-        elif given.any():
-            send(
-                path["gamma/true"],
-                indexes=[rr.TimeColumn(TIMELINE, timestamp=t[given])],
-                columns=scalars(scalars=true_gamma[given]),
-            )
+        if given.any():
+            self._send_runs(st, "gamma/true", t[given], true_gamma[given])
         ends = t[[0, n - 1]] if n > 1 else t[:1].copy()
-        ends_index = [rr.TimeColumn(TIMELINE, timestamp=ends)]
-        k = len(ends)
-        send(path["gamma/F1"], indexes=ends_index, columns=scalars(scalars=np.full(k, self._f1)))
-        send(path["gamma/F2"], indexes=ends_index, columns=scalars(scalars=np.full(k, self._f2)))
-        send(path["rules"], indexes=index, columns=scalars(scalars=st.rules[:n]))
-        send(path["health"], indexes=index, columns=scalars(scalars=st.health[:n]))
+        self._send_runs(st, "gamma/F1", ends, np.full(len(ends), self._f1))
+        self._send_runs(st, "gamma/F2", ends, np.full(len(ends), self._f2))
+        self._send_runs(st, "rules", t, st.rules[:n])
+        self._send_runs(st, "health", t, st.health[:n])
         send(path["nis"], indexes=index, columns=scalars(scalars=st.nis[:n]))
+
+    def _send_runs(self, st: _Node, suffix: str, t: Array, v: Array) -> None:
+        """Send the rows of a piecewise-constant series (`RUNS`) that draw its line: the
+        first and the last row of every run of equal values (`run_ends`), and the batch's
+        last row. That last row, when it only continues a run, is held back until the next
+        batch unless `_RUN_TAIL_S` has passed since the series' last row was sent: small
+        batches (0.1 s) then cost one row a second, not ten; the line's tail in a live view
+        lags by up to that much, and `close` and `switch_file` send what was held back."""
+        previous = st.last.get(suffix, math.nan)
+        held = st.pending.pop(suffix, None)
+        if held is not None:  # it may end its run: it goes first, to be judged with the rest
+            t = np.concatenate(([held[0]], t))
+            v = np.concatenate(([held[1]], v))
+        keep = run_ends(v, previous)
+        st.last[suffix] = float(v[-1])
+        before = v[-2] if len(v) > 1 else previous
+        kept = t[:-1][keep[:-1]]
+        last_sent = kept[-1] if len(kept) else st.sent_t.get(suffix, -math.inf)
+        if v[-1] == before and t[-1] - last_sent < _RUN_TAIL_S:
+            keep[-1] = False
+            st.pending[suffix] = (float(t[-1]), float(v[-1]))
+        if keep.any():
+            self._send_rows(st, suffix, t[keep], v[keep])
+
+    def _send_rows(self, st: _Node, suffix: str, t: Array, v: Array) -> None:
+        st.sent_t[suffix] = float(t[-1])
+        self._rec.send_columns(
+            st.path[suffix],
+            indexes=[rr.TimeColumn(TIMELINE, timestamp=t)],
+            columns=rr.Scalars.columns(scalars=v),
+        )
+
+    def _send_pending(self) -> None:
+        """Send the rows `_send_runs` held back, so the lines reach the end of the data."""
+        for st in self._nodes.values():
+            for suffix, (t, v) in st.pending.items():
+                self._send_rows(st, suffix, np.array([t]), np.array([v]))
+            st.pending.clear()
 
     def _flush_voltage(self, st: _Node) -> None:
         n = st.nv

@@ -13,6 +13,7 @@ from typing import Any, Final
 import rerun as rr
 
 from monitor.files import FileSeries
+from monitor.sinks.compact import Compactor, sweep
 from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet, RerunSink
 
 __all__ = ["RotatingRerunSink"]
@@ -45,9 +46,10 @@ class RotatingRerunSink(RecordingOutlet):
     SDK's writer thread had not written yet) and its footer (~50-100 kB plus ~35 bytes a chunk).
     The defaults (64 MiB, 1 h, 48 files) bound the directory to ~3 GiB.
 
-    Sizing: at 100 Hz per node and a flush every 0.1 s, a node makes ~90 chunks/s of ~1 kB,
-    ~0.35 GB/h; the SDK keeps ~0.3-0.45 kB of footer manifest in memory per chunk of the open
-    file (measured), which without rotation would grow by ~20 GB per node and week.
+    Sizing (one 100 Hz node, ``python -m tests.bench.recording_size``): a flush every 0.1 s
+    makes ~63 chunks/s, ~0.29 GB/h; every 2 s ~11 chunks/s, ~78 MB/h; a compacted file ~35 MB
+    an hour. The SDK keeps ~0.3-0.45 kB of footer manifest in memory per chunk of the open
+    file (measured), which without rotation would grow by ~15 GB per node and week at 0.1 s.
 
     Memory: one `RecordingStream` serves the whole run (the Python SDK never frees a
     `RecordingStream`'s threads, so a new one per file would leak them); only its `FileSink` is
@@ -65,6 +67,18 @@ class RotatingRerunSink(RecordingOutlet):
     recording goes on into the current file; the rotation is retried after 1 s, then with
     doubling back-off up to a minute. One sink per directory: retention deletes files that
     another writer might be using.
+
+    Compaction (``compactor``, e.g. ``Compactor()``): every file closed by a rotation is handed
+    to the `monitor.sinks.compact.Compactor`, which rewrites it with ``rerun rrd optimize`` on a
+    background thread (the loop never waits; a failure is logged and the file kept as
+    written; the result replaces it atomically and passes ``rerun rrd verify``); `close`
+    compacts the last file too, waiting at most ``compact_wait_s`` for all of them. Leftover
+    temporary files of a killed run are removed at start.
+
+    Flush interval: ``flush_interval_s`` bounds the data a SIGKILL loses from the files (and
+    how far the live stream lags); when another record carries that bound (the raw bus log,
+    ``run --raw-dir``), a longer interval writes larger chunks (a few times smaller files
+    before compaction).
     """
 
     def __init__(
@@ -84,6 +98,8 @@ class RotatingRerunSink(RecordingOutlet):
         f2: float = 0.85,
         batch_size: int = 2048,
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
+        compactor: Compactor | None = None,
+        compact_wait_s: float = 20.0,
     ) -> None:
         if max_bytes is not None and max_bytes < 1:
             raise ValueError("max_bytes must be >= 1 (or None)")
@@ -103,6 +119,9 @@ class RotatingRerunSink(RecordingOutlet):
         self._last_flush = time.monotonic()
         self._retry_at = 0.0
         self._retry_s = 1.0
+        self._compact_wait_s = float(compact_wait_s)
+        self.compactor = compactor
+        """Compacts the closed files (None: they stay as written)."""
 
         self._series = FileSeries(directory, prefix, ".rrd", keep=keep,
                                   max_total_bytes=max_total_bytes, max_bytes=max_bytes,
@@ -121,6 +140,8 @@ class RotatingRerunSink(RecordingOutlet):
         self._live: RerunSink | None = None
         try:
             self._series.prune(self._path)
+            if self.compactor is not None:
+                sweep(self.directory)
             if connect_url is not None:
                 self._live = RerunSink(connect_url=connect_url, **common)
         except BaseException:
@@ -206,6 +227,8 @@ class RotatingRerunSink(RecordingOutlet):
         self._path = path
         self._opened = time.monotonic()
         self.rotations += 1
+        if self.compactor is not None:
+            self.compactor.submit(old)
         _log.info(
             "rerun sink: closed %s (%s bytes) in %.3f s, recording to %s",
             old,
@@ -217,21 +240,34 @@ class RotatingRerunSink(RecordingOutlet):
         return path
 
     def close(self, timeout_s: float = 10.0) -> None:
-        """Flush and close the current file (footer written) and the live stream. Idempotent."""
+        """Flush and close the current file (footer written) and the live stream, then wait up
+        to ``compact_wait_s`` for the compaction of the closed files, the last one included.
+        Idempotent."""
         if self._closed:
             return
         self._closed = True
         try:
             self._file.close(timeout_s)
         finally:
-            if self._live is not None:
-                self._live.close(timeout_s)
+            try:
+                if self._live is not None:
+                    self._live.close(timeout_s)
+            finally:
+                if self.compactor is not None:
+                    if self._enabled:
+                        self.compactor.submit(self._path)
+                    self.compactor.close(self._compact_wait_s)
 
     # -- introspection ------------------------------------------------------------------------
 
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def flush_interval_s(self) -> float:
+        """`maybe_flush` flushes once this long has passed since the last flush."""
+        return self._flush_interval_s
 
     @property
     def path(self) -> Path:
