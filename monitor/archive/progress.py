@@ -48,8 +48,8 @@ class ProgressBar:
             return
         self._bar = tqdm(total=max(total_bytes, 1), file=sys.stderr, unit="B", unit_scale=True,
                          dynamic_ncols=True, leave=True, desc="replay",
-                         bar_format="{desc} {percentage:3.0f}%|{bar}| {postfix} "
-                                    "[{elapsed}<{remaining}]")
+                         bar_format="{desc} {percentage:3.0f}%|{bar}| "
+                                    "[{elapsed}<{remaining}{postfix}]")
         self._show()
 
     @property
