@@ -3,7 +3,8 @@ whole run (serially in this process, on local cores, or on a Dask cluster), its 
 table and its fleet overview.
 
 Parallel runs use the executors' own scheduling, one task per log: the standard library's
-`ProcessPoolExecutor` for `--jobs N` (spawned processes: no state of this one is copied),
+`ProcessPoolExecutor` for `--jobs N` (forked from a fresh server process: no state of this
+one is copied),
 and `distributed.Client.get_executor()` for `--cluster ADDRESS`, the same
 `concurrent.futures` interface on a Dask cluster (the `archive` extra). Workers open the
 logs and write the outputs by the paths this process gives them (absolute paths): on a
@@ -145,8 +146,11 @@ def _executor(jobs: int, cluster: str | None) -> Iterator[Executor]:
         with cluster_client(cluster) as ex:
             yield ex
     else:
-        with ProcessPoolExecutor(max_workers=jobs,
-                                 mp_context=multiprocessing.get_context("spawn")) as ex:
+        # Forked from a server that has imported the monitor once: no state of this
+        # process (threads, open files) is copied, and N workers do not import it N times.
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload([__name__])
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as ex:
             yield ex
 
 
