@@ -27,6 +27,24 @@ wait_for() {
   done
 }
 
+# caught_up PID SECONDS: wait until the process PID keeps up with its input, i.e. uses under
+# 60 % of the CPU over half a second (from its utime + stime in /proc, USER_HZ = 100), for at
+# most SECONDS; returns 1 if it never did. BUSY: its CPU ticks in the last half second. A daemon still working through a backlog has
+# frames unread in its socket, which no flush of its outputs can save.
+caught_up() {
+  n=0
+  prev=$(awk '{print $14 + $15}' "/proc/$1/stat" 2>/dev/null) || return 1
+  while [ "$n" -lt $(($2 * 2)) ]; do
+    sleep 0.5
+    cur=$(awk '{print $14 + $15}' "/proc/$1/stat" 2>/dev/null) || return 1
+    BUSY=$((cur - prev))
+    [ "$BUSY" -lt 30 ] && return 0
+    prev=$cur
+    n=$((n + 1))
+  done
+  return 1
+}
+
 # inject KEY FRAME...: cansend each frame, in a window marked by mark_KEY_start/end
 inject() {
   key=$1; shift
@@ -41,11 +59,11 @@ inject() {
 
 # ecu SEED LOG: start a healthy node-0 ECU (until stopped); its PID in $ECU. It shares the
 # guest's one CPU with the monitor and the injectors: on a loaded machine its late samples go
-# out late (up to 1 s) rather than skipped, since a skip of 16 looks like a repeat to the 4-bit
-# alive counter and would be counted in the window of whatever bad frame is being injected.
+# out late rather than skipped, since a skip of 16 looks like a repeat to the 4-bit alive
+# counter and would be counted in the window of whatever bad frame is being injected.
 ecu() {
   sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario healthy --duration 0 \
-      --seed "$1" --max-catch-up 100 2> "$2" &
+      --seed "$1" --max-catch-up 100000 2> "$2" &
   # shellcheck disable=SC2034 # read by the boot scripts that source this file
   ECU=$!
 }
