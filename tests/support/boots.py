@@ -18,7 +18,7 @@ shell scripts are ``scripts/boot_a.sh`` and ``scripts/boot_b.sh`` beside this fi
   daemon starts, the two programs pointed at a CAN channel that does not exist.
 * **Boot B** -- the daemon and a healthy ECU, then ``cangen`` at full rate for 10 s (random
   standard frames, and a mix of extended, remote and CAN FD frames) while the daemon's RSS
-  is sampled every 0.5 s, 3 s of calm, and a SIGKILL of the daemon.
+  is sampled every 0.5 s, 3 s of calm once the daemon has caught up, and a SIGKILL.
 
 What the host reads afterwards: the scripts' ``key=value`` lines (``mark_*`` times in the
 guest's clock, which is the clock of the kernel's frame time stamps), the candump capture,
