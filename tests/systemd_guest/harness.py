@@ -418,6 +418,15 @@ class GuestRun:
                               timeout=60, check=False)
         return proc.stdout + proc.stderr
 
+    def journal_entries(self, *matches: str) -> list[dict[str, str]]:
+        """Entries of the guest's journal that journalctl's own matching selects
+        (``FIELD=value`` each), as its JSON output gives them."""
+        exe = shutil.which("journalctl") or "/bin/journalctl"
+        proc = subprocess.run([exe, "-D", str(self.root / "var/log/journal"), "--no-pager",
+                               "-o", "json", *matches], capture_output=True, text=True,
+                              timeout=60, check=False)
+        return [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+
     def diagnostics(self) -> str:
         """The tails of the guest script's log, the journal and the kernel log."""
         return (f"--- guest.log (tail) ---\n{_tail(self.text('guest.log'), 40)}\n"

@@ -42,6 +42,7 @@ from pathlib import Path
 import can
 import pytest
 
+from monitor.sinks.journal import TRANSITION_ID
 from tests.systemd_guest import harness
 from tests.systemd_guest.harness import GuestRun
 
@@ -477,9 +478,20 @@ def test_7_sim_ecu_drives_the_monitor_to_a_diagnosis(guest: GuestRun) -> None:
     assert re.search(r"vcan0\s+180\s+\[8\]", diag), diag  # MonitorDiagnosis_N0 on the bus
     ecu = guest.text("7-ecu-status.txt")
     assert "active (running)" in ecu, ecu
+    # Each transition is also in the journal as a structured entry that journalctl's own
+    # field matching finds (the operator's query), with the same states as the events.
+    entries = guest.journal_entries(f"MESSAGE_ID={TRANSITION_ID}", "NODE=0")
+    journal_path = [(e.get("PREVIOUS"), e.get("STATE")) for e in entries]
+    n = len(path)
+    assert any(journal_path[i:i + n] == path for i in range(len(journal_path) - n + 1)), (
+        journal_path, path)
+    assert all(e.get("SYSLOG_IDENTIFIER") == "motor-monitor" and "GAMMA" in e
+               and e.get("_SYSTEMD_UNIT") == "motor-monitor@vcan0.service"
+               for e in entries), entries[-1]
     chain = " -> ".join([path[0][0], *states_seen])
     REPORT["7 sim-ecu"] = (f"sim-ecu@vcan0 active; node 0 events {chain}; "
-                           "MonitorDiagnosis_N0 frames on the bus")
+                           "MonitorDiagnosis_N0 frames on the bus; the same transitions in "
+                           f"journalctl MESSAGE_ID={TRANSITION_ID} NODE=0")
 
 
 # -- summary ----------------------------------------------------------------------------------
