@@ -7,9 +7,12 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 
+import numpy as np
+from numpy.typing import NDArray
+
 from monitor.diagnosis.classifier import HealthState
 
-__all__ = ["BusEvent", "Diagnosis", "DiagnosisEvent", "Sample", "VoltageSample"]
+__all__ = ["BusEvent", "Diagnosis", "DiagnosisEvent", "Sample", "SampleColumns", "VoltageSample"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,3 +92,29 @@ class BusEvent:
     t: float
     text: str
     level: str = "WARN"  # INFO, WARN or ERROR
+
+
+_STATES = tuple(HealthState)
+
+
+@dataclass
+class SampleColumns:
+    """A node's estimator samples, one row each (`Sample`'s fields as columns; true_gamma
+    NaN where none)."""
+
+    t: NDArray[np.float64]
+    measured: NDArray[np.float64]
+    estimated: NDArray[np.float64]
+    gamma: NDArray[np.float64]
+    rules: NDArray[np.int64]
+    state: NDArray[np.int64]
+    nis: NDArray[np.float64]
+    true_gamma: NDArray[np.float64]
+
+    def rows(self, node: int) -> list[Sample]:
+        tg = self.true_gamma
+        return [Sample(node, float(self.t[i]), float(self.measured[i]),
+                       float(self.estimated[i]), float(self.gamma[i]), int(self.rules[i]),
+                       _STATES[int(self.state[i])], float(self.nis[i]),
+                       None if tg[i] != tg[i] else float(tg[i]))
+                for i in range(len(self.t))]

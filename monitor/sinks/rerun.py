@@ -85,7 +85,7 @@ import numpy as np
 import rerun as rr
 from numpy.typing import NDArray
 
-from monitor.pipeline.events import BusEvent, DiagnosisEvent, Sample, VoltageSample
+from monitor.pipeline.events import BusEvent, DiagnosisEvent, Sample, SampleColumns, VoltageSample
 from monitor.sinks.base import Sink
 from monitor.sinks.blueprint import (
     BUS_EVENTS_PATH,
@@ -407,6 +407,46 @@ class RerunSink(RecordingOutlet):
                 indexes=[rr.TimeColumn(TIMELINE, timestamp=ts)],
                 columns=rr.Scalars.columns(scalars=vs),
             )
+
+    def on_sample_columns(self, node: int, cols: SampleColumns) -> None:
+        """A node's samples as columns (the columnar replay): `add_sample` a slice at a time,
+        into the same buffers, sent as the same chunks."""
+        if self._closed:
+            return
+        st = self._nodes.get(node) or self._new_node(node)
+        n, i = len(cols.t), 0
+        while i < n:
+            at = st.n
+            k = min(self._batch_size - at, n - i)
+            dst, src = slice(at, at + k), slice(i, i + k)
+            st.t[dst] = cols.t[src]
+            st.measured[dst] = cols.measured[src]
+            st.estimated[dst] = cols.estimated[src]
+            st.gamma[dst] = cols.gamma[src]
+            st.true_gamma[dst] = cols.true_gamma[src]
+            st.rules[dst] = cols.rules[src]
+            st.health[dst] = cols.state[src]
+            st.nis[dst] = cols.nis[src]
+            st.n = at + k
+            i += k
+            if st.n == self._batch_size:
+                self._flush_samples(st)
+
+    def on_voltage_columns(self, node: int, t: Array, volts: Array) -> None:
+        """A node's voltage commands as columns: `add_voltage` a slice at a time."""
+        if self._closed:
+            return
+        st = self._nodes.get(node) or self._new_node(node)
+        n, i = len(t), 0
+        while i < n:
+            at = st.nv
+            k = min(self._batch_size - at, n - i)
+            st.tv[at:at + k] = t[i:i + k]
+            st.volts[at:at + k] = volts[i:i + k]
+            st.nv = at + k
+            i += k
+            if st.nv == self._batch_size:
+                self._flush_voltage(st)
 
     def set_thresholds(self, f1: float, f2: float) -> None:
         """Change the diagnosis thresholds; buffered samples keep the old ones."""
