@@ -17,18 +17,15 @@ import math
 import os
 import sys
 import time
-import zlib
-from collections.abc import Iterable, Iterator
-from contextlib import suppress
+from collections.abc import Iterable
 from pathlib import Path
-from struct import error as StructError
 from typing import Any
 
 import can
-from can.io.blf import BLFParseError
 
 from monitor.app import options, outputs
-from monitor.errors import MonitorError, UsageError, one_line
+from monitor.bus.logfile import LOG_SUFFIXES, LogError, read_log
+from monitor.errors import UsageError
 from monitor.pipeline import MonitorPipeline
 from monitor.pipeline import counters as C
 from monitor.sinks.base import Sink
@@ -37,44 +34,7 @@ from monitor.sinks.log import LogSink
 __all__ = ["LOG_SUFFIXES", "LogError", "add_command", "feed_log", "read_log", "replay_frames",
            "run_replay"]
 
-LOG_SUFFIXES = (".log", ".asc", ".blf")
 TICK_S = 0.05  # bus time between timeout checks, as in the live loop
-
-
-class LogError(MonitorError):
-    """A bus log that cannot be read (one line naming the file)."""
-
-
-def read_log(path: Path) -> Iterator[can.Message]:
-    """Frames of a candump .log, Vector .asc or .blf file, through python-can's readers.
-
-    Not a generator itself: a bad path raises `LogError` here, before the caller opens
-    any output (--rrd, --events) that an error must not create or overwrite.
-    """
-    if path.suffix.lower() not in LOG_SUFFIXES:
-        raise LogError(f"{path}: unsupported log format (use {', '.join(LOG_SUFFIXES)})")
-    if not path.is_file():
-        raise LogError(f"{path}: no such file")
-    try:
-        reader = can.LogReader(str(path))
-    except _READ_ERRORS as exc:
-        raise LogError(f"{path}: cannot read log ({one_line(exc)})") from None
-    return _frames(path, reader)
-
-
-# what python-can's readers raise on a damaged file: bad text or numbers, short records,
-# a BLF that is no BLF or whose compressed objects are broken
-_READ_ERRORS = (ValueError, IndexError, OSError, StructError, zlib.error, BLFParseError)
-
-
-def _frames(path: Path, reader: can.io.generic.MessageReader) -> Iterator[can.Message]:
-    try:
-        yield from reader
-    except _READ_ERRORS as exc:
-        raise LogError(f"{path}: malformed log ({one_line(exc)})") from None
-    finally:
-        with suppress(Exception):
-            reader.stop()
 
 
 def feed_log(pipe: MonitorPipeline, frames: Iterable[can.Message]) -> int:
@@ -111,7 +71,7 @@ def run_replay(args: argparse.Namespace) -> int:
 
 
 def _replay_one_log(args: argparse.Namespace) -> int:
-    from monitor.archive.engine import ReplaySettings, monitor_setup, per_frame_engine
+    from monitor.archive.engine import ENGINES, ReplaySettings, monitor_setup
 
     if args.rrd is True:
         raise UsageError("--rrd: give the recording's file name (or --out DIR for one "
@@ -126,7 +86,7 @@ def _replay_one_log(args: argparse.Namespace) -> int:
         events = outputs.event_lines(args.events, to_stdout=True)
         return sinks + [s for s in (recording, events) if s is not None]
 
-    run = per_frame_engine(Path(args.paths[0]), setup, open_sinks)
+    run = ENGINES[args.engine](Path(args.paths[0]), setup, open_sinks)
     n, el = run.frames, run.feed_s
     c = C.Counters(run.counters)
     print(f"motor-monitor: replayed {n} frames in {el:.2f} s ({n / max(el, 1e-9):.0f} frames/s): "
@@ -136,7 +96,7 @@ def _replay_one_log(args: argparse.Namespace) -> int:
 
 
 def _replay_archive(args: argparse.Namespace) -> int:
-    from monitor.archive.engine import ReplaySettings, monitor_setup
+    from monitor.archive.engine import ENGINES, ReplaySettings, monitor_setup
     from monitor.archive.inputs import find_logs
     from monitor.archive.run import require_cluster_extra, run_archive
 
@@ -166,7 +126,7 @@ def _replay_archive(args: argparse.Namespace) -> int:
     logs = find_logs(args.paths)
     t0 = time.perf_counter()
     done = run_archive(logs, settings, out, rrd=args.rrd is True, jobs=args.jobs or 1,
-                       cluster=args.cluster)
+                       cluster=args.cluster, engine=ENGINES[args.engine])
     el = time.perf_counter() - t0
     n, failed = done.frames, len(done.failed)
     print(f"motor-monitor: replayed {len(done.results) - failed} of {len(done.results)} logs "
@@ -197,6 +157,10 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     p.add_argument("--out", default=None, metavar="DIR",
                    help="each log's events (and recording) under DIR, named after the log's "
                    "path, and the summary (summary.parquet, summary.csv, fleet.png)")
+    p.add_argument("--engine", choices=("columnar", "per-frame"), default="columnar",
+                   help="columnar (default): each log read, decoded and estimated in chunks of "
+                   "arrays, the same diagnosis and counters several times faster; per-frame: "
+                   "frame by frame through the live daemon's pipeline")
     p.add_argument("--jobs", type=_jobs, default=None, metavar="N",
                    help="replay N logs at once in local processes (default 1)")
     p.add_argument("--cluster", default=None, metavar="ADDRESS",

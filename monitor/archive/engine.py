@@ -25,27 +25,36 @@ next, so a log's result does not depend on which worker ran it or after which lo
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import can
+import numpy as np
+from numpy.typing import NDArray
 
 from monitor.app import options
 from monitor.app.replay import feed_log, read_log
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.rigcodec import RigCodec
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.pipeline.events import DiagnosisEvent, Sample
+from monitor.pipeline.events import DiagnosisEvent, Sample, SampleColumns
 from monitor.rig import Rig
 from monitor.sinks.base import FanOut, Sink
 
-__all__ = ["PROGRESS_EVERY", "EngineRun", "FrameProgress", "MonitorSetup", "NodeStats",
-           "PerFileEngine", "ReplaySettings", "RunRecorder", "monitor_setup", "per_frame_engine"]
+__all__ = ["ENGINES", "PROGRESS_EVERY", "EngineRun", "FrameProgress", "MonitorSetup",
+           "NodeStats", "PerFileEngine", "ReplaySettings", "RunRecorder", "columnar_engine",
+           "monitor_setup", "per_frame_engine"]
+
+if TYPE_CHECKING:
+    from monitor.columnar import FrameChunk
+
+log = logging.getLogger("motor_monitor")
 
 PROGRESS_EVERY = 8192
 """Frames between two progress reports of an engine."""
@@ -158,6 +167,20 @@ class RunRecorder(Sink):
         if nis == nis and not nis <= stats.worst_nis:  # NaN never; the first sample always
             stats.worst_nis = nis
 
+    def on_sample_columns(self, node: int, cols: SampleColumns) -> None:
+        """The columnar replay's samples: the same statistics, a column at a time."""
+        stats = self.nodes.get(node)
+        if stats is None:
+            stats = self.nodes[node] = NodeStats()
+        stats.samples += len(cols.t)
+        nis = cols.nis[~np.isnan(cols.nis)]
+        if len(nis) and not float(nis.max()) <= stats.worst_nis:
+            stats.worst_nis = float(nis.max())
+
+    def on_voltage_columns(self, node: int, t: NDArray[np.float64],
+                           volts: NDArray[np.float64]) -> None:
+        """Voltages are not part of the summary."""
+
 
 class _Span:
     """Passes frames through, noting the first and last timestamps and reporting progress."""
@@ -203,3 +226,55 @@ def per_frame_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], l
         recorder.nodes.setdefault(node, NodeStats())
     return EngineRun(frames=n, counters=dict(pipe.counters), transitions=recorder.transitions,
                      nodes=recorder.nodes, t_first=span.first, t_last=span.last, feed_s=feed_s)
+
+
+def columnar_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], list[Sink]],
+                    progress: FrameProgress | None = None) -> EngineRun:
+    """The log through the columnar replay (`monitor.columnar`: chunks of frames decoded,
+    checked and estimated as arrays; the same events and counters as `per_frame_engine`).
+    A decoder it cannot take (SecOC keeps per-frame freshness state) goes to
+    `per_frame_engine`, said once per process in the log."""
+    from monitor.columnar import columnar_obstacle, read_chunks, replay_chunks
+
+    db = setup.decoder()
+    why = columnar_obstacle(db, setup.cfg)
+    if why is not None:
+        _fallback_once(why)
+        return per_frame_engine(path, setup, open_sinks, progress)
+    chunks = read_chunks(path)  # LogReadError here, before any output is opened
+    recorder = RunRecorder()
+    sink = FanOut([recorder, *open_sinks()])
+    first: list[float] = []
+    last: list[float] = []
+
+    def spanned() -> Iterator[FrameChunk]:
+        for c in chunks:
+            if len(c):
+                if not first:
+                    first.append(float(c.t[0]))
+                last[:] = [float(c.t[-1])]
+            yield c
+            if progress is not None:
+                progress(len(c))
+
+    t0 = time.perf_counter()
+    try:
+        result = replay_chunks(spanned(), db, setup.cfg, sink)
+    finally:
+        sink.close()
+    feed_s = time.perf_counter() - t0
+    for node in result.nodes:
+        recorder.nodes.setdefault(node, NodeStats())
+    return EngineRun(frames=result.frames, counters=dict(result.counters),
+                     transitions=recorder.transitions, nodes=recorder.nodes,
+                     t_first=first[0] if first else None, t_last=last[0] if last else None,
+                     feed_s=feed_s)
+
+
+@cache
+def _fallback_once(why: str) -> None:
+    log.warning("replay: %s; logs are replayed frame by frame", why)
+
+
+ENGINES: dict[str, PerFileEngine] = {"columnar": columnar_engine, "per-frame": per_frame_engine}
+"""The engines `replay --engine` chooses from (the first is the default)."""

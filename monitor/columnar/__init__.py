@@ -23,8 +23,8 @@ python-can's readers):
    (`monitor.estimation.fuzzy_ukf.step_many`: the same kernel as `FuzzyUKF.step`), then
    classification, model-mismatch detection, silence ticks and due diagnoses in one
    compiled loop (`kernels.classify`);
-4. samples and voltages go to the sinks as columns (`sinks.SinkRouter`; a `RerunSink`'s
-   column buffers filled by slices and sent with ``rr.send_columns``), transitions, due
+4. samples and voltages go to the sinks as columns (`sinks.SinkRouter`; `RerunSink` takes
+   them with `on_sample_columns` and sends them with ``rr.send_columns``), transitions, due
    diagnoses and bus events in their order.
 
 The same transitions, due diagnoses, bus events, samples and counters as
@@ -38,8 +38,13 @@ key the file goes through the per-frame path (one log line says so).
 
 from monitor.columnar.decode import NotColumnar
 from monitor.columnar.reader import FrameChunk, LogReadError, read_chunks
-from monitor.columnar.replay import ReplayResult, replay_chunks, replay_file
-from monitor.columnar.sinks import SampleColumns
+from monitor.columnar.replay import (
+    ReplayResult,
+    columnar_obstacle,
+    replay_chunks,
+    replay_file,
+)
+from monitor.pipeline.events import SampleColumns
 
 __all__ = ["FrameChunk", "LogReadError", "NotColumnar", "ReplayResult", "SampleColumns",
-           "read_chunks", "replay_chunks", "replay_file"]
+           "columnar_obstacle", "read_chunks", "replay_chunks", "replay_file"]

@@ -28,24 +28,30 @@ from collections.abc import Iterable, Iterator
 from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
-from struct import error as StructError
 
 import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.errors import MonitorError
+from monitor.bus.logfile import (
+    LOG_SUFFIXES,
+    READ_ERRORS,
+    LogError,
+    check_log_path,
+    malformed,
+    open_reader,
+)
+from monitor.errors import one_line
 from monitor.estimation.jit import njit
 
 __all__ = ["LOG_SUFFIXES", "FrameChunk", "LogReadError", "chunk_from_messages", "read_chunks"]
 
-LOG_SUFFIXES = (".log", ".asc", ".blf")
 DEFAULT_CHUNK_FRAMES = 1 << 18
 _READ_BYTES = 1 << 24  # candump text read per call (about 330,000 lines)
 
 
-class LogReadError(MonitorError):
-    """A bus log that cannot be read (one line naming the file)."""
+LogReadError = LogError
+"""A bus log that cannot be read: the one error both replay paths raise for it."""
 
 
 @dataclass
@@ -104,22 +110,14 @@ def read_chunks(path: Path, chunk_frames: int = DEFAULT_CHUNK_FRAMES) -> Iterato
     outputs.
     """
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in LOG_SUFFIXES:
-        raise LogReadError(f"{path}: unsupported log format (use {', '.join(LOG_SUFFIXES)})")
-    if not path.is_file():
-        raise LogReadError(f"{path}: no such file")
-    if suffix == ".log":
+    check_log_path(path)
+    if path.suffix.lower() == ".log":
         try:
             fh = path.open("rb")
         except OSError as exc:
-            raise LogReadError(f"{path}: cannot read log ({exc})") from None
+            raise LogError(f"{path}: cannot read log ({one_line(exc)})") from None
         return _candump_chunks(path, fh)
-    try:
-        reader = can.LogReader(str(path))
-    except (OSError, ValueError, StructError) as exc:
-        raise LogReadError(f"{path}: cannot read log ({exc})") from None
-    return _reader_chunks(path, reader, chunk_frames)
+    return _reader_chunks(path, open_reader(path), chunk_frames)
 
 
 def _reader_chunks(path: Path, reader: can.io.generic.MessageReader,
@@ -133,8 +131,8 @@ def _reader_chunks(path: Path, reader: can.io.generic.MessageReader,
                 batch = []
         if batch:
             yield chunk_from_messages(batch)
-    except (ValueError, IndexError, OSError, StructError) as exc:
-        raise LogReadError(f"{path}: malformed log ({exc})") from None
+    except READ_ERRORS as exc:
+        raise malformed(path, exc) from None
     finally:
         with suppress(Exception):
             reader.stop()
@@ -174,8 +172,8 @@ def _parse_candump(path: Path, text: bytes) -> FrameChunk:
         try:
             reader = can.io.canutils.CanutilsLogReader(io.StringIO(text.decode()))
             return chunk_from_messages(reader)
-        except (ValueError, IndexError, UnicodeDecodeError) as exc:
-            raise LogReadError(f"{path}: malformed log ({exc})") from None
+        except (*READ_ERRORS, UnicodeDecodeError) as exc:
+            raise malformed(path, exc) from None
     return FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
                       c.error[:n], c.length[:n], c.data[:n])
 

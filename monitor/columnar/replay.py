@@ -21,19 +21,18 @@ from numpy.typing import NDArray
 from monitor.bus.faults import describe_error_frame
 from monitor.columnar import kernels as K
 from monitor.columnar.decode import REASONS, DecodedChunk, NotColumnar, RouteTable
-from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, LogReadError, read_chunks
-from monitor.columnar.sinks import SampleColumns, SinkRouter
+from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, read_chunks
+from monitor.columnar.sinks import SinkRouter
 from monitor.diagnosis import HealthState, MismatchDetector, OnlineClassifier
-from monitor.errors import MonitorError
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, step_many
 from monitor.estimation.model import DiscreteModel
 from monitor.pipeline import MonitorConfig
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import Counters
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent
+from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, SampleColumns
 from monitor.sinks.base import Sink
 
-__all__ = ["ReplayResult", "replay_chunks", "replay_file"]
+__all__ = ["ReplayResult", "columnar_obstacle", "replay_chunks", "replay_file"]
 
 log = logging.getLogger("motor_monitor")
 
@@ -454,6 +453,18 @@ def _reported(s: NDArray[np.float64]) -> int:
     return 4 if s[8] != 0.0 and s[0] != 3.0 else int(s[0])
 
 
+def columnar_obstacle(db: Any, cfg: MonitorConfig | None = None) -> str | None:
+    """Why logs of this decoder cannot be replayed in columns (SecOC, a codec or frames
+    this path has no decoder for), or None when they can; `replay_file` would fall back to
+    the per-frame path for the reason given."""
+    model = (cfg or MonitorConfig()).plant().discretize(1.0 / (cfg or MonitorConfig()).rate)
+    try:
+        RouteTable.of(db, model.m, model.p)
+    except NotColumnar as exc:
+        return str(exc)
+    return None
+
+
 def replay_chunks(chunks: Iterable[FrameChunk], db: Any, cfg: MonitorConfig | None = None,
                   sink: Sink | None = None) -> ReplayResult:
     """`replay_file` on chunks already in memory (no fallback: `NotColumnar` is raised)."""
@@ -510,9 +521,7 @@ def _per_frame(path: Path, db: Any, cfg: MonitorConfig, sink: Sink, why: str) ->
 def _feed(pipe: Any, path: Path) -> int:
     """`monitor.app.replay.feed_log` of `read_log(path)`, python-can's reader, exactly the
     per-frame path (imported late: that module may import this package)."""
-    from monitor.app.replay import feed_log, read_log
+    from monitor.app.replay import feed_log
+    from monitor.bus.logfile import read_log
 
-    try:
-        return int(feed_log(pipe, read_log(path)))
-    except MonitorError as exc:
-        raise LogReadError(str(exc)) from None
+    return int(feed_log(pipe, read_log(path)))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -128,3 +129,21 @@ def test_a_local_dask_cluster_gives_the_serial_summary(
     assert events_of(out) == events_of(serial_run.out)
     # the two workers both took logs
     assert all(p.poll() is None for p in dask_cluster.processes)
+
+
+def test_the_per_frame_engine_gives_the_columnar_summary(archive: Archive, serial_run: SerialRun,
+                                                          tmp_path: Path) -> None:
+    """The default (columnar) engine and the live daemon's per-frame pipeline agree on every
+    log of the archive: every summary column (time in each state, transitions, worst NIS,
+    frames by outcome) and every events file; the damaged logs fail the same way."""
+    out = tmp_path / "out"
+    proc = run_cli("replay", str(archive.root), "--out", str(out), "--engine", "per-frame")
+    assert proc.returncode == 1, proc.stderr
+
+    def what_failed(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        # a damaged file's reason names the reader's own error after "malformed log"
+        return [{**r, "reason": r["reason"] and str(r["reason"]).split(" (")[0]}
+                for r in comparable(rows)]
+
+    assert what_failed(read_parquet(out / "summary.parquet")) == what_failed(serial_run.rows)
+    assert events_of(out) == events_of(serial_run.out)
