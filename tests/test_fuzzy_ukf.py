@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -10,8 +11,9 @@ import scipy.signal
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from experiments.akf import AugmentedKalmanFilter
-from monitor.estimation.fuzzy_ukf import FuzzyUKF
+from experiments.akf import AugmentedKalmanFilter, AugmentedKFConfig
+from monitor.estimation.fuzzy import FuzzyConfig
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig, initial_covariance
 from monitor.estimation.model import (
     ContinuousDescriptor,
     DCMotorParameters,
@@ -259,3 +261,151 @@ def test_two_actuator_plant_with_one_fault_input_leaves_the_other_at_zero() -> N
     gs = np.array([est.step(U[k], Y[k], T).gamma.copy() for k in range(len(U))])
     assert np.all(gs[:, 0] == 0.0)
     assert gs[-200:, 1].mean() == pytest.approx(0.5, abs=0.04)
+
+
+# ---- the sound core: one rule is the augmented Kalman filter; stiff plants; start-up
+
+def _servo_run(seed: int = 1) -> tuple[ContinuousDescriptor, SimulatedRun]:
+    """The 24 V servo of tests/rigs/servo.toml at 1 kHz, sensor sigma 0.01 A: 40 % loss at
+    2 s, outage at 4 s."""
+    p = DCMotorParameters(J=2e-5, b=1e-5, Ke=0.03, Ki=0.03, Ra=1.0, La=1e-3)
+    model = dc_motor(p, q=1e-4, r=0.01**2)
+    sc = scenario_from_dict({
+        "name": "servo", "duration": 6.0, "noise": {"current_sigma": 0.01},
+        "voltage": {"steps": [[0.0, 24.0]]},
+        "fault": [{"start": 2.0, "end": 4.0, "gamma": 0.4}, {"start": 4.0, "gamma": 1.0}],
+    })
+    return model, simulate(model, sc, 1e-3, seed=seed)
+
+
+@pytest.mark.parametrize("plant", ["table1", "servo"])
+def test_one_rule_is_the_augmented_kalman_filter(plant: str) -> None:
+    # One rule, no structure learning, no projection, no random walk: the consequent's
+    # RLS with the two-stage coupling x^ += V dgamma is the augmented KF's gamma update.
+    if plant == "servo":
+        model, run = _servo_run()
+        T = 1e-3
+    else:
+        model = dc_motor()
+        run = simulate(model, load_scenario("fault-outage-recovery"), 0.01, seed=11)
+        T = 0.01
+    cfg = FuzzyUKFConfig(q_gamma=0.0, var0=0.1, var_rule=0.0, nis_threshold=math.inf,
+                         fuzzy=FuzzyConfig(initial_mf=((0.0,), (0.0,)), max_mf=1,
+                                           lower=-10.0, upper=10.0))
+    md = model.discretize(T)
+    fz = FuzzyUKF(md, cfg, x0=run.x[0])
+    akf = AugmentedKalmanFilter(md, AugmentedKFConfig(q_gamma=0.0, P0_gamma=0.1), x0=run.x[0])
+    for k in range(len(run.t)):
+        o = fz.step(run.u[k], run.y[k], T)
+        g = akf.step(run.u[k], run.y[k], T)
+        assert o.gamma[0] == pytest.approx(g[0], abs=1e-9)
+        assert o.x_hat == pytest.approx(akf.x, rel=1e-9, abs=1e-9)
+    assert fz.structure_events == 0
+
+
+def test_stiff_plant_first_innovation_does_not_throw_the_state() -> None:
+    # The first sample after the servo's 40 % loss is 600 sigma off. gamma^ must not jump
+    # to an outage, the speed estimate must not jump to the outage's steady state, and the
+    # NIS must come back to 1.
+    model, run = _servo_run()
+    est = FuzzyUKF(model.discretize(1e-3))
+    g = np.empty(len(run.t))
+    speed_err = np.empty(len(run.t))
+    nis = np.empty(len(run.t))
+    for k in range(len(run.t)):
+        out = est.step(run.u[k], run.y[k], 1e-3)
+        g[k] = out.gamma[0]
+        speed_err[k] = out.x_hat[1] - run.x[k, 1]
+        nis[k] = out.nis
+    k = _at(run, 2.0)
+    assert np.max(g[k:k + 100]) < 0.5
+    assert np.mean(g[_at(run, 2.05):_at(run, 4.0)]) == pytest.approx(0.4, abs=0.01)
+    assert np.mean(g[_at(run, 4.1):]) == pytest.approx(1.0, abs=0.01)
+    assert np.max(np.abs(speed_err[_at(run, 0.5):])) < 30.0  # of 790 rad/s
+    assert np.mean(nis[_at(run, 2.2):_at(run, 4.0)]) == pytest.approx(1.0, abs=0.15)
+    assert est.structure_events == 2 and est.repairs == 0
+
+
+def test_structure_event_relearns_from_the_onset() -> None:
+    # A loss that builds up slowly in the output is detected some samples late; the event
+    # goes back to the onset (the Willsky-Jones likelihood over the ring) and re-learns
+    # from there, so gamma^ is right within a few samples of the detection.
+    J, b, Ki = 1e-4, 1e-4, 0.05
+    E = np.diag([J, 1.0])
+    model = ContinuousDescriptor(E=E, A=[[-b, 0.0], [1.0, 0.0]], B=[[Ki], [0.0]],
+                                 C=[[1.0, 0.0]], Qc=E @ (1e-4 * np.eye(2)) @ E, R=[[0.04]],
+                                 state_names=("speed", "angle"))
+    T = 0.002
+    sc = scenario_from_dict({
+        "name": "speed", "duration": 3.0, "noise": {"current_sigma": 0.2},
+        "voltage": {"steps": [[0.0, 1.0]]}, "fault": [{"start": 1.0, "gamma": 0.4}],
+    })
+    run = simulate(model, sc, T, seed=3)
+    est = FuzzyUKF(model.discretize(T))
+    onsets: list[int] = []
+    locate = est._onset
+
+    def spy(k: int) -> tuple[int, np.ndarray]:
+        j, jump = locate(k)
+        onsets.append(j)
+        return j, jump
+
+    est._onset = spy  # type: ignore[method-assign]
+    g = np.array([est.step(run.u[k], run.y[k], T).gamma[0] for k in range(len(run.t))])
+    assert est.structure_events == 1
+    true_onset = _at(run, 1.0) + 1  # the first sample the loss acts on
+    assert abs(onsets[0] - true_onset) <= 2
+    detected = int(np.argmax(g > 0.2))
+    assert np.all(np.abs(g[detected + 5:] - 0.4) < 0.02)
+
+
+def test_augmented_kf_starts_from_the_steady_state() -> None:
+    # Without x0 the baseline starts where the fuzzy UKF does (the fault-free steady state
+    # of the first input, coupled to the unknown gamma), not from x = 0 with P0 = 1.
+    model, run = _servo_run()
+    akf = AugmentedKalmanFilter(model.discretize(1e-3))
+    g = np.array([akf.step(run.u[k], run.y[k], 1e-3)[0] for k in range(len(run.t))])
+    assert np.max(np.abs(g[:_at(run, 2.0)])) < 0.05
+    assert np.mean(g[_at(run, 2.2):_at(run, 4.0)]) == pytest.approx(0.4, abs=0.01)
+
+
+def test_scale_aware_initial_covariance() -> None:
+    # P0 = None: the stationary Kalman covariance, in the state's own units.
+    model, _ = _servo_run()
+    md = model.discretize(1e-3)
+    P = initial_covariance(md)
+    assert np.all(np.linalg.eigvalsh(P) > 0)
+    assert P[0, 0] < 1e-3 ** 2 * 100  # the current, measured to 0.01 A, known to 1 mA or so
+    est = FuzzyUKF(md)
+    assert np.array_equal(est.P, P)
+    assert np.array_equal(FuzzyUKF(md, FuzzyUKFConfig(P0=1.0)).P, np.eye(2))
+
+
+@pytest.mark.parametrize("chunk", [1, 37, 1000])
+def test_step_many_is_step_row_by_row_with_events_and_loss(chunk: int) -> None:
+    """step_many returns to Python for the structure events (onset search, re-processing)
+    and must leave the estimator, and report every sample, exactly as step() does -- with
+    lost samples (dt = k T) among them."""
+    from monitor.estimation.fuzzy_ukf import step_many
+
+    model = dc_motor()
+    sc = scenario_from_dict({"name": "many", "duration": 6.0,
+                             "fault": [{"start": 2.0, "end": 4.0, "gamma": 0.4}],
+                             "noise": {"current_sigma": 0.5},
+                             "voltage": {"steps": [[0.0, 220.0]]}})
+    run = simulate(model, sc, 0.01, seed=4)
+    keep = np.random.default_rng(4).random(len(run.t)) >= 0.2
+    keep[0] = True
+    idx = np.flatnonzero(keep)
+    dt = np.diff(idx, prepend=-1) * 0.01
+    u, y = run.u[idx], run.y[idx]
+    disc = model.discretize(0.01)
+    a, b = FuzzyUKF(disc), FuzzyUKF(disc)
+    g = np.array([a.step(u[k], y[k], float(dt[k])).gamma.copy() for k in range(len(dt))])
+    parts = [step_many(b, u[s:s + chunk], y[s:s + chunk], dt[s:s + chunk])
+             for s in range(0, len(dt), chunk)]
+    assert a.structure_events > 0
+    np.testing.assert_array_equal(np.concatenate([p.gamma for p in parts]), g)
+    assert sum(int(p.structure_event.sum()) for p in parts) == a.structure_events
+    np.testing.assert_array_equal(a._st, b._st)
+    assert a.steps == b.steps and a._time == b._time

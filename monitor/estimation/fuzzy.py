@@ -17,8 +17,10 @@ one entry per actuator (the loss of effectiveness gamma of that actuator).
   output unchanged *everywhere*, which is what (23)-(27) asks of a_new at the current point.
   Growth is bounded: a maximum count per input and a minimum spacing between centres.
 * Adaptation (28) is a continuous-time projection law; per sample it becomes
-  a_j <- clip(a_j + r_j e xi_j, u_L, u_U): the consequents stay in the bounds [u_L, u_U]
-  ([0, 1] for gamma). The gains r_j are chosen by the fuzzy UKF (see fuzzy_ukf).
+  a_j <- clip(a_j + r_j e, u_L, u_U): the consequents stay in the bounds [u_L, u_U]
+  ([0, 1] for gamma). The gains r_j are chosen by the fuzzy UKF (see fuzzy_ukf): a
+  consequent is a part common to all rules (its variance lives in the estimator) plus
+  the rule's own part, whose variance is `var` here.
 
 Storage uses a fixed stride of `max_mf` per input so the numba kernels need no
 allocation; consequents live in `cons` of shape (max_mf ** N, m).
@@ -121,7 +123,8 @@ class FuzzyConfig:
 
 
 class SelfConstructingFuzzySystem:
-    """The rule base: centres, consequents and their variances (for adaptive gains)."""
+    """The rule base: centres, consequents and the variances of the rules' own parts of
+    the consequents (for adaptive gains)."""
 
     def __init__(self, n_inputs: int, n_outputs: int, config: FuzzyConfig | None = None,
                  initial_output: float = 0.0, initial_variance: float = 0.05) -> None:

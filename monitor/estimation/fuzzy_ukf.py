@@ -9,37 +9,91 @@ Per sample k (the paper's order, made sound where NOTES.md says it must be):
 1. The fuzzy system (17), (51) evaluated at the previous input z_{k-1} gives gamma^_k and
    the fault function f^_k = -B diag(u_k) gamma^_k (10). The paper's f^ in R^n is not
    observable from one current (rank 3 of 4); f lives in span(B), so the consequents are
-   the per-actuator losses gamma and f^ is built from them.
-2. UKF time update (32)-(43) with the fault term: x^- = A x^ + B u + f^ (35).
-3. UKF measurement update (44)-(49) gives the innovation nu = y - y^- (the output error e
-   of (20) between the plant and the fault model (53)) and its covariance S.
-4. Consequent adaptation (28) per sample: a_j <- clip(a_j + r_j e xi_j, u_L, u_U), with e
-   the innovation and the gain r_j = s_j M' S_tot^-1 a recursive-least-squares gain,
-   where M = d y^/d gamma is the output sensitivity to the fault (carried through the
-   filter by V = d x^/d gamma: V^- = A V - B diag(u), V = (I - K C) V^- + K D diag(u))
-   and s_j is the consequent's variance, growing by q_gamma dt per second: the random-walk
-   fault model (11), (14), (54). The paper's constant r is the special case s_j fixed;
-   a constant r either reacts slowly or is noisy, while s_j shrinks as a consequent
-   becomes well known and is re-opened by structure learning.
-5. The state estimate is made consistent with the adapted fault: x^ += V (gamma^+ - gamma^)
-   (the coupling of the two-stage filter, Hsieh & Chen 1999).
-6. Fault-model state (52)-(53): x~_k = A x^_{k-1} + B u + f^_k (the paper's open-loop x~
+   the per-actuator losses gamma and f^ is built from them. When other rules fire than
+   at the previous sample, gamma^ changes, and the state follows it (step 6).
+2. UKF time update (32)-(43) with the fault term: x^- = A x^ + B u + f^ (35), and the
+   sensitivity of the prior to gamma, V^- = A V - B diag(u).
+3. UKF measurement update (44)-(49): the innovation nu = y - y^- (the output error e of
+   (20) between the plant and the fault model (53)) and its covariance P_yy.
+4. The random walk of the fault (11), (14), (54) adds q_gamma dt to the variance of
+   gamma, but at most growth_share dt / (M' P_yy^-1 M): see (e) below. The innovation
+   covariance with the fault's uncertainty is S_tot = P_yy + M pg M', M = C V^- - D diag(u)
+   (nu ~ M (gamma - gamma^)), pg the variance of gamma^; NIS = nu' S_tot^-1 nu.
+5. Structure-learning test (20), before the adaptation: the paper's test |e| > 1e-5 on
+   the raw current error fires every sample (noise sigma is 0.5 A). Here e is whitened
+   (w = L^-1 nu, L L' = S_tot) and averaged exponentially over a short window; the
+   average's chi-square statistic (p degrees of freedom when the model fits, at any
+   sample rate) must exceed a threshold, with a dwell time between two events. Keeping
+   the sign makes a persistent bias -- what a changed fault produces -- far more visible
+   than the squared NIS would. What an event does is below (b).
+6. Consequent adaptation (28) per sample, a_j <- clip(a_j + r e, u_L, u_U), with e = nu
+   and the gain r of a recursive least squares on nu = M (gamma - gamma^) + noise: every
+   consequent is a_j = c + d_j, a part c common to all rules (variance vc, gain
+   vc M' S_tot^-1) and the rule's own part d_j (variance var_j, gain var_j xi_j M'
+   S_tot^-1); the paper's constant r is the special case of fixed variances, which
+   either reacts slowly or is noisy. Then the two-stage coupling (Friedland 1969; Hsieh
+   and Chen 1999): V = (I - K C) V^- + K D diag(u) and x^ += V (gamma^+ - gamma^).
+7. Fault-model state (52)-(53): x~_k = A x^_{k-1} + B u + f^_k (the paper's open-loop x~
    would integrate the process noise w, which no estimator knows, and drift without bound
    on the unobservable angle); the fuzzy input is x_e = x~ - x^ (50), normalised per state
-   by its prior standard deviation so the membership functions are scale-free, and
-   averaged over the same short window as the structure-learning test: one sample of x_e
-   is mostly measurement noise, and rules switched by noise drift apart and make gamma^
-   noisy; the average follows a persistent discrepancy, which is what a fault makes.
-7. Structure learning (20)-(22): the paper's test |e| > 1e-5 on the raw current error fires
-   every sample (noise sigma is 0.5 A). Here the error e is whitened (w = L^-1 nu with
-   L L' = S_tot) and averaged exponentially over a short window; the average's chi-square
-   statistic (p degrees of freedom when the model fits, at any sample rate) must exceed a
-   threshold. Keeping the sign makes a persistent bias -- what a changed fault produces --
-   far more visible than the squared NIS would. Then an MF is added on the input
-   with the largest |z| at z (if the bound and the spacing allow), and the firing rules'
-   variances are re-opened so that they learn fast, and the sensitivity V restarts at 0
-   (the new fault has not yet acted on the state; keeping V would push x^ as if it had
-   always been there). A dwell time separates two events.
+   by the standard deviation of the whole prior, P^- + V^- pg V^-', so the membership
+   functions are scale-free, and averaged over the test's window: one sample of x_e is
+   mostly measurement noise; the average follows a persistent discrepancy, which is what
+   a fault makes.
+
+Why it is built this way -- what failed on a small, stiff, back-EMF dominated motor (a
+24 V servo at 1 kHz: J = 2e-5, b = 1e-5, Ke = Ki = 0.03, Ra = 1, La = 1e-3, sensor sigma
+0.01 A) while the paper's motor worked:
+
+(a) The consequent update is exact only for the sensitivity M it is given. M = C V^- with
+    V = d x^ / d gamma accumulated since V last started is the innovation's response to
+    a gamma error held all that time -- right while gamma has not changed, wrong by orders
+    of magnitude after a change: on the servo a held 0.4 error shows as 0.1 A (the back
+    EMF takes the loss up), a 0.4 jump as -6 A on its first sample (La/Ra = 1 ms = T). The
+    former code adapted with the held M before testing, so the first sample after the loss
+    (600 sigma) moved gamma^ past its bound (clipped to 1) and x^ by V dgamma to the
+    outage's steady state (speed 0 with the rotor at 790 rad/s); then it reset V to 0 and
+    left P alone, so the filter was sure of a wrong speed: NIS in the thousands, gamma^
+    oscillating between 0 and 1, a structure event every dwell time.
+(b) A structure event is therefore a jump of gamma at the onset of the change. The test
+    fires some samples after it; the onset is located over a short ring of past samples
+    by the generalised likelihood ratio of Willsky and Jones (1976) -- for each candidate
+    onset j the signature M_i(j) of a jump there (the two-stage sensitivity started at j)
+    against the innovations since, the jump integrated out with its prior var_reopen --
+    and the filter goes back to its state before j and processes the samples since again,
+    with the event first: every consequent re-opened at the current output (f^ does not
+    jump: the intent of (23)-(27)), and the raise of gamma's variance from g0 to g1 done
+    the exact two-stage way, V <- V g0/g1, P <- P + V (g0 (g1 - g0) / g1) V' (the state
+    keeps the uncertainty the old gamma gave it; the new gamma acts from j on). The former
+    "V restarts at 0" is the limit g1 >> g0 of this, without its P term and samples late.
+    A jump that the bounds (28) reduce below min_jump is no event (typically noise pushing
+    a fault-free gamma^ below 0, where it sits on its bound).
+(c) gamma^ = sum xi_j a_j also changes when z fires other rules; x^ = x_bar + V gamma^ must
+    hold whichever way it changes, or the state is left with a fault it no longer has.
+(d) The loss of effectiveness is not a function of x_e: rules that share one value and
+    learn it together (the common part c) keep gamma^ steady when z moves; with separate
+    variances only, a rule that fires weakly keeps a large variance, follows the noise,
+    and on a slow plant (large V) its switching moves the state.
+(e) The random walk: q_gamma is in gamma^2 per second and scale-free, but its share in
+    S_tot is not: it settles near sqrt(q_gamma dt M' P_yy^-1 M), 6 % on the servo at
+    5e-3 /s (NIS 5 % low, where the model-mismatch monitor's band at 1 kHz is +-7 %),
+    over 100 % on a 500 Hz speed-output rig. Capping the growth at growth_share dt of the
+    sample's information keeps that share near sqrt(growth_share dt) at any scale and
+    rate (2 % at 1 kHz, 7 % at 100 Hz); on the paper's motor the cap does not bind. The
+    random walk stays in gamma's variance and is not coupled into the state: the optimal
+    two-stage filter of a random-walk bias (Hsieh and Chen's extra terms, V^- <- V^- g0/g1,
+    P^- += U g0 (g1 - g0) / g1 U') is the augmented KF with that q, and on the servo it
+    makes the model expect the speed to wander with gamma (NIS 0.2-0.3). So the update is
+    the two-stage filter of a constant gamma whose old evidence fades; with one rule,
+    q_gamma = 0, var_rule = 0, no projection and no events it is the augmented Kalman
+    filter's gamma update to round-off (tested).
+(f) Scale: without an x0 the filter starts from the fault-free steady state of the first
+    input, x_ss = (I - A)^-1 B u, with V = d x_ss / d gamma (`steady_start`), and
+    P0 = None is the stationary Kalman covariance in the state's own units
+    (`initial_covariance`); P0 = 1 meant 1 A on a 0.26 A current and 1 rad/s on a
+    790 rad/s speed. The fuzzy input is normalised by the whole prior covariance (step 7):
+    by P^- alone, the bias-free part, the servo's speed component of x_e swung by 28 of
+    its "sigmas" in healthy running.
 
 A missed sample is a step with dt = k T: the ZOH model for that span holds the last
 voltage, which is what the ECU does, and the covariance grows accordingly.
@@ -54,6 +108,7 @@ adapted and are not re-opened by structure learning.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import os
@@ -61,6 +116,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 from numpy.typing import NDArray
 
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, fire, infer
@@ -71,15 +127,25 @@ from monitor.estimation.ukf import sigma_weights, spd_inverse, ukf_predict, ukf_
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["KERNEL_LAYOUT", "EstimatorOutput", "FuzzyUKF", "FuzzyUKFConfig", "ManySteps",
-           "select_kernel", "step_many"]
+__all__ = [
+    "KERNEL_LAYOUT",
+    "EstimatorOutput",
+    "FuzzyUKF",
+    "FuzzyUKFConfig",
+    "ManySteps",
+    "initial_covariance",
+    "select_kernel",
+    "steady_start",
+    "step_many",
+]
 
 _log = logging.getLogger(__name__)
 
 # Version of the kernel's flat-buffer layout; bump it whenever the meaning of the buffers
-# changes (2: per-actuator bounds in prm). An ahead-of-time build of another layout has the
-# same signature but would misread the buffers, so select_kernel refuses it.
-KERNEL_LAYOUT = 2
+# changes (2: per-actuator bounds in prm; 3: structure events in the kernel, the onset
+# ring and the consequents' common variance in st). An ahead-of-time build of another
+# layout has the same signature but would misread the buffers, so select_kernel refuses it.
+KERNEL_LAYOUT = 3
 
 
 def kernel_layout() -> int:
@@ -92,16 +158,26 @@ class FuzzyUKFConfig:
     """Tuning of the fuzzy UKF. Defaults are those of the paper where it gives any.
 
     alpha, beta: sigma-point spread (34), paper 1e-4 and 2.
-    q_gamma: random-walk intensity of each consequent, gamma^2 per second (54).
-    var0: initial variance of the consequents (gamma^2).
-    var_reopen: variance given to firing and new rules on a structure-learning event.
-    var_max: cap on consequent variances (rules that never fire do not grow forever).
+    q_gamma: random-walk intensity of the loss of effectiveness, gamma^2 per second (54),
+        on the part of the consequents common to all rules.
+    growth_share: cap on that growth per second, as a share of the information a sample
+        gives on gamma (M' P_yy^-1 M): keeps gamma's share of the innovation covariance
+        near sqrt(growth_share dt), so that the NIS stays calibrated at any scale.
+    var0: initial variance of the common part of the consequents (gamma^2).
+    var_reopen: the same on a structure-learning event.
+    var_rule: variance of each rule's own part, initially and on an event (small: the
+        loss of effectiveness does not depend on x_e much).
+    var_max: cap on the common variance (no excitation, u = 0, does not grow it forever).
     nis_window: time constant of the innovation average, seconds.
     nis_threshold: structure-learning threshold on the chi-square statistic of the averaged
         whitened innovation (p degrees of freedom; 14 is 3.7 sigma for one output).
     dwell: minimum time between two structure-learning events, seconds.
-    P0: initial state covariance (diagonal value). Without an x0 the first sample sets x^ to
-        the fault-free steady state closest to it.
+    onset_window: how far back, in seconds, an event looks for the onset of the change.
+    min_jump: a located jump of gamma smaller than this after the bounds of (28) is not
+        a structure event.
+    P0: initial state covariance: None, the stationary Kalman covariance (in the state's
+        own units); a number, that value on the diagonal. Without an x0 the filter starts
+        from the fault-free steady state of the first input.
     """
 
     alpha: float = 1e-4
@@ -110,10 +186,14 @@ class FuzzyUKFConfig:
     var0: float = 0.05
     var_reopen: float = 0.05
     var_max: float = 0.25
+    var_rule: float = 1e-4
     nis_window: float = 0.05
     nis_threshold: float = 14.0
     dwell: float = 0.2
-    P0: float = 1.0
+    growth_share: float = 0.5
+    onset_window: float = 0.2
+    min_jump: float = 0.01
+    P0: float | None = None
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
 
 
@@ -145,6 +225,23 @@ class EstimatorOutput:
 
 
 @njit
+def _rule_variance(var: Array, rule_idx: IntArray, rule_w: Array, nf: int, a: int) -> float:
+    """sum xi_j^2 var_j over the firing rules: the part of the variance of the fuzzy output
+    gamma^_a = sum xi_j a_j that the rules' own deviations (independent) contribute."""
+    acc = 0.0
+    for k in range(nf):
+        acc += rule_w[k] * rule_w[k] * var[rule_idx[k], a]
+    return acc
+
+
+def ring_slot_size(n: int, m: int, p: int) -> int:
+    """Floats per sample in the onset ring: the state before the sample (x, P, V, z, the
+    innovation average, gamma^, the common variance), the sample (u, y, dt) and the
+    filter's view of it under the old fault (K, S_tot^-1, nu)."""
+    return 2 * n + n * n + n * m + 3 * p + 3 * m + 1 + n * p + p * p
+
+
+@njit
 def _fuzzy_ukf_step(
     mdl: Array, u: Array, y: Array, prm: Array, st: Array,
     centres: Array, counts: IntArray, cons: Array, var: Array, rule_idx: IntArray, rule_w: Array,
@@ -152,8 +249,13 @@ def _fuzzy_ukf_step(
 ) -> None:
     """One sample of the fuzzy UKF on flat buffers (see FuzzyUKF for the layout).
 
-    prm = [dt, delta, wi, q_gamma, var_max, nis_coef, lower[0..m), upper[0..m)]: the
-    per-actuator bounds of (28); lower[a] == upper[a] marks a known actuator.
+    prm = [dt, delta, wi, q_gamma, var_max, nis_coef, var_reopen, nis_threshold, mode,
+    growth_share, slot, var_rule, lower[0..m), upper[0..m)]: lower/upper are the
+    per-actuator bounds of (28), lower[a] == upper[a] marks a known actuator. mode 0: no
+    structure test (dwell time), 1: test (stats[3] = 1 when it fires), 2: a structure event
+    at the start of this sample (the caller re-processes from the onset of a change).
+    slot: this sample's place in the onset ring (st after x, P, V, z and the common
+    variance of the consequents).
     """
     # ---- views into the flat buffers (slices and reshapes allocate nothing)
     o = 0
@@ -169,15 +271,35 @@ def _fuzzy_ukf_step(
     q_gamma = prm[3]
     var_max = prm[4]
     nis_coef = prm[5]
+    var_reopen = prm[6]
+    threshold = prm[7]
+    mode = prm[8]
+    share = prm[9]
+    var_rule = prm[11]
     # per-actuator projection bounds of (28); lo[a] == hi[a] marks a known actuator (no
     # loss of effectiveness): its consequents are fixed, carry no variance, never adapt
-    lo = prm[6:6 + m]
-    hi = prm[6 + m:6 + 2 * m]
+    lo = prm[12:12 + m]
+    hi = prm[12 + m:12 + 2 * m]
     o = 0
     x = st[o:o + n]; o += n
     P = st[o:o + n * n].reshape((n, n)); o += n * n
     V = st[o:o + n * m].reshape((n, m)); o += n * m
-    z = st[o:o + n]
+    z = st[o:o + n]; o += n
+    vc = st[o:o + m]; o += m
+    o += int(prm[10]) * (2 * n + n * n + n * m + 3 * p + 3 * m + 1 + n * p + p * p)
+    r_x = st[o:o + n]; o += n
+    r_P = st[o:o + n * n].reshape((n, n)); o += n * n
+    r_V = st[o:o + n * m].reshape((n, m)); o += n * m
+    r_z = st[o:o + n]; o += n
+    r_ebar = st[o:o + p]; o += p
+    r_gamma = st[o:o + m]; o += m
+    r_vc = st[o:o + m]; o += m
+    r_u = st[o:o + m]; o += m
+    r_y = st[o:o + p]; o += p
+    r_dt = st[o:o + 1]; o += 1
+    r_K = st[o:o + n * p].reshape((n, p)); o += n * p
+    r_Sti = st[o:o + p * p].reshape((p, p)); o += p * p
+    r_nu = st[o:o + p]
     o = 0
     gamma = out[o:o + m]; o += m
     fhat = out[o:o + n]; o += n
@@ -185,41 +307,101 @@ def _fuzzy_ukf_step(
     xe = out[o:o + n]; o += n
     yhat = out[o:o + p]; o += p
     innov = out[o:o + p]; o += p
-    stats = out[o:o + 3]; o += 3
+    stats = out[o:o + 4]; o += 4
     ebar = out[o:o + p]; o += p
     yest = out[o:o + p]
     o = 0
     uf = wk[o:o + m]; o += m
+    dg = wk[o:o + m]; o += m
+    pg = wk[o:o + m]; o += m
     b = wk[o:o + n]; o += n
-    yoff = wk[o:o + p]; o += p
     d = wk[o:o + n]; o += n
     s = wk[o:o + n]; o += n
+    xp = wk[o:o + n]; o += n
+    xq = wk[o:o + n]; o += n
+    yoff = wk[o:o + p]; o += p
     dy = wk[o:o + p]; o += p
     nu = wk[o:o + p]; o += p
-    xp = wk[o:o + n]; o += n
-    dg = wk[o:o + m]; o += m
-    tmp = wk[o:o + p]; o += p
     L = wk[o:o + n * n].reshape((n, n)); o += n * n
-    Ls = wk[o:o + p * p].reshape((p, p)); o += p * p
-    Pyy = wk[o:o + p * p].reshape((p, p)); o += p * p
-    Pyy_inv = wk[o:o + p * p].reshape((p, p)); o += p * p
-    Pxy = wk[o:o + n * p].reshape((n, p)); o += n * p
-    K = wk[o:o + n * p].reshape((n, p)); o += n * p
     IKC = wk[o:o + n * n].reshape((n, n)); o += n * n
     T1 = wk[o:o + n * n].reshape((n, n)); o += n * n
     Pp = wk[o:o + n * n].reshape((n, n)); o += n * n
-    Vp = wk[o:o + n * m].reshape((n, m)); o += n * m
-    M = wk[o:o + p * m].reshape((p, m)); o += p * m
+    Pq = wk[o:o + n * n].reshape((n, n)); o += n * n
+    Ls = wk[o:o + p * p].reshape((p, p)); o += p * p
+    Pyy = wk[o:o + p * p].reshape((p, p)); o += p * p
+    Pyy_inv = wk[o:o + p * p].reshape((p, p)); o += p * p
     St = wk[o:o + p * p].reshape((p, p)); o += p * p
     Sti = wk[o:o + p * p].reshape((p, p)); o += p * p
-    G = wk[o:o + p].reshape((1, p))
+    Pxy = wk[o:o + n * p].reshape((n, p)); o += n * p
+    K = wk[o:o + n * p].reshape((n, p)); o += n * p
+    Vp = wk[o:o + n * m].reshape((n, m)); o += n * m
+    M = wk[o:o + p * m].reshape((p, m))
 
-    # 1. fuzzy output (51) at the previous input, fault function (10)
+    # 0. the state before this sample, in the onset ring (a structure event re-processes
+    # the samples since the onset of the change from there)
+    for r in range(n):
+        r_x[r] = x[r]
+        r_z[r] = z[r]
+        for c in range(n):
+            r_P[r, c] = P[r, c]
+        for a in range(m):
+            r_V[r, a] = V[r, a]
+    for r in range(p):
+        r_ebar[r] = ebar[r]
+        r_y[r] = y[r]
+    for a in range(m):
+        r_gamma[a] = gamma[a]
+        r_vc[a] = vc[a]
+        r_u[a] = u[a]
+    r_dt[0] = dt
+
+    # 1. fuzzy output (51) at the previous input. gamma holds the previous output; the
+    # rules fired by the new input may give another, and the state estimate follows
+    # gamma^ whichever way it changes (two-stage: x^ = x_bar + V gamma^)
     nf = fire(z, centres, counts, max_mf, rule_idx, rule_w)
-    infer(cons, rule_idx, rule_w, nf, gamma)
+    infer(cons, rule_idx, rule_w, nf, uf)
     for a in range(m):
         if not hi[a] > lo[a]:
-            gamma[a] = lo[a]  # a known actuator: its gamma is fixed
+            uf[a] = lo[a]  # a known actuator: its gamma is fixed
+        dg[a] = uf[a] - gamma[a]
+        gamma[a] = uf[a]
+    for r in range(n):
+        acc = x[r]
+        for a in range(m):
+            acc += V[r, a] * dg[a]
+        x[r] = acc
+    if mode > 1.0:
+        # Structure event (20)-(22) at the onset of a change: gamma jumps before this
+        # sample's transition. Every consequent is re-opened at the current output (f^
+        # does not jump: the intent of (23)-(27)): the common variance to var_reopen, the
+        # rules' own to var_rule. In the two-stage filter, raising the variance of gamma
+        # from g0 to g1 is exact with V <- V g0/g1 and P <- P + V (g0 (g1 - g0) / g1) V':
+        # the state keeps the uncertainty that the old gamma gave it, and what is learnt
+        # of the new one moves the state only as far as the jump has acted on it.
+        for a in range(m):
+            if not hi[a] > lo[a]:
+                continue
+            g0 = vc[a] + _rule_variance(var, rule_idx, rule_w, nf, a)
+            for j in range(cons.shape[0]):
+                cons[j, a] = gamma[a]
+                var[j, a] = var_rule
+            if vc[a] < var_reopen:
+                vc[a] = var_reopen
+            g1 = vc[a] + _rule_variance(var, rule_idx, rule_w, nf, a)
+            if g1 > 0.0:
+                f = g0 / g1
+                s0 = g0 - g0 * f
+                for r in range(n):
+                    for c in range(r, n):
+                        v = P[r, c] + s0 * V[r, a] * V[c, a]
+                        P[r, c] = v
+                        P[c, r] = v
+                for r in range(n):
+                    V[r, a] *= f
+        for r in range(p):
+            ebar[r] = 0.0
+    # fault function (10) and the input after the loss of effectiveness
+    for a in range(m):
         uf[a] = u[a] * (1.0 - gamma[a])
     for r in range(n):
         acc = 0.0
@@ -234,20 +416,22 @@ def _fuzzy_ukf_step(
         for a in range(m):
             acc += D[r, a] * uf[a]
         yoff[r] = acc
-    # 2. time update (35)-(43)
+    # 2. time update (35)-(43); the prior's sensitivity to gamma V^- = A V - B diag(u)
+    # (zero for a known actuator)
+    for r in range(n):
+        for a in range(m):
+            acc = 0.0
+            if hi[a] > lo[a]:
+                acc = -B[r, a] * u[a]
+                for c in range(n):
+                    acc += A[r, c] * V[c, a]
+            Vp[r, a] = acc
     rep = ukf_predict(x, P, A, b, Q, delta, wi, L, d, xp, Pp)
     for r in range(n):
         xtilde[r] = xp[r]  # fault-model state (52)
-    # sensitivity of the prior to gamma: V^- = A V - B diag(u)
-    for r in range(n):
-        for a in range(m):
-            acc = -B[r, a] * u[a]
-            for c in range(n):
-                acc += A[r, c] * V[c, a]
-            Vp[r, a] = acc
-    # 3. measurement update (44)-(49); x, P receive the posterior
+    # 3. measurement update (44)-(49) into (xq, Pq)
     rep += ukf_update(xp, Pp, C, yoff, R, y, delta, wi, L, Ls, s, dy, Pyy, Pyy_inv, Pxy, K, nu,
-                      x, P, IKC, T1)
+                      xq, Pq, IKC, T1)
     for r in range(p):
         acc = yoff[r]
         for c in range(n):
@@ -260,16 +444,32 @@ def _fuzzy_ukf_step(
             for c in range(n):
                 acc += C[r, c] * Vp[c, a]
             M[r, a] = acc
-    # 4. consequent adaptation (28): total innovation covariance
+    # 4. random walk (11), (54) of the actuator's effectiveness over this sample, on the part
+    # common to all consequents: q_gamma dt, but at most `share` dt of what the sample
+    # resolves (M' P_yy^-1 M), so that the variance of gamma keeps a small share of the
+    # innovation covariance and the NIS stays calibrated on a plant that resolves gamma
+    # in a few samples; capped at var_max
+    for a in range(m):
+        pg[a] = 0.0
+        if hi[a] > lo[a]:
+            grow = q_gamma * dt
+            vis = 0.0
+            for r in range(p):
+                acc = 0.0
+                for c in range(p):
+                    acc += Pyy_inv[r, c] * M[c, a]
+                vis += M[r, a] * acc
+            if vis * grow > share * dt:
+                grow = share * dt / vis
+            v = vc[a] + grow
+            vc[a] = v if v < var_max else (vc[a] if vc[a] > var_max else var_max)
+            pg[a] = vc[a] + _rule_variance(var, rule_idx, rule_w, nf, a)
+    # total innovation covariance S_tot = P_yy + M diag(pg) M' (pg: variance of gamma^)
     for r in range(p):
         for c in range(p):
             acc = Pyy[r, c]
-            for k in range(nf):
-                w2 = rule_w[k] * rule_w[k]
-                j = rule_idx[k]
-                for a in range(m):
-                    if hi[a] > lo[a]:
-                        acc += w2 * var[j, a] * M[r, a] * M[c, a]
+            for a in range(m):
+                acc += pg[a] * M[r, a] * M[c, a]
             St[r, c] = acc
     rep += spd_inverse(St, Ls, Sti)
     nis = 0.0
@@ -277,56 +477,85 @@ def _fuzzy_ukf_step(
         acc = 0.0
         for c in range(p):
             acc += Sti[r, c] * nu[c]
-        tmp[r] = acc  # S_tot^-1 nu
         nis += nu[r] * acc
+    # whitened innovation w = L^-1 nu with L L' = S_tot (Ls holds that factor)
+    for r in range(p):
+        acc = nu[r]
+        for c in range(r):
+            acc -= Ls[r, c] * innov[c]
+        innov[r] = acc / Ls[r, r]
+    # 5. structure-learning test (20), before the adaptation: the exponentially weighted
+    # mean of w is N(0, c/(2-c) I) under a fitting model, so its statistic is chi-square
+    # with p degrees of freedom at any sample rate
+    chi = 0.0
+    for r in range(p):
+        ebar[r] += nis_coef * (innov[r] - ebar[r])
+        chi += ebar[r] * ebar[r]
+    stat = chi * (2.0 - nis_coef) / nis_coef
+    stats[3] = 1.0 if (mode == 1.0 and stat > threshold) else 0.0
+    # the sample as the filter saw it, for locating the onset of a change
+    for r in range(n):
+        for c in range(p):
+            r_K[r, c] = K[r, c]
+    for r in range(p):
+        r_nu[r] = nu[r]
+        for c in range(p):
+            r_Sti[r, c] = Sti[r, c]
+    # 6. consequent adaptation (28): a_j = c + d_j, the part c common to all consequents
+    # (variance vc) and the rules' own parts d_j (variance var_j), independent: the RLS
+    # gains are vc M' S_tot^-1 for c, which moves every consequent, and
+    # var_j xi_j M' S_tot^-1 for d_j; then the projection on [u_L, u_U]
     for a in range(m):
         dg[a] = 0.0
-    for k in range(nf):
-        j = rule_idx[k]
-        xi = rule_w[k]
-        for a in range(m):
-            if not hi[a] > lo[a]:
-                continue
-            # gain row g = var xi M[:, a]' S_tot^-1
-            step = 0.0
-            gm = 0.0
-            for r in range(p):
-                gr = 0.0
-                for c in range(p):
-                    gr += M[c, a] * Sti[c, r]
-                G[0, r] = var[j, a] * xi * gr
-                step += G[0, r] * nu[r]
-                gm += G[0, r] * M[r, a]
-            old = cons[j, a]
-            new = old + step
-            if new < lo[a]:
-                new = lo[a]
-            elif new > hi[a]:
-                new = hi[a]
+        if not hi[a] > lo[a]:
+            continue
+        step = 0.0
+        gm = 0.0
+        for r in range(p):
+            gr = 0.0
+            for c in range(p):
+                gr += M[c, a] * Sti[c, r]
+            step += gr * nu[r]  # M' S_tot^-1 nu
+            gm += gr * M[r, a]
+        old_out = 0.0
+        for k in range(nf):
+            old_out += rule_w[k] * cons[rule_idx[k], a]
+        dc = vc[a] * step
+        vc[a] = vc[a] * (1.0 - vc[a] * gm)
+        for j in range(cons.shape[0]):
+            cons[j, a] += dc
+        new_out = 0.0
+        for k in range(nf):
+            j = rule_idx[k]
+            xi = rule_w[k]
+            new = cons[j, a] + var[j, a] * xi * step
+            var[j, a] = var[j, a] * (1.0 - var[j, a] * xi * xi * gm)
             cons[j, a] = new
-            dg[a] += xi * (new - old)
-            var[j, a] = var[j, a] * (1.0 - gm * xi)
-    # random walk (54) on every consequent of a fault actuator, capped
-    grow = q_gamma * dt
-    for j in range(cons.shape[0]):
-        for a in range(m):
-            if hi[a] > lo[a]:
-                v = var[j, a] + grow
-                var[j, a] = v if v < var_max else var_max
-    # 5. two-stage coupling: V = (I - K C) V^- + K D diag(u); x^ += V dgamma
+        for j in range(cons.shape[0]):
+            if cons[j, a] < lo[a]:
+                cons[j, a] = lo[a]
+            elif cons[j, a] > hi[a]:
+                cons[j, a] = hi[a]
+        for k in range(nf):
+            new_out += rule_w[k] * cons[rule_idx[k], a]
+        dg[a] = new_out - old_out
+    # two-stage coupling: V = (I - K C) V^- + K D diag(u); x^ += V dgamma
     for r in range(n):
         for a in range(m):
             acc = 0.0
-            for c in range(n):
-                acc += IKC[r, c] * Vp[c, a]
-            for c in range(p):
-                acc += K[r, c] * D[c, a] * u[a]
+            if hi[a] > lo[a]:
+                for c in range(n):
+                    acc += IKC[r, c] * Vp[c, a]
+                for c in range(p):
+                    acc += K[r, c] * D[c, a] * u[a]
             V[r, a] = acc
     for r in range(n):
-        acc = 0.0
+        acc = xq[r]
         for a in range(m):
             acc += V[r, a] * dg[a]
-        x[r] += acc
+        x[r] = acc
+        for c in range(n):
+            P[r, c] = Pq[r, c]
     for a in range(m):
         # a convex combination of bounded consequents, up to one ulp of round-off
         g = gamma[a] + dg[a]
@@ -339,27 +568,18 @@ def _fuzzy_ukf_step(
         for a in range(m):
             acc += D[r, a] * u[a] * (1.0 - gamma[a])
         yest[r] = acc
-    # 6. fuzzy input x_e = x~ - x^ (50), normalised by the prior standard deviation and
+    # 7. fuzzy input x_e = x~ - x^ (50), normalised by the standard deviation of the prior
+    # (all of it: P^- + V^- diag(pg) V^-', the two-stage form of the covariance) and
     # averaged exponentially
     for r in range(n):
         xe[r] = xtilde[r] - x[r]
-        sd = math.sqrt(Pp[r, r]) if Pp[r, r] > 0.0 else 1.0
+        var_r = Pp[r, r]
+        for a in range(m):
+            var_r += pg[a] * Vp[r, a] * Vp[r, a]
+        sd = math.sqrt(var_r) if var_r > 0.0 else 1.0
         z[r] += nis_coef * (xe[r] / sd - z[r])
-    # whitened innovation w = L^-1 nu with L L' = S_tot (Ls holds that factor)
-    for r in range(p):
-        acc = nu[r]
-        for c in range(r):
-            acc -= Ls[r, c] * innov[c]
-        innov[r] = acc / Ls[r, r]
-    # 7. statistics for structure learning: an exponentially weighted mean of the whitened
-    # innovation; under a fitting model it is N(0, c/(2-c) I), so the statistic below is
-    # chi-square with p degrees of freedom whatever the sample rate.
-    chi = 0.0
-    for r in range(p):
-        ebar[r] += nis_coef * (innov[r] - ebar[r])
-        chi += ebar[r] * ebar[r]
     stats[0] = nis
-    stats[1] = chi * (2.0 - nis_coef) / nis_coef
+    stats[1] = stat
     stats[2] += rep
 
 
@@ -393,8 +613,69 @@ def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
     return ("python" if jit_off else "jit"), _fuzzy_ukf_step
 
 
+def initial_covariance(model: DiscreteModel) -> Array:
+    """A scale-aware initial covariance of the observable state (P0 = None).
+
+    The Kalman filter's stationary posterior covariance at the model's period (the
+    discrete Riccati equation): the state known as well as the filter will ever know it,
+    in the state's own units, where an absolute P0 = 1 is a tiny uncertainty for a speed
+    of 800 rad/s and a huge one for a current of 0.26 A. Where that has no positive
+    definite solution (no process noise, say), the covariance of the state fitted to n
+    noisy samples of the outputs, (O' R^-1 O)^-1 with O = [C; C A; ...; C A^(n-1)].
+    """
+    A, _, Q = model.at(model.T)
+    C, R = model.C, model.R
+    n = A.shape[0]
+    P: Array | None = None
+    try:
+        Pm = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
+        P = Pm - Pm @ C.T @ np.linalg.solve(C @ Pm @ C.T + R, C @ Pm)
+        P = 0.5 * (P + P.T)
+        ev = np.linalg.eigvalsh(P)
+        if not (np.all(np.isfinite(ev)) and ev[0] > 1e-12 * ev[-1]):
+            P = None
+    except (np.linalg.LinAlgError, ValueError):
+        P = None
+    if P is None:
+        obs = np.vstack([C @ np.linalg.matrix_power(A, k) for k in range(n)])
+        Ri = np.kron(np.eye(n), np.linalg.inv(R))
+        P = np.linalg.inv(obs.T @ Ri @ obs)
+        P = 0.5 * (P + P.T)
+    return np.asarray(P)
+
+
+def steady_start(model: DiscreteModel, u: Array, y: Array) -> tuple[Array, Array]:
+    """(x^, V) to start from without a known initial state: the fault-free steady state.
+
+    A monitor attached to a running motor would otherwise start from x = 0 and read its
+    own convergence as a fault. The steady state x_ss = (I - A)^-1 B u (1 - gamma) depends
+    on the loss of effectiveness, which is not known yet: the filter starts at gamma^ = 0
+    with V = d x_ss / d gamma (zero for the known actuators), so that what the first
+    samples say about gamma moves the state with it (the two-stage coupling from the
+    start); the first sample is then used once, by the filter's update. A model with an
+    integrator among its observable states has no steady state: then x^ is the
+    least-squares fit of [I - A; C] x = [B u; y - D u] to the first sample, with V = 0.
+    """
+    A, B, _ = model.at(model.T)
+    n = A.shape[0]
+    IA = np.eye(n) - A
+    dB = -B * u
+    dB[:, [a for a in range(model.m) if a not in model.fault_inputs]] = 0.0
+    if np.linalg.cond(IA) < 1e12:
+        sol = np.linalg.solve(IA, np.column_stack([B @ u, dB]))
+    else:
+        rhs = np.concatenate([B @ u, y - model.D @ u])
+        fit, *_ = np.linalg.lstsq(np.vstack([IA, model.C]), rhs, rcond=None)
+        sol = np.column_stack([fit, np.zeros_like(dB)])
+    if not np.all(np.isfinite(sol)):
+        return np.zeros(n), np.zeros_like(dB)
+    x0: Array = np.array(sol[:, 0], dtype=np.float64)
+    V0: Array = np.array(sol[:, 1:], dtype=np.float64)
+    return x0, V0
+
+
 def _work_size(n: int, m: int, p: int) -> int:
-    return 2 * m + 5 * n + 5 * p + 5 * n * n + 5 * p * p + 2 * n * p + n * m + p * m + n * n
+    return 3 * m + 5 * n + 3 * p + 5 * n * n + 5 * p * p + 2 * n * p + n * m + p * m
 
 
 class FuzzyUKF:
@@ -405,7 +686,8 @@ class FuzzyUKF:
     >>> out.gamma, out.rules, out.nis
 
     State, outputs and work space live in flat float64 buffers allocated once; `x`, `P`,
-    `V` and the arrays of `out` are views into them, so a step allocates nothing.
+    `V` and the arrays of `out` are views into them, so a step allocates nothing (a
+    structure event, a few per fault change, re-processes the samples since its onset).
     """
 
     def __init__(
@@ -420,22 +702,36 @@ class FuzzyUKF:
         n, m, p = model.n, model.m, model.p
         self._dims = (n, m, p)
         w = sigma_weights(n, cfg.alpha, cfg.beta)
-        self.fuzzy = SelfConstructingFuzzySystem(n, m, cfg.fuzzy, 0.0, cfg.var0)
+        self.fuzzy = SelfConstructingFuzzySystem(n, m, cfg.fuzzy, 0.0, cfg.var_rule)
         # Actuators without a loss of effectiveness (not in model.fault_inputs) get the
         # bounds [0, 0]: their gamma stays exactly 0 and the kernel leaves them out.
         self._known = [a for a in range(m) if a not in model.fault_inputs]
+        self._faulty = [a for a in range(m) if a in model.fault_inputs]
         lower = np.full(m, cfg.fuzzy.lower)
         upper = np.full(m, cfg.fuzzy.upper)
         lower[self._known] = 0.0
         upper[self._known] = 0.0
         self.fuzzy.var[:, self._known] = 0.0
-        self._prm = np.concatenate([[0.0, w.delta, w.wi, cfg.q_gamma, cfg.var_max, 0.0],
-                                    lower, upper])
-        self._st = np.zeros(2 * n + n * n + n * m)
+        self._prm = np.concatenate([[0.0, w.delta, w.wi, cfg.q_gamma, cfg.var_max, 0.0,
+                                     cfg.var_reopen, cfg.nis_threshold, 0.0, cfg.growth_share,
+                                     0.0, cfg.var_rule], lower, upper])
+        # state: x, P, V, z, the common variance of the consequents (per actuator), then
+        # the onset ring (one slot per sample, see ring_slot_size)
+        head = 2 * n + n * n + n * m + m
+        self._ring_len = max(2, math.ceil(cfg.onset_window / model.T) + 1)
+        slot = ring_slot_size(n, m, p)
+        self._st = np.zeros(head + self._ring_len * slot)
         self.x = self._st[:n]
         self.P = self._st[n:n + n * n].reshape(n, n)
         self.V = self._st[n + n * n:n + n * n + n * m].reshape(n, m)
-        self.z = self._st[n + n * n + n * m:]
+        self.z = self._st[n + n * n + n * m:head - m]
+        self.common_var = self._st[head - m:head]
+        self.common_var[self._faulty] = cfg.var0
+        self._ring = self._st[head:].reshape(self._ring_len, slot)
+        offs = np.cumsum([0, n, n * n, n * m, n, p, m, m, m, p, 1, n * p, p * p, p])
+        assert offs[-1] == slot
+        self._rf = dict(zip(("x", "P", "V", "z", "ebar", "gamma", "vc", "u", "y", "dt", "K",
+                             "Sti", "nu"), itertools.pairwise(offs), strict=True))
         if x0 is not None:
             x0a = np.asarray(x0, dtype=float)
             if x0a.shape == (model.n_full,):
@@ -444,13 +740,13 @@ class FuzzyUKF:
                 self.x[:] = x0a
             else:
                 raise ValueError(f"x0 must have {model.n_full} (full) or {n} (observable) entries")
-        self.P[:] = np.eye(n) * cfg.P0
+        self.P[:] = initial_covariance(model) if cfg.P0 is None else np.eye(n) * cfg.P0
         self._needs_init = x0 is None
         self._wk = np.zeros(_work_size(n, m, p))
-        self._out = np.zeros(m + 3 * n + 4 * p + 3)
+        self._out = np.zeros(m + 3 * n + 4 * p + 4)
         ob = self._out
-        self._stats = ob[m + 3 * n + 2 * p:m + 3 * n + 2 * p + 3]
-        self._ebar = ob[m + 3 * n + 2 * p + 3:m + 3 * n + 3 * p + 3]
+        self._stats = ob[m + 3 * n + 2 * p:m + 3 * n + 2 * p + 4]
+        self._ebar = ob[m + 3 * n + 2 * p + 4:m + 3 * n + 3 * p + 4]
         self.out = EstimatorOutput(
             x_hat=self.x,
             x_tilde=ob[m + n:m + 2 * n],
@@ -459,7 +755,7 @@ class FuzzyUKF:
             fault=ob[m:m + n],
             y_hat=ob[m + 3 * n:m + 3 * n + p],
             innovation=ob[m + 3 * n + p:m + 3 * n + 2 * p],
-            y_est=ob[m + 3 * n + 3 * p + 3:],
+            y_est=ob[m + 3 * n + 3 * p + 4:],
             rules=self.fuzzy.rule_count,
         )
         self._u = np.zeros(m)
@@ -468,16 +764,20 @@ class FuzzyUKF:
         self.kernel_name, self._kernel = _KERNEL
         self._time = 0.0
         self._last_event = -math.inf
+        self._onset_floor = 0  # no onset before the previous event's
         self.steps = 0
         self.structure_events = 0
 
     def _block(self, dt: float) -> tuple[Array, float]:
         """Model matrices for a step of dt packed flat, and the NIS averaging coefficient."""
+        blk = self._blocks.get(dt)
+        if blk is not None:
+            return blk
         A, B, Q = self.model.at(dt)
         md = self.model
-        blk = np.concatenate([A.ravel(), B.ravel(), Q.ravel(), md.C.ravel(), md.D.ravel(),
-                              md.R.ravel()])
-        entry = (blk, 1.0 - math.exp(-dt / self.config.nis_window))
+        flat = np.concatenate([A.ravel(), B.ravel(), Q.ravel(), md.C.ravel(), md.D.ravel(),
+                               md.R.ravel()])
+        entry = (flat, 1.0 - math.exp(-dt / self.config.nis_window))
         if len(self._blocks) > 1024:  # jittered dt must not grow memory forever
             self._blocks.clear()
         self._blocks[dt] = entry
@@ -491,6 +791,21 @@ class FuzzyUKF:
     @property
     def rule_count(self) -> int:
         return self.out.rules
+
+    def _run(self, k: int, dt: float, mode: float) -> None:
+        """The kernel on sample k (self._u, self._y) with structure mode 0, 1 or 2."""
+        blk = self._blocks.get(dt)
+        if blk is None:
+            blk = self._block(dt)
+        prm = self._prm
+        prm[0] = dt
+        prm[5] = blk[1]
+        prm[8] = mode
+        prm[10] = k % self._ring_len
+        fz = self.fuzzy
+        n, m, p = self._dims
+        self._kernel(blk[0], self._u, self._y, prm, self._st, fz.centres, fz.counts, fz.cons,
+                     fz.var, fz.rule_idx, fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf)
 
     def step(self, u: Sequence[float] | Array | float, y: Sequence[float] | Array | float,
              dt: float) -> EstimatorOutput:
@@ -506,63 +821,140 @@ class FuzzyUKF:
         blk = self._blocks.get(dt)
         if blk is None:
             blk = self._block(dt)
+        now = self._time + dt
         prm = self._prm
         prm[0] = dt
         prm[5] = blk[1]
+        prm[8] = 1.0 if now - self._last_event >= self.config.dwell else 0.0
+        prm[10] = self.steps % self._ring_len
         fz = self.fuzzy
         n, m, p = self._dims
         self._kernel(blk[0], uu, yy, prm, self._st, fz.centres, fz.counts, fz.cons, fz.var,
                      fz.rule_idx, fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf)
-        self._time += dt
-        self.steps += 1
+        self._time = now
         out = self.out
-        stats = self._stats
-        if stats[1] > self.config.nis_threshold and self._time - self._last_event >= \
-                self.config.dwell:
-            self._structure_event()
+        if self._stats[3] > 0.0 and self._structure_event():
             out.structure_event = True
             out.rules = fz.rule_count
         else:
             out.structure_event = False
-        out.nis = stats[0]
+        self.steps += 1
+        out.nis = self._stats[0]
         return out
 
     def _init_from_sample(self, u: Array, y: Array) -> None:
-        """x^(0) without a given x0: the fault-free steady state closest to the first sample.
-
-        Least squares on [I - A; C] x = [B u; y - D u]: a monitor attached to a running
-        motor would otherwise start from x = 0 and read its own convergence as a fault.
-        """
+        """x^ and V before the first sample, without a given x0 (see `steady_start`)."""
         self._needs_init = False
-        A, B, _ = self.model.at(self.model.T)
-        md = self.model
-        M = np.vstack([np.eye(self._dims[0]) - A, md.C])
-        rhs = np.concatenate([B @ u, y - md.D @ u])
-        x, *_ = np.linalg.lstsq(M, rhs, rcond=None)
-        if np.all(np.isfinite(x)):
-            self.x[:] = x
+        x, V = steady_start(self.model, u, y)
+        self.x[:] = x
+        self.V[:] = V
 
-    def _structure_event(self) -> None:
-        """(20)-(22): add an MF where the evidence is, and re-open every consequent.
+    def _field(self, k: int, name: str) -> Array:
+        a, b = self._rf[name]
+        return self._ring[k % self._ring_len, a:b]
 
-        The evidence says the fault has changed, and an actuator's loss of effectiveness
-        is not a function of x_e, so no rule's old consequent is worth keeping: all are
-        set to the current output (so f^ does not jump, the intent of (23)-(27)) with a
-        re-opened variance, and then learn together. The new MF is output-preserving.
+    def _onset(self, k: int) -> tuple[int, Array]:
+        """The most likely onset of the change detected at sample k (20), and the jump of
+        gamma there (one entry per fault actuator).
+
+        For every candidate onset j in the ring (after the previous event's), a jump of
+        gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
+        the sensitivity M_i(j) of the two-stage filter started at j (V = 0 before j). Its
+        marginal likelihood against no jump, with the prior dgamma ~ N(0, var_reopen), is
+        g' (I + 1/var_reopen)^-1 g / 2 - log det(1 + var_reopen I) / 2 (g = sum M' S^-1 nu,
+        I = sum M' S^-1 M): the generalised likelihood ratio of Willsky and Jones (1976)
+        with the jump integrated out. The largest wins; its jump is (I + 1/var_reopen)^-1 g.
         """
+        n, _, p = self._dims
+        first = min(max(k - self._ring_len + 1, self._onset_floor, 0), k)
+        F = self._faulty
+        md = self.model
+        C, D = md.C, md.D
+        eye = np.eye(n)
+        count = k - first + 1
+        f = len(F)
+        W = np.zeros((count, n, f))
+        g = np.zeros((count, f))
+        info = np.zeros((count, f, f))
+        for t in range(count):
+            i = first + t
+            u = self._field(i, "u")[F]
+            A, B, _ = md.at(float(self._field(i, "dt")[0]))
+            K = self._field(i, "K").reshape(n, p)
+            Sti = self._field(i, "Sti").reshape(p, p)
+            nu = self._field(i, "nu")
+            Du = D[:, F] * u
+            Wm = A @ W[:t + 1] - B[:, F] * u
+            Mi = C @ Wm - Du
+            SM = Sti @ Mi
+            g[:t + 1] += np.einsum("cpa,p->ca", SM, nu)
+            info[:t + 1] += np.einsum("cpa,cpb->cab", Mi, SM)
+            W[:t + 1] = (eye - K @ C) @ Wm + K @ Du
+        vr = self.config.var_reopen
+        sol = np.linalg.solve(info + np.eye(f) / vr, g[..., None])[..., 0]
+        score = 0.5 * np.einsum("ca,ca->c", g, sol) \
+            - 0.5 * np.linalg.slogdet(np.eye(f) + vr * info)[1]
+        best = int(np.argmax(score))
+        return first + best, sol[best]
+
+    def _reprocess(self, j: int, k: int) -> None:
+        """Back to the state before sample j, a structure event there, samples j..k again."""
+        n, m, _ = self._dims
+        self.x[:] = self._field(j, "x")
+        self.P[:] = self._field(j, "P").reshape(n, n)
+        self.V[:] = self._field(j, "V").reshape(n, m)
+        self.z[:] = self._field(j, "z")
+        self._ebar[:] = self._field(j, "ebar")
+        self.out.gamma[:] = self._field(j, "gamma")
+        self.common_var[:] = self._field(j, "vc")
+        # the event re-opens every consequent at that output: do it before the rules fire,
+        # so that what the samples since taught them under the old fault is forgotten
+        self.fuzzy.cons[:, self._faulty] = self.out.gamma[self._faulty]
+        for i in range(j, k + 1):
+            self._u[:] = self._field(i, "u")
+            self._y[:] = self._field(i, "y")
+            self._run(i, float(self._field(i, "dt")[0]), 2.0 if i == j else 0.0)
+
+    def _negligible(self, gamma: Array, jump: Array) -> bool:
+        """Whether the jump, projected on the bounds of (28), is below min_jump for every
+        fault actuator."""
+        m = self._dims[1]
+        lo = self._prm[12:12 + m]
+        hi = self._prm[12 + m:12 + 2 * m]
+        F = self._faulty
+        moved = np.clip(gamma[F] + jump, lo[F], hi[F]) - gamma[F]
+        return bool(F) and bool(np.all(np.abs(moved) < self.config.min_jump))
+
+    def _structure_event(self) -> bool:
+        """(20)-(22): locate the change, re-learn from its onset, add an MF where it shows.
+
+        The test fires some samples after a change began. Its onset is located (_onset),
+        the filter goes back to the state before it and processes the samples since
+        again, with a structure event first: an actuator's loss of effectiveness is not a
+        function of x_e, so no rule's old consequent is worth keeping and all are re-opened
+        at the current output (so f^ does not jump, the intent of (23)-(27)); the
+        sensitivity of the state to the new gamma starts there. Then an MF is inserted on
+        the input with the largest |z| (output-preserving).
+        """
+        k = self.steps
+        j, jump = self._onset(k)
+        if self._negligible(self._field(j, "gamma"), jump):
+            # a jump that the bounds of (28) reduce to less than min_jump -- typically
+            # evidence for a gamma below 0 where a fault-free actuator's estimate sits on
+            # that bound -- is no change of the loss of effectiveness: it has been looked
+            # at (the dwell restarts), nothing is re-learnt
+            self._ebar[:] = 0.0
+            self._last_event = self._time
+            return False
+        self._reprocess(j, k)
+        self._onset_floor = j + 1
         self._last_event = self._time
         self.structure_events += 1
-        self._ebar[:] = 0.0  # one change, one event
-        # V = d x^ / d gamma accumulates the effect of a gamma error held since the start;
-        # a detected change starts a new one, whose effect on the state begins now.
-        self.V[:] = 0.0
         fz = self.fuzzy
-        cfg = self.config
-        fz.cons[:] = self.out.gamma
-        np.maximum(fz.var, cfg.var_reopen, out=fz.var)
         v = int(np.argmax(np.abs(self.z)))
-        fz.insert(v, float(self.z[v]), cfg.var_reopen)
+        fz.insert(v, float(self.z[v]), self.config.var_rule)
         fz.var[:, self._known] = 0.0  # known actuators have nothing to learn
+        return True
 
 
 _KERNEL = select_kernel()
@@ -576,29 +968,34 @@ def _fuzzy_ukf_loop(
     blocks: Array, coefs: Array, bidx: IntArray, dts: Array, U: Array, Y: Array, prm: Array,
     st: Array, centres: Array, counts: IntArray, cons: Array, var: Array, rule_idx: IntArray,
     rule_w: Array, wk: Array, out: Array, n: int, m: int, p: int, max_mf: int,
-    clock: Array, nis_threshold: float, dwell: float, start: int,
+    clock: Array, dwell: float, ring_len: int, start: int,
     gamma_out: Array, yest_out: Array, nis_out: Array,
 ) -> int:
     """`_fuzzy_ukf_step` -- eqs (50)-(54) around (15)-(49), see the module docstring -- for
     samples start, start + 1, ... of (U, Y, dts), in compiled code.
 
     Sample i runs with model block ``blocks[bidx[i]]`` (the ZOH model (63)-(65) for its
-    dt) and NIS coefficient ``coefs[bidx[i]]``, exactly what `FuzzyUKF.step` passes. clock =
-    [time, time of the last structure event]. Stops after the first sample that needs
-    Python: a structure-learning event (20)-(22) is due (clock[2] = 1) or gamma^ is NaN
+    dt), NIS coefficient ``coefs[bidx[i]]``, structure mode 1 once the dwell time has passed
+    since the last event (else 0) and ring slot (steps + i - start) mod ring_len: exactly
+    what `FuzzyUKF.step` passes. clock = [time, time of the last structure event, reason,
+    steps]. Stops after the first sample that needs Python: the structure test (20) fired
+    (clock[2] = 1; the onset search and re-processing are Python's) or gamma^ is NaN
     (clock[2] = 2); returns the index after the last sample run.
     """
     o_stats = m + 3 * n + 2 * p
-    o_yest = m + 3 * n + 3 * p + 3
+    o_yest = m + 3 * n + 3 * p + 4
     N = U.shape[0]
     clock[2] = 0.0
     for i in range(start, N):
         b = bidx[i]
+        now = clock[0] + dts[i]
         prm[0] = dts[i]
         prm[5] = coefs[b]
+        prm[8] = 1.0 if now - clock[1] >= dwell else 0.0
+        prm[10] = float(int(clock[3]) % ring_len)
         _fuzzy_ukf_step(blocks[b], U[i], Y[i], prm, st, centres, counts, cons, var, rule_idx,
                         rule_w, wk, out, n, m, p, max_mf)
-        clock[0] += dts[i]
+        clock[0] = now
         nan = False
         for a in range(m):
             gamma_out[i, a] = out[a]
@@ -607,9 +1004,10 @@ def _fuzzy_ukf_loop(
         for r in range(p):
             yest_out[i, r] = out[o_yest + r]
         nis_out[i] = out[o_stats]
-        if out[o_stats + 1] > nis_threshold and clock[0] - clock[1] >= dwell:
-            clock[2] = 1.0
+        if out[o_stats + 3] > 0.0:
+            clock[2] = 1.0  # steps is counted by the caller, after the event (as step())
             return i + 1
+        clock[3] += 1.0
         if nan:
             clock[2] = 2.0
             return i + 1
@@ -635,9 +1033,10 @@ class ManySteps:
 def step_many(est: FuzzyUKF, u: Array, y: Array, dt: Array) -> ManySteps:
     """`est.step(u[i], y[i], dt[i])` for every row i, with the same results, the samples
     stepped in one compiled loop (`_fuzzy_ukf_loop`: the same kernel, eqs (50)-(54) around
-    (15)-(49)) that returns to Python only for a structure-learning event (20)-(22) and
-    stops at a NaN gamma^. Without the JIT (AOT or interpreted kernel) it calls `est.step`
-    row by row. Leaves `est` as the last `step` would, `est.out` included.
+    (15)-(49)) that returns to Python only when the structure test (20) fires (the onset
+    search and re-processing of `FuzzyUKF._structure_event`) and stops at a NaN gamma^.
+    Without the JIT (AOT or interpreted kernel) it calls `est.step` row by row. Leaves
+    `est` as the last `step` would, `est.out` included.
     """
     N = int(u.shape[0])
     n, m, p = est._dims
@@ -676,7 +1075,7 @@ def step_many(est: FuzzyUKF, u: Array, y: Array, dt: Array) -> ManySteps:
     blocks = np.ascontiguousarray(np.stack([e[0] for e in entries]))
     coefs = np.array([e[1] for e in entries])
     bidx = inv.astype(np.int64).reshape(-1)
-    clock = np.array([est._time, est._last_event, 0.0])
+    clock = np.array([est._time, est._last_event, 0.0, float(est.steps)])
     fz = est.fuzzy
     cfg = est.config
     i = 0
@@ -685,25 +1084,33 @@ def step_many(est: FuzzyUKF, u: Array, y: Array, dt: Array) -> ManySteps:
         start = i
         i = _fuzzy_ukf_loop(blocks, coefs, bidx, dts, U, Y, est._prm, est._st, fz.centres,
                             fz.counts, fz.cons, fz.var, fz.rule_idx, fz.rule_w, est._wk,
-                            est._out, n, m, p, fz.max_mf, clock, cfg.nis_threshold, cfg.dwell,
+                            est._out, n, m, p, fz.max_mf, clock, cfg.dwell, est._ring_len,
                             start, gamma, y_est, nis)
         rules[start:i] = est.out.rules
-        est.steps += i - start
         est._time = float(clock[0])
         est.out.structure_event = False
-        if clock[2] == 1.0:  # the event follows sample i - 1, as in step()
-            est._structure_event()
-            est.out.structure_event = True
-            est.out.rules = fz.rule_count
+        if clock[2] == 1.0:  # the test fired on sample i - 1: the event, as in step()
+            est.steps = int(clock[3])
+            est._u[:] = U[i - 1]
+            est._y[:] = Y[i - 1]
+            if est._structure_event():
+                est.out.structure_event = True
+                est.out.rules = fz.rule_count
+                event[i - 1] = True
             rules[i - 1] = est.out.rules
-            event[i - 1] = True
+            # the event may have re-processed: the output of sample i - 1 is the new one
+            gamma[i - 1] = est.out.gamma
+            y_est[i - 1] = est.out.y_est
+            nis[i - 1] = est._stats[0]
             clock[1] = est._last_event
+            clock[3] += 1.0
             if gamma[i - 1].max() != gamma[i - 1].max():
                 nan = True
         elif clock[2] == 2.0:
             nan = True
         if nan:
             break
+    est.steps = int(clock[3])
     est.out.nis = float(nis[i - 1])
     est._u[:] = U[i - 1]
     est._y[:] = Y[i - 1]
