@@ -345,10 +345,10 @@ def test_structure_event_relearns_from_the_onset() -> None:
     onsets: list[int] = []
     locate = est._onset
 
-    def spy(k: int) -> tuple[int, np.ndarray]:
-        j, jump = locate(k)
-        onsets.append(j)
-        return j, jump
+    def spy(k: int) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        found = locate(k)
+        onsets.append(found[0])
+        return found
 
     est._onset = spy  # type: ignore[method-assign]
     g = np.array([est.step(run.u[k], run.y[k], T).gamma[0] for k in range(len(run.t))])

@@ -95,6 +95,17 @@ Why it is built this way -- what failed on a small, stiff, back-EMF dominated mo
     by P^- alone, the bias-free part, the servo's speed component of x_e swung by 28 of
     its "sigmas" in healthy running.
 
+(g) Cost, bounded per sample whatever the frame loss (5c6589b was reverted for starving a
+    one-CPU daemon under a CAN flood). A sample costs one kernel call (35)-(54) plus its
+    ring slot. The structure test (20) can fire at most once per dwell time (a negligible
+    jump restarts the dwell too), and only then does a sample pay for the onset search and
+    the re-processing, both over the ring: ring_len = onset_window / T + 1 samples, where a
+    lost stretch is one slot (one step of dt = k T), so loss never lengthens it. The search
+    is O(ring_len^2) up to `max_onsets` samples and two-stage above (a coarse grid of onsets,
+    then around its best: O(ring_len (max_onsets + 2 ring_len / max_onsets))); with the JIT
+    it and the re-processing (at most ring_len kernel calls) run compiled, one call each.
+    The estimator's restart after a long gap reuses the model's stationary covariance.
+
 A missed sample is a step with dt = k T: the ZOH model for that span holds the last
 voltage, which is what the ECU does, and the covariance grows accordingly.
 
@@ -175,6 +186,9 @@ class FuzzyUKFConfig:
     onset_window: how far back, in seconds, an event looks for the onset of the change.
     min_jump: a located jump of gamma smaller than this after the bounds of (28) is not
         a structure event.
+    max_onsets: above this many samples in the onset window the onset search is
+        two-stage (a coarse grid, then around its best), which bounds its cost to
+        O(window (max_onsets + 2 window / max_onsets)) instead of O(window^2).
     P0: initial state covariance: None, the stationary Kalman covariance (in the state's
         own units); a number, that value on the diagonal. Without an x0 the filter starts
         from the fault-free steady state of the first input.
@@ -193,6 +207,7 @@ class FuzzyUKFConfig:
     growth_share: float = 0.5
     onset_window: float = 0.2
     min_jump: float = 0.01
+    max_onsets: int = 24
     P0: float | None = None
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
 
@@ -583,6 +598,114 @@ def _fuzzy_ukf_step(
     stats[2] += rep
 
 
+@njit
+def _onset_glr(
+    mdls: Array, ring: Array, first: int, count: int, ring_len: int, offs: IntArray,
+    faulty: IntArray, n: int, m: int, p: int, cands: IntArray, g: Array, info: Array,
+) -> None:
+    """The sufficient statistics of the onset search (20) over ring samples first ..
+    first + count - 1 (see `FuzzyUKF._onset`), in compiled code: for every candidate onset
+    first + cands[c] (cands sorted, in [0, count)), g[c] = sum_i M_i(c)' S_i^-1 nu_i and
+    info[c] = sum_i M_i(c)' S_i^-1 M_i(c), with the signature of a jump at the candidate
+    propagated through the filter as it ran (K, S_tot^-1, nu of each sample from the
+    ring, eqs (44)-(49)): W <- A W - B_F u (the response of the prior (35)-(39)),
+    M = C W - D_F u, W <- (I - K C) W + K D_F u. mdls[t] is the flat model block of sample
+    first + t (A, B, Q, C, D, R as `FuzzyUKF._block` packs them). O(count len(cands)
+    n^2 f) flops.
+    """
+    f = faulty.shape[0]
+    nc = cands.shape[0]
+    W = np.zeros((nc, n, f))
+    Wm = np.zeros((n, f))
+    Mi = np.zeros((p, f))
+    SM = np.zeros((p, f))
+    Du = np.zeros((p, f))
+    Bu = np.zeros((n, f))
+    o_u, o_K, o_Sti, o_nu = offs[0], offs[2], offs[3], offs[4]  # offs[1]: dt, unused
+    oA = 0
+    oB = n * n
+    oC = 2 * n * n + n * m
+    oD = oC + p * n
+    for c in range(nc):
+        for a in range(f):
+            g[c, a] = 0.0
+            for b in range(f):
+                info[c, a, b] = 0.0
+    for t in range(count):
+        row = ring[(first + t) % ring_len]
+        mdl = mdls[t]
+        for a in range(f):
+            ua = row[o_u + faulty[a]]
+            for r in range(n):
+                Bu[r, a] = mdl[oB + r * m + faulty[a]] * ua
+            for r in range(p):
+                Du[r, a] = mdl[oD + r * m + faulty[a]] * ua
+        for c in range(nc):
+            if cands[c] > t:
+                break  # sorted: no later candidate has started yet
+            Wc = W[c]
+            for r in range(n):
+                for a in range(f):
+                    acc = -Bu[r, a]
+                    for q in range(n):
+                        acc += mdl[oA + r * n + q] * Wc[q, a]
+                    Wm[r, a] = acc
+            for r in range(p):
+                for a in range(f):
+                    acc = -Du[r, a]
+                    for q in range(n):
+                        acc += mdl[oC + r * n + q] * Wm[q, a]
+                    Mi[r, a] = acc
+            for r in range(p):
+                for a in range(f):
+                    acc = 0.0
+                    for q in range(p):
+                        acc += row[o_Sti + r * p + q] * Mi[q, a]
+                    SM[r, a] = acc
+            for a in range(f):
+                acc = 0.0
+                for r in range(p):
+                    acc += SM[r, a] * row[o_nu + r]
+                g[c, a] += acc
+                for b in range(f):
+                    acc = 0.0
+                    for r in range(p):
+                        acc += Mi[r, a] * SM[r, b]
+                    info[c, a, b] += acc
+            # W = (I - K C) Wm + K Du = Wm + K (Du - C Wm) = Wm - K Mi
+            for r in range(n):
+                for a in range(f):
+                    acc = Wm[r, a]
+                    for q in range(p):
+                        acc -= row[o_K + r * p + q] * Mi[q, a]
+                    Wc[r, a] = acc
+
+
+@njit
+def _reprocess_loop(
+    mdls: Array, coefs: Array, ring: Array, first: int, count: int, ring_len: int,
+    o_u: int, o_y: int, o_dt: int, prm: Array, st: Array, centres: Array, counts: IntArray,
+    cons: Array, var: Array, rule_idx: IntArray, rule_w: Array, wk: Array, out: Array,
+    n: int, m: int, p: int, max_mf: int, u: Array, y: Array,
+) -> None:
+    """Samples first .. first + count - 1 of the ring again through `_fuzzy_ukf_step`, the
+    first with a structure event (mode 2), the others without the test (mode 0): what
+    `FuzzyUKF._reprocess` does one Python call per sample, in one compiled call."""
+    for t in range(count):
+        k = first + t
+        row = ring[k % ring_len]
+        for a in range(m):
+            u[a] = row[o_u + a]
+        for r in range(p):
+            y[r] = row[o_y + r]
+        prm[0] = row[o_dt]
+        prm[5] = coefs[t]
+        prm[8] = 2.0 if t == 0 else 0.0
+        prm[10] = float(k % ring_len)
+        _fuzzy_ukf_step(mdls[t], u, y, prm, st, centres, counts, cons, var, rule_idx, rule_w,
+                        wk, out, n, m, p, max_mf)
+
+
 def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
     """The step kernel to run: ("jit" | "aot" | "python", function).
 
@@ -642,6 +765,24 @@ def initial_covariance(model: DiscreteModel) -> Array:
         P = np.linalg.inv(obs.T @ Ri @ obs)
         P = 0.5 * (P + P.T)
     return np.asarray(P)
+
+
+_P0_CACHE: dict[int, tuple[DiscreteModel, Array]] = {}
+
+
+def _initial_covariance_of(model: DiscreteModel) -> Array:
+    """`initial_covariance` once per model object: the pipeline restarts a node's
+    estimator after a long gap or a NaN (one per gap under a flood), and the discrete
+    Riccati solve must not be paid at each. The model is kept beside its id, so the id
+    cannot be reused while the entry lives."""
+    hit = _P0_CACHE.get(id(model))
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    P = initial_covariance(model)
+    if len(_P0_CACHE) > 64:
+        _P0_CACHE.clear()
+    _P0_CACHE[id(model)] = (model, P)
+    return P
 
 
 def steady_start(model: DiscreteModel, u: Array, y: Array) -> tuple[Array, Array]:
@@ -740,7 +881,7 @@ class FuzzyUKF:
                 self.x[:] = x0a
             else:
                 raise ValueError(f"x0 must have {model.n_full} (full) or {n} (observable) entries")
-        self.P[:] = initial_covariance(model) if cfg.P0 is None else np.eye(n) * cfg.P0
+        self.P[:] = _initial_covariance_of(model) if cfg.P0 is None else np.eye(n) * cfg.P0
         self._needs_init = x0 is None
         self._wk = np.zeros(_work_size(n, m, p))
         self._out = np.zeros(m + 3 * n + 4 * p + 4)
@@ -853,29 +994,38 @@ class FuzzyUKF:
         a, b = self._rf[name]
         return self._ring[k % self._ring_len, a:b]
 
-    def _onset(self, k: int) -> tuple[int, Array]:
-        """The most likely onset of the change detected at sample k (20), and the jump of
-        gamma there (one entry per fault actuator).
+    def _ring_models(self, first: int, count: int) -> tuple[Array, Array]:
+        """The flat model blocks and NIS coefficients of ring samples first .. first +
+        count - 1 (from the `_block` cache: one per distinct dt, k T after lost samples)."""
+        dtf = self._rf["dt"][0]
+        ring = self._ring
+        L = self._ring_len
+        entries = [self._block(float(ring[(first + t) % L, dtf])) for t in range(count)]
+        return np.stack([e[0] for e in entries]), np.array([e[1] for e in entries])
 
-        For every candidate onset j in the ring (after the previous event's), a jump of
-        gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
-        the sensitivity M_i(j) of the two-stage filter started at j (V = 0 before j). Its
-        marginal likelihood against no jump, with the prior dgamma ~ N(0, var_reopen), is
-        g' (I + 1/var_reopen)^-1 g / 2 - log det(1 + var_reopen I) / 2 (g = sum M' S^-1 nu,
-        I = sum M' S^-1 M): the generalised likelihood ratio of Willsky and Jones (1976)
-        with the jump integrated out. The largest wins; its jump is (I + 1/var_reopen)^-1 g.
-        """
-        n, _, p = self._dims
-        first = min(max(k - self._ring_len + 1, self._onset_floor, 0), k)
+    def _onset_stats(self, first: int, count: int, cands: IntArray, mdls: Array
+                     ) -> tuple[Array, Array]:
+        """(g, info) of the candidate onsets first + cands (see `_onset`)."""
+        n, m, p = self._dims
         F = self._faulty
+        f = len(F)
+        if self.kernel_name == "jit":
+            g = np.zeros((len(cands), f))
+            info = np.zeros((len(cands), f, f))
+            rf = self._rf
+            offs = np.array([rf["u"][0], rf["dt"][0], rf["K"][0], rf["Sti"][0], rf["nu"][0]],
+                            dtype=np.int64)
+            _onset_glr(mdls, self._ring, first, count, self._ring_len, offs,
+                       np.array(F, dtype=np.int64), n, m, p, cands, g, info)
+            return g, info
+        # Without the JIT (the hardened service's AOT kernel, or interpreted): the same
+        # statistics with numpy, every onset of the window at once, then the candidates'
         md = self.model
         C, D = md.C, md.D
         eye = np.eye(n)
-        count = k - first + 1
-        f = len(F)
         W = np.zeros((count, n, f))
-        g = np.zeros((count, f))
-        info = np.zeros((count, f, f))
+        ga = np.zeros((count, f))
+        ia = np.zeros((count, f, f))
         for t in range(count):
             i = first + t
             u = self._field(i, "u")[F]
@@ -887,19 +1037,66 @@ class FuzzyUKF:
             Wm = A @ W[:t + 1] - B[:, F] * u
             Mi = C @ Wm - Du
             SM = Sti @ Mi
-            g[:t + 1] += np.einsum("cpa,p->ca", SM, nu)
-            info[:t + 1] += np.einsum("cpa,cpb->cab", Mi, SM)
+            ga[:t + 1] += np.einsum("cpa,p->ca", SM, nu)
+            ia[:t + 1] += np.einsum("cpa,cpb->cab", Mi, SM)
             W[:t + 1] = (eye - K @ C) @ Wm + K @ Du
-        vr = self.config.var_reopen
-        sol = np.linalg.solve(info + np.eye(f) / vr, g[..., None])[..., 0]
-        score = 0.5 * np.einsum("ca,ca->c", g, sol) \
-            - 0.5 * np.linalg.slogdet(np.eye(f) + vr * info)[1]
-        best = int(np.argmax(score))
-        return first + best, sol[best]
+        return ga[cands], ia[cands]
 
-    def _reprocess(self, j: int, k: int) -> None:
-        """Back to the state before sample j, a structure event there, samples j..k again."""
-        n, m, _ = self._dims
+    def _onset_scores(self, g: Array, info: Array) -> tuple[Array, Array]:
+        """Log marginal likelihood ratio of a jump at each candidate, and the jump."""
+        f = g.shape[1]
+        vr = self.config.var_reopen
+        sol = np.asarray(np.linalg.solve(info + np.eye(f) / vr, g[..., None])[..., 0], np.float64)
+        score: Array = 0.5 * np.einsum("ca,ca->c", g, sol) \
+            - 0.5 * np.linalg.slogdet(np.eye(f) + vr * info)[1]
+        return score, sol
+
+    def _onset(self, k: int) -> tuple[int, Array, Array, Array]:
+        """The most likely onset of the change detected at sample k (20), the jump of
+        gamma there (one entry per fault actuator), and the model blocks and NIS
+        coefficients of the samples from the window's first to k (for `_reprocess`).
+
+        For every candidate onset j in the ring (after the previous event's), a jump of
+        gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
+        the sensitivity M_i(j) of the two-stage filter started at j (V = 0 before j). Its
+        marginal likelihood against no jump, with the prior dgamma ~ N(0, var_reopen), is
+        g' (I + 1/var_reopen)^-1 g / 2 - log det(1 + var_reopen I) / 2 (g = sum M' S^-1 nu,
+        I = sum M' S^-1 M): the generalised likelihood ratio of Willsky and Jones (1976)
+        with the jump integrated out. The largest wins; its jump is (I + 1/var_reopen)^-1 g.
+
+        Cost bound: the window holds count <= ring_len samples (ring_len = onset_window / T
+        + 1; a lost sample is one step of dt = k T, one slot, so loss never lengthens it).
+        Every candidate's signature is propagated over the samples after it, so a search
+        of all onsets is O(count^2). With more than `max_onsets` samples the search is
+        two-stage: every s-th onset (s = ceil(count / max_onsets), and the latest), then
+        every onset within s of the best of those -- O(count (max_onsets + 2 s)) -- which
+        finds the exact maximiser whenever the score is unimodal over s samples around it
+        (the score of an abrupt change peaks at its onset and falls off over the samples
+        in between, as the signature overlap does). Compiled with the JIT.
+        """
+        first = min(max(k - self._ring_len + 1, self._onset_floor, 0), k)
+        count = k - first + 1
+        mdls, coefs = self._ring_models(first, count)
+        cap = max(2, self.config.max_onsets)
+        if count <= cap:
+            cands = np.arange(count, dtype=np.int64)
+        else:
+            s = -(-count // cap)
+            cands = np.unique(np.append(np.arange(0, count, s), count - 1)).astype(np.int64)
+            score, _ = self._onset_scores(*self._onset_stats(first, count, cands, mdls))
+            b = int(cands[int(np.argmax(score))])
+            cands = np.arange(max(b - s + 1, 0), min(b + s, count), dtype=np.int64)
+        # the refined candidates include the coarse best, so the argmax of this pass is
+        # the best of both
+        score, sol = self._onset_scores(*self._onset_stats(first, count, cands, mdls))
+        best = int(np.argmax(score))
+        return first + int(cands[best]), sol[best], mdls, coefs
+
+    def _reprocess(self, j: int, k: int, first: int, mdls: Array, coefs: Array) -> None:
+        """Back to the state before sample j, a structure event there, samples j..k again
+        (k - j < ring_len samples; in one compiled call with the JIT). mdls, coefs: the
+        model blocks and NIS coefficients of samples first..k."""
+        n, m, p = self._dims
         self.x[:] = self._field(j, "x")
         self.P[:] = self._field(j, "P").reshape(n, n)
         self.V[:] = self._field(j, "V").reshape(n, m)
@@ -910,6 +1107,15 @@ class FuzzyUKF:
         # the event re-opens every consequent at that output: do it before the rules fire,
         # so that what the samples since taught them under the old fault is forgotten
         self.fuzzy.cons[:, self._faulty] = self.out.gamma[self._faulty]
+        if self.kernel_name == "jit":
+            rf = self._rf
+            fz = self.fuzzy
+            _reprocess_loop(mdls[j - first:], coefs[j - first:], self._ring, j, k - j + 1,
+                            self._ring_len, rf["u"][0], rf["y"][0], rf["dt"][0], self._prm,
+                            self._st, fz.centres, fz.counts, fz.cons, fz.var, fz.rule_idx,
+                            fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf, self._u,
+                            self._y)
+            return
         for i in range(j, k + 1):
             self._u[:] = self._field(i, "u")
             self._y[:] = self._field(i, "y")
@@ -937,7 +1143,7 @@ class FuzzyUKF:
         the input with the largest |z| (output-preserving).
         """
         k = self.steps
-        j, jump = self._onset(k)
+        j, jump, mdls, coefs = self._onset(k)
         if self._negligible(self._field(j, "gamma"), jump):
             # a jump that the bounds of (28) reduce to less than min_jump -- typically
             # evidence for a gamma below 0 where a fault-free actuator's estimate sits on
@@ -946,7 +1152,7 @@ class FuzzyUKF:
             self._ebar[:] = 0.0
             self._last_event = self._time
             return False
-        self._reprocess(j, k)
+        self._reprocess(j, k, k - len(coefs) + 1, mdls, coefs)
         self._onset_floor = j + 1
         self._last_event = self._time
         self.structure_events += 1
