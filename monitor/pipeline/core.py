@@ -209,9 +209,9 @@ class MonitorPipeline:
         self._model = self.cfg.plant().discretize(1.0 / self.cfg.rate)
         self.tracker = CounterTracker()
         # Load the compiled kernels now, not on the first frame of a live bus.
-        FuzzyUKF(self._model, self.cfg.estimator).step(np.zeros(self._model.m),
-                                                       np.zeros(self._model.p),
-                                                       1.0 / self.cfg.rate)
+        # (the structure event's onset search and re-processing too: a JIT compile in the
+        # middle of a flood would stall the daemon for seconds)
+        FuzzyUKF(self._model, self.cfg.estimator).warm_up()
         for n in self.cfg.nodes or ():
             self._node(n)
 

@@ -12,8 +12,8 @@ motor at 100 Hz and the 24 V servo rig (tests/rigs/servo.toml's motor) at 1 kHz,
 
 A lost sample is what the pipeline does with it: the next received one is stepped with
 dt = k T (the estimator predicts through the gap). Figures per estimator: mean, 99th
-percentile and worst per-sample time in microseconds, structure events, and the ratios
-new / old. The last line is the figures as JSON.
+percentile and worst per-sample time in microseconds (per sample the fastest of
+--repeat runs), structure events, and the ratios new / old. The last line is the figures as JSON.
 """
 
 from __future__ import annotations
@@ -121,7 +121,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ref", default="HEAD", help="git revision of the old estimator")
     ap.add_argument("--quick", action="store_true", help="shorter streams")
-    ap.add_argument("--repeat", type=int, default=2, help="runs per case, the best kept")
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="runs per case, per sample the fastest kept")
     args = ap.parse_args()
     old_mod = load_old(args.ref)
     mods = {"old": old_mod, "new": new_mod}
@@ -143,10 +144,11 @@ def main() -> None:
                 for _ in range(args.repeat):
                     t, ev = time_step(mod, model, u, y, dt)
                     tm = time_many(mod, model, u, y, dt)
-                    if best_t is None or t.mean() < best_t.mean():
-                        best_t = t
-                    if best_m is None or tm.mean() < best_m.mean():
-                        best_m = tm
+                    # per sample the fastest of the runs: the same samples cost the same
+                    # in every run (the estimator is deterministic), what differs is the
+                    # scheduler's noise on a shared machine, which this removes
+                    best_t = t if best_t is None else np.minimum(best_t, t)
+                    best_m = tm if best_m is None else np.minimum(best_m, tm)
                 assert best_t is not None and best_m is not None
                 row[name] = {"step": stats(best_t), "step_many": stats(best_m), "events": ev}
             row["ratio"] = {
