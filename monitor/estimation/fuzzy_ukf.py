@@ -600,8 +600,9 @@ def _fuzzy_ukf_step(
 
 @njit
 def _onset_glr(
-    mdls: Array, ring: Array, first: int, count: int, ring_len: int, offs: IntArray,
-    faulty: IntArray, n: int, m: int, p: int, cands: IntArray, g: Array, info: Array,
+    blocks: Array, bidx: IntArray, ring: Array, first: int, count: int, ring_len: int,
+    offs: IntArray, faulty: IntArray, n: int, m: int, p: int, cands: IntArray, g: Array,
+    info: Array,
 ) -> None:
     """The sufficient statistics of the onset search (20) over ring samples first ..
     first + count - 1 (see `FuzzyUKF._onset`), in compiled code: for every candidate onset
@@ -609,8 +610,9 @@ def _onset_glr(
     info[c] = sum_i M_i(c)' S_i^-1 M_i(c), with the signature of a jump at the candidate
     propagated through the filter as it ran (K, S_tot^-1, nu of each sample from the
     ring, eqs (44)-(49)): W <- A W - B_F u (the response of the prior (35)-(39)),
-    M = C W - D_F u, W <- (I - K C) W + K D_F u. mdls[t] is the flat model block of sample
-    first + t (A, B, Q, C, D, R as `FuzzyUKF._block` packs them). O(count len(cands)
+    M = C W - D_F u, W <- (I - K C) W + K D_F u. blocks[bidx[t]] is the flat model block of
+    sample first + t (A, B, Q, C, D, R as `FuzzyUKF._block` packs them, one per distinct
+    dt). O(count len(cands)
     n^2 f) flops.
     """
     f = faulty.shape[0]
@@ -633,7 +635,7 @@ def _onset_glr(
                 info[c, a, b] = 0.0
     for t in range(count):
         row = ring[(first + t) % ring_len]
-        mdl = mdls[t]
+        mdl = blocks[bidx[t]]
         for a in range(f):
             ua = row[o_u + faulty[a]]
             for r in range(n):
@@ -683,7 +685,7 @@ def _onset_glr(
 
 @njit
 def _reprocess_loop(
-    mdls: Array, coefs: Array, ring: Array, first: int, count: int, ring_len: int,
+    blocks: Array, coefs: Array, bidx: IntArray, ring: Array, first: int, count: int, ring_len: int,
     o_u: int, o_y: int, o_dt: int, prm: Array, st: Array, centres: Array, counts: IntArray,
     cons: Array, var: Array, rule_idx: IntArray, rule_w: Array, wk: Array, out: Array,
     n: int, m: int, p: int, max_mf: int, u: Array, y: Array,
@@ -699,11 +701,11 @@ def _reprocess_loop(
         for r in range(p):
             y[r] = row[o_y + r]
         prm[0] = row[o_dt]
-        prm[5] = coefs[t]
+        prm[5] = coefs[bidx[t]]
         prm[8] = 2.0 if t == 0 else 0.0
         prm[10] = float(k % ring_len)
-        _fuzzy_ukf_step(mdls[t], u, y, prm, st, centres, counts, cons, var, rule_idx, rule_w,
-                        wk, out, n, m, p, max_mf)
+        _fuzzy_ukf_step(blocks[bidx[t]], u, y, prm, st, centres, counts, cons, var, rule_idx,
+                        rule_w, wk, out, n, m, p, max_mf)
 
 
 def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
@@ -906,6 +908,10 @@ class FuzzyUKF:
         self._time = 0.0
         self._last_event = -math.inf
         self._onset_floor = 0  # no onset before the previous event's
+        rf = self._rf
+        self._glr_offs = np.array([rf["u"][0], rf["dt"][0], rf["K"][0], rf["Sti"][0],
+                                   rf["nu"][0]], dtype=np.int64)
+        self._faulty_idx = np.array(self._faulty, dtype=np.int64)
         self.steps = 0
         self.structure_events = 0
 
@@ -1000,8 +1006,8 @@ class FuzzyUKF:
         for _ in range(2):
             self.step(np.zeros(m), np.zeros(p), self.model.T)
         k = self.steps - 1
-        j, _, mdls, coefs = self._onset(k)
-        self._reprocess(j, k, k - len(coefs) + 1, mdls, coefs)
+        j, _, models = self._onset(k)
+        self._reprocess(j, k, k - len(models[2]) + 1, models)
 
     def _init_from_sample(self, u: Array, y: Array) -> None:
         """x^ and V before the first sample, without a given x0 (see `steady_start`)."""
@@ -1014,17 +1020,22 @@ class FuzzyUKF:
         a, b = self._rf[name]
         return self._ring[k % self._ring_len, a:b]
 
-    def _ring_models(self, first: int, count: int) -> tuple[Array, Array]:
-        """The flat model blocks and NIS coefficients of ring samples first .. first +
-        count - 1 (from the `_block` cache: one per distinct dt, k T after lost samples)."""
-        dtf = self._rf["dt"][0]
-        ring = self._ring
+    def _ring_models(self, first: int, count: int) -> tuple[Array, Array, IntArray]:
+        """The flat model blocks and NIS coefficients of the distinct dt among ring samples
+        first .. first + count - 1 (from the `_block` cache; k T after lost samples), and
+        each sample's index into them: a few blocks, not one per sample."""
         L = self._ring_len
-        entries = [self._block(float(ring[(first + t) % L, dtf])) for t in range(count)]
-        return np.stack([e[0] for e in entries]), np.array([e[1] for e in entries])
+        dts = self._ring[(first + np.arange(count)) % L, self._rf["dt"][0]]
+        if dts.min() == dts.max():  # no loss in the window: one block (the common case)
+            blk = self._block(float(dts[0]))
+            return blk[0][None, :], np.array([blk[1]]), np.zeros(count, np.int64)
+        uniq, inv = np.unique(dts, return_inverse=True)
+        entries = [self._block(d) for d in uniq.tolist()]
+        return (np.stack([e[0] for e in entries]), np.array([e[1] for e in entries]),
+                inv.astype(np.int64).reshape(-1))
 
-    def _onset_stats(self, first: int, count: int, cands: IntArray, mdls: Array
-                     ) -> tuple[Array, Array]:
+    def _onset_stats(self, first: int, count: int, cands: IntArray,
+                     models: tuple[Array, Array, IntArray]) -> tuple[Array, Array]:
         """(g, info) of the candidate onsets first + cands (see `_onset`)."""
         n, m, p = self._dims
         F = self._faulty
@@ -1032,11 +1043,8 @@ class FuzzyUKF:
         if self.kernel_name == "jit":
             g = np.zeros((len(cands), f))
             info = np.zeros((len(cands), f, f))
-            rf = self._rf
-            offs = np.array([rf["u"][0], rf["dt"][0], rf["K"][0], rf["Sti"][0], rf["nu"][0]],
-                            dtype=np.int64)
-            _onset_glr(mdls, self._ring, first, count, self._ring_len, offs,
-                       np.array(F, dtype=np.int64), n, m, p, cands, g, info)
+            _onset_glr(models[0], models[2], self._ring, first, count, self._ring_len,
+                       self._glr_offs, self._faulty_idx, n, m, p, cands, g, info)
             return g, info
         # Without the JIT (the hardened service's AOT kernel, or interpreted): the same
         # statistics with numpy, every onset of the window at once, then the candidates'
@@ -1066,15 +1074,19 @@ class FuzzyUKF:
         """Log marginal likelihood ratio of a jump at each candidate, and the jump."""
         f = g.shape[1]
         vr = self.config.var_reopen
+        if f == 1:  # one fault actuator: the same formulas without batched LAPACK calls
+            d = info[:, 0, 0]
+            s1 = g / (d + 1.0 / vr)[:, None]
+            return 0.5 * g[:, 0] * s1[:, 0] - 0.5 * np.log1p(vr * d), s1
         sol = np.asarray(np.linalg.solve(info + np.eye(f) / vr, g[..., None])[..., 0], np.float64)
         score: Array = 0.5 * np.einsum("ca,ca->c", g, sol) \
             - 0.5 * np.linalg.slogdet(np.eye(f) + vr * info)[1]
         return score, sol
 
-    def _onset(self, k: int) -> tuple[int, Array, Array, Array]:
+    def _onset(self, k: int) -> tuple[int, Array, tuple[Array, Array, IntArray]]:
         """The most likely onset of the change detected at sample k (20), the jump of
-        gamma there (one entry per fault actuator), and the model blocks and NIS
-        coefficients of the samples from the window's first to k (for `_reprocess`).
+        gamma there (one entry per fault actuator), and the model blocks of the samples from
+        the window's first to k (`_ring_models`, for `_reprocess`).
 
         For every candidate onset j in the ring (after the previous event's), a jump of
         gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
@@ -1096,26 +1108,27 @@ class FuzzyUKF:
         """
         first = min(max(k - self._ring_len + 1, self._onset_floor, 0), k)
         count = k - first + 1
-        mdls, coefs = self._ring_models(first, count)
+        models = self._ring_models(first, count)
         cap = max(2, self.config.max_onsets)
         if count <= cap:
             cands = np.arange(count, dtype=np.int64)
         else:
             s = -(-count // cap)
             cands = np.unique(np.append(np.arange(0, count, s), count - 1)).astype(np.int64)
-            score, _ = self._onset_scores(*self._onset_stats(first, count, cands, mdls))
+            score, _ = self._onset_scores(*self._onset_stats(first, count, cands, models))
             b = int(cands[int(np.argmax(score))])
             cands = np.arange(max(b - s + 1, 0), min(b + s, count), dtype=np.int64)
         # the refined candidates include the coarse best, so the argmax of this pass is
         # the best of both
-        score, sol = self._onset_scores(*self._onset_stats(first, count, cands, mdls))
+        score, sol = self._onset_scores(*self._onset_stats(first, count, cands, models))
         best = int(np.argmax(score))
-        return first + int(cands[best]), sol[best], mdls, coefs
+        return first + int(cands[best]), sol[best], models
 
-    def _reprocess(self, j: int, k: int, first: int, mdls: Array, coefs: Array) -> None:
+    def _reprocess(self, j: int, k: int, first: int,
+                   models: tuple[Array, Array, IntArray]) -> None:
         """Back to the state before sample j, a structure event there, samples j..k again
-        (k - j < ring_len samples; in one compiled call with the JIT). mdls, coefs: the
-        model blocks and NIS coefficients of samples first..k."""
+        (k - j < ring_len samples; in one compiled call with the JIT). models: the model
+        blocks of samples first..k (`_ring_models`)."""
         n, m, p = self._dims
         self.x[:] = self._field(j, "x")
         self.P[:] = self._field(j, "P").reshape(n, n)
@@ -1130,7 +1143,7 @@ class FuzzyUKF:
         if self.kernel_name == "jit":
             rf = self._rf
             fz = self.fuzzy
-            _reprocess_loop(mdls[j - first:], coefs[j - first:], self._ring, j, k - j + 1,
+            _reprocess_loop(models[0], models[1], models[2][j - first:], self._ring, j, k - j + 1,
                             self._ring_len, rf["u"][0], rf["y"][0], rf["dt"][0], self._prm,
                             self._st, fz.centres, fz.counts, fz.cons, fz.var, fz.rule_idx,
                             fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf, self._u,
@@ -1163,7 +1176,7 @@ class FuzzyUKF:
         the input with the largest |z| (output-preserving).
         """
         k = self.steps
-        j, jump, mdls, coefs = self._onset(k)
+        j, jump, models = self._onset(k)
         if self._negligible(self._field(j, "gamma"), jump):
             # a jump that the bounds of (28) reduce to less than min_jump -- typically
             # evidence for a gamma below 0 where a fault-free actuator's estimate sits on
@@ -1172,7 +1185,7 @@ class FuzzyUKF:
             self._ebar[:] = 0.0
             self._last_event = self._time
             return False
-        self._reprocess(j, k, k - len(coefs) + 1, mdls, coefs)
+        self._reprocess(j, k, k - len(models[2]) + 1, models)
         self._onset_floor = j + 1
         self._last_event = self._time
         self.structure_events += 1
