@@ -254,13 +254,15 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    help="start a new file past this size, MiB (default 256)")
     r.add_argument("--rotate-minutes", type=options.positive_float, default=60.0,
                    help="start a new file after this long, minutes (default 60)")
-    r.add_argument("--keep", type=int, default=168,
-                   help="recordings kept in DIR, oldest deleted first (default 168)")
+    r.add_argument("--keep", type=int, default=4000,
+                   help="recordings kept in DIR, oldest deleted first (default 4000: a week "
+                   "of a full 16-node bus in 256 MiB files, README 'Recording size')")
     r.add_argument("--secoc-state", default=None, metavar="FILE",
                    help="persist SecOC freshness here (with --key): restarts resume at once")
-    r.add_argument("--max-total-gb", type=options.positive_float, default=20.0,
-                   help="recordings in DIR never exceed this, GiB (default 20; the same for "
-                   "the raw logs in --raw-dir)")
+    r.add_argument("--max-total-gb", type=options.positive_float, default=128.0,
+                   help="recordings in DIR never exceed this, GiB (default 128: a week of a "
+                   "full 16-node bus with a third to spare; the same for the raw logs in "
+                   "--raw-dir; lower it on a small disk)")
     r.add_argument("--raw-dir", default=None, metavar="DIR",
                    help="write every received frame to rotating bus logs in DIR (the lossless "
                    "record: replay re-diagnoses them), same rotation and retention")
