@@ -152,8 +152,10 @@ class _RigSimulation:
                 continue
             fid, ext, data = ecu.codec.encode_sample(name, ecu.node, u, y,
                                                       float(gamma.max()), counter)
+            fd = bool(ecu.codec.message(name, ecu.node).is_fd)  # as the rig's DBC says
             msgs.append(can.Message(timestamp=time_base + t, arbitration_id=fid,
-                                    is_extended_id=ext, data=data))
+                                    is_extended_id=ext, is_fd=fd, bitrate_switch=fd,
+                                    data=data))
             self.stats.produced[name] += 1
         plant.advance(u, gamma)
         self.k += 1

@@ -191,6 +191,9 @@ def test_reader_gives_python_cans_frames(tmp_path: Path, suffix: str) -> None:
     frames = _sim_frames("healthy", bad=True)[:3000]
     frames.append(can.Message(timestamp=frames[-1].timestamp + 0.01, arbitration_id=0x123,
                               data=bytes(range(12)), is_fd=True, is_extended_id=False))
+    frames.append(can.Message(timestamp=frames[-1].timestamp + 0.01, arbitration_id=0x124,
+                              data=bytes(range(64)), is_fd=True, bitrate_switch=True,
+                              error_state_indicator=True, is_extended_id=False))
     path = _write(frames, tmp_path / f"x{suffix}")
     want = list(can.LogReader(str(path)))
     got = [c.message(i) for c in read_chunks(path, 256) for i in range(len(c))]
@@ -199,7 +202,9 @@ def test_reader_gives_python_cans_frames(tmp_path: Path, suffix: str) -> None:
         assert g.timestamp == w.timestamp
         assert (g.arbitration_id, g.is_extended_id, g.is_remote_frame, g.is_error_frame) == \
             (w.arbitration_id, w.is_extended_id, w.is_remote_frame, w.is_error_frame)
-        assert bytes(g.data) == bytes(w.data)[:8]
+        assert (g.is_fd, g.bitrate_switch, g.error_state_indicator) == \
+            (w.is_fd, w.bitrate_switch, w.error_state_indicator)
+        assert bytes(g.data) == bytes(w.data)  # CAN FD payloads whole, not cut to 8 bytes
     lengths = [int(c.length[i]) for c in read_chunks(path, 256) for i in range(len(c))]
     assert lengths == [len(w.data) for w in want]
 

@@ -2,6 +2,12 @@
 
 What the command line leaves out (interface, channel) comes from python-can's own
 configuration: CAN_INTERFACE / CAN_CHANNEL / CAN_CONFIG, ~/.canrc, can.rc.
+
+SocketCAN is opened CAN FD-capable (python-can's ``fd=True``: the CAN_RAW_FD_FRAMES socket
+option), unless the configuration says ``fd`` itself. Without it the kernel never hands
+an FD frame to the socket, so FD frames would vanish uncounted. On a classic-only
+interface (MTU 16) the option is still accepted: the socket reads and sends classic frames
+as before, and no FD frame can arrive (the log says so once).
 """
 
 from __future__ import annotations
@@ -10,15 +16,19 @@ import contextlib
 import errno
 import logging
 from collections.abc import Iterator
-from typing import Any
+from pathlib import Path
+from typing import Any, Final
 
 import can
 
 from monitor.errors import MonitorError, one_line
 
-__all__ = ["BusError", "open_bus"]
+__all__ = ["CANFD_MTU", "CAN_MTU", "BusError", "interface_mtu", "open_bus"]
 
 log = logging.getLogger(__name__)
+
+CAN_MTU: Final = 16  # sizeof(struct can_frame): a classic CAN interface
+CANFD_MTU: Final = 72  # sizeof(struct canfd_frame): a CAN FD interface
 
 
 class BusError(MonitorError):
@@ -42,8 +52,11 @@ def _quiet_can_logger(quiet: bool) -> Iterator[None]:
 
 
 def open_bus(interface: str | None, channel: str | None, bitrate: int | None = None, *,
-             quiet: bool = True) -> can.BusABC:
+             quiet: bool = True, fd: bool = True) -> can.BusABC:
     """``can.Bus`` with python-can's configuration filling in what is None.
+
+    `fd`: open a SocketCAN interface CAN FD-capable (unless python-can's configuration
+    sets ``fd``); other interfaces are opened as their configuration says.
 
     Raises `BusError` with one line when nothing names an interface (or a channel for
     socketcan, whose default "" means every interface and cannot send), or the bus cannot
@@ -81,6 +94,9 @@ def open_bus(interface: str | None, channel: str | None, bitrate: int | None = N
             "CAN_CHANNEL or a python-can config file"
         )
     extra: dict[str, Any] = {"bitrate": bitrate} if bitrate is not None else {}
+    socketcan = resolved["interface"] == "socketcan"
+    if fd and socketcan and "fd" not in resolved:
+        extra["fd"] = True
     try:
         with _quiet_can_logger(quiet):
             bus = can.Bus(interface=interface, channel=channel, **extra)
@@ -90,7 +106,34 @@ def open_bus(interface: str | None, channel: str | None, bitrate: int | None = N
             hint = " (this kernel has no SocketCAN support)"
         raise BusError(f"cannot open CAN {where}: {one_line(exc)}{hint}") from None
     log.info("opened %s (%s)", where, bus.channel_info)
+    if socketcan:
+        _log_fd_capability(str(resolved["channel"]), bool(extra.get("fd", resolved.get("fd"))))
     return bus
+
+
+def interface_mtu(channel: str) -> int | None:
+    """The MTU of network interface `channel` (16: classic CAN, 72: CAN FD), None if the
+    kernel does not say (no such interface in /sys, e.g. another network namespace)."""
+    try:
+        return int(Path("/sys/class/net", channel, "mtu").read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _log_fd_capability(channel: str, fd: bool) -> None:
+    """One log line saying whether CAN FD frames can reach the socket."""
+    if not fd:
+        log.info("%s: socket opened for classic CAN only: CAN FD frames are not received",
+                 channel)
+        return
+    mtu = interface_mtu(channel)
+    if mtu == CAN_MTU:
+        log.info("%s: classic CAN interface (MTU %d): no CAN FD frame can arrive; "
+                 "'ip link set %s mtu %d' makes it CAN FD (where the driver can)",
+                 channel, mtu, channel, CANFD_MTU)
+    else:
+        log.info("%s: CAN FD frames are received (socket FD-enabled, interface MTU %s)",
+                 channel, "unknown" if mtu is None else mtu)
 
 
 def _configured_interface(given: dict[str, Any]) -> str | None:

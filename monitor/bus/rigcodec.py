@@ -5,7 +5,10 @@ IDs, as the DBC defines them) and routes each frame to a node by the rig's layou
 ``<message>_N<node>`` names, a node number in bits of the arbitration ID (the DBC lists
 node 0's messages), or an explicit table per node. Each rig message has its protection:
 none, or AUTOSAR E2E profile 2 checked by `cantools.autosar.end_to_end` (CRC in byte 0,
-alive counter in the low nibble of byte 1, a data ID per message). Decoding never raises:
+alive counter in the low nibble of byte 1, a data ID per message). CAN FD messages (the
+DBC's ``VFrameFormat`` StandardCAN_FD / ExtendedCAN_FD, up to 64 bytes) are decoded like
+classic ones; a frame whose format is not the message's (FD for a classic message, or
+the reverse) is ``fd_frame``, before its length is looked at. Decoding never raises:
 every frame is `Decoded` (the model's inputs and outputs converted to the model's units)
 or `Rejected` with a reason from `RejectReason`, like `monitor.bus.codec.MotorDatabase`
 for our own bus.
@@ -180,7 +183,7 @@ class RigCodec:
     # -- decoding -----------------------------------------------------------------------
 
     def decode(self, arbitration_id: int, data: bytes, is_extended: bool, is_remote: bool,
-               is_error: bool, timestamp: float) -> Decoded | Rejected:
+               is_error: bool, timestamp: float, is_fd: bool = False) -> Decoded | Rejected:
         """Classify one received frame; never raises."""
         if is_error:
             return Rejected(RejectReason.ERROR_FRAME, arbitration_id, timestamp)
@@ -196,6 +199,11 @@ class RigCodec:
                             detail=f"not a rig message in {self.source}")
         spec, message, node = route.spec, route.message, route.node
         data = bytes(data)
+        if is_fd != message.is_fd:
+            want, got = ("CAN FD", "classic CAN") if message.is_fd else ("classic CAN", "CAN FD")
+            return Rejected(RejectReason.FD_FRAME, arbitration_id, timestamp, node, None,
+                            f"{got} frame of {len(data)} bytes; {message.name} is a {want} "
+                            "message")
         if len(data) != message.length:
             return Rejected(RejectReason.WRONG_LENGTH, arbitration_id, timestamp, node,
                             None, f"{len(data)} bytes, expected {message.length}")
@@ -225,7 +233,7 @@ class RigCodec:
     def decode_can(self, msg: can.Message) -> Decoded | Rejected:
         """`decode` for a python-can message."""
         return self.decode(msg.arbitration_id, bytes(msg.data), msg.is_extended_id,
-                           msg.is_remote_frame, msg.is_error_frame, msg.timestamp)
+                           msg.is_remote_frame, msg.is_error_frame, msg.timestamp, msg.is_fd)
 
 
 def _limits(message: Message, spec: RigMessage) -> tuple[tuple[str, float, float], ...]:

@@ -7,16 +7,18 @@ the E2E properties the codec attached, the node of every ID, the signals' [min, 
 the codec checks, the reserved bits of our bus. `RouteTable.decode(chunk)` then gives every
 frame the verdict the codec's ``decode`` gives it, in the codec's order of checks:
 
-* our bus: error, remote, extended, unknown ID, length != 8, CRC, reserved bits set
-  (``malformed``), limits (``out_of_range``);
-* a rig: error, remote, ID of the other length (``extended_id``) or unknown, length !=
-  the message's, CRC (E2E messages), limits.
+* our bus: error, remote, extended, unknown ID, a CAN FD frame (``fd_frame``), length !=
+  8, CRC, reserved bits set (``malformed``), limits (``out_of_range``);
+* a rig: error, remote, ID of the other length (``extended_id``) or unknown, frame format
+  not the message's (``fd_frame``), length != the message's, CRC (E2E messages), limits.
 
 and, for the frames it accepts, the values the pipeline reads off `Decoded`: the model's
 inputs (index, value in the model's unit), outputs, a simulator's truth, the alive
 counter, as columns. SecOC cannot be columnar (every frame's verdict depends on the
 freshness state of its stream): `RouteTable.of` refuses a codec with a key
-(`NotColumnar`), and the replay runs that file frame by frame.
+(`NotColumnar`), and the replay runs that file frame by frame. So does a rig with CAN FD
+messages longer than 8 bytes (the columns decode payloads of up to 8 bytes); FD frames on
+a rig's classic messages, or on our bus, get their ``fd_frame`` verdict here.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ class Route:
     inputs: tuple[tuple[int, str, float], ...]  # (input index, signal, factor)
     outputs: tuple[tuple[str, float], ...]  # (signal, factor)
     truth: str | None
+    fd: bool = False  # a CAN FD message in the DBC
     stream: int = 0  # alive-counter stream (kind, node)
     extractors: dict[str, SignalExtractor] = field(default_factory=dict)
 
@@ -134,13 +137,15 @@ class RouteTable:
                 routes.append(Route(
                     fid, ext, rr.message, rr.node, spec.name, int(rr.message.length), spec.e2e,
                     0, tuple(rr.limits), spec.counter, tuple(spec.inputs),
-                    tuple(spec.outputs), spec.truth))
+                    tuple(spec.outputs), spec.truth, bool(rr.message.is_fd)))
             our = False
         else:
             raise NotColumnar(f"no columnar decoder for {type(codec).__name__}")
         for r in routes:
             if not 0 < r.length <= 8:
-                raise NotColumnar(f"{r.message.name}: {r.length}-byte frames")
+                fd = "CAN FD " if r.fd else ""
+                raise NotColumnar(f"{r.message.name}: {r.length}-byte {fd}frames (the "
+                                  "columns decode up to 8 bytes)")
             if any(i >= m for i, _, _ in r.inputs) or len(r.outputs) > p:
                 raise NotColumnar(f"{r.message.name}: more signals than the model has")
         return cls(routes, m=m, p=p, our_bus=our)
@@ -181,12 +186,15 @@ class RouteTable:
         for ri in present.tolist():
             r = self.routes[ri]
             rows = np.flatnonzero(route == ri)
+            bad = c.is_fd[rows] != r.fd
+            code[rows[bad]] = _CODE[RejectReason.FD_FRAME]
+            rows = rows[~bad]
             bad = c.length[rows] != r.length
             code[rows[bad]] = _CODE[RejectReason.WRONG_LENGTH]
             rows = rows[~bad]
             if not len(rows):
                 continue
-            data = c.data[rows]
+            data = c.data[rows, :8]
             if r.e2e:
                 ok = profile2_ok(r.message, data, r.length)
                 code[rows[~ok]] = _CODE[RejectReason.BAD_CRC]

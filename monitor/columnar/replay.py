@@ -148,6 +148,12 @@ class _Replay:
             return
         cnt = self.counters
         cnt.inc(C.FRAMES_RECEIVED, n)
+        fd = c.is_fd
+        if fd.any():  # sub-counts of frames/received, as MonitorPipeline.feed counts them
+            cnt.inc(C.FRAMES_FD, int(fd.sum()))
+            esi = fd & c.is_esi
+            if esi.any():
+                cnt.inc(C.FRAMES_FD_ESI, int(esi.sum()))
         events: list[tuple[int, int, int, Any]] = []  # (key, node order, seq, event)
         for i in np.flatnonzero(c.error).tolist():
             self._error_frame(c, i, events)

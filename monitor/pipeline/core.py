@@ -4,8 +4,12 @@
 never raises on what the frame holds: each frame ends in exactly one counted outcome.
 
 * Rejected by the codec (unknown ID, wrong length, bad CRC, out of range, malformed,
-  remote, error or extended frame): counted under `rejected/<reason>`, logged (rate
-  limited), never fed to the estimator.
+  remote, error or extended frame, a CAN FD frame where the DBC has a classic message or
+  the reverse): counted under `rejected/<reason>`, logged (rate limited), never fed to
+  the estimator.
+
+Besides its outcome, a CAN FD frame is counted in `frames/fd` (and, when its error state
+indicator is set, `frames/fd_esi`): sub-counts of `frames/received`, not outcomes.
 * Alive counter repeated (a replay or duplicate): counted `e2e/repeated`, dropped.
   Counter jump (lost frames): counted `e2e/lost_frames` by the number lost; the sample is
   used and the estimator predicts through the gap (dt = k T from the timestamps).
@@ -227,6 +231,10 @@ class MonitorPipeline:
     def feed(self, msg: can.Message) -> None:
         """One frame from the bus or a log; never raises on the frame's content."""
         self.counters.inc(C.FRAMES_RECEIVED)
+        if msg.is_fd:
+            self.counters.inc(C.FRAMES_FD)
+            if msg.error_state_indicator:
+                self.counters.inc(C.FRAMES_FD_ESI)
         if msg.is_error_frame:
             self._on_error_frame(msg)
             return
