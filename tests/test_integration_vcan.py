@@ -71,7 +71,7 @@ DELAY_BOUND_S = 0.5
 #: the daemon shares the guest's one CPU with the ECUs and candump, and on a loaded machine it
 #: processes the socket's backlog late. The estimator's delay itself (in sample time, from
 #: the events) is held to DELAY_BOUND_S by `check_event_sequence`.
-FRAME_LAG_S = 0.5
+FRAME_LAG_S = 1.5
 #: Hand-over from no_data to the first estimate, left out of the frame-by-frame comparison.
 STARTUP_S = 0.1
 #: The monitor turns a node no_data after 0.5 s without current frames.

@@ -30,7 +30,7 @@ from monitor.app.freshness import FreshnessSaver
 from monitor.app.notify import Notifier
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import MotorDatabase
-from monitor.bus.faults import socket_drops
+from monitor.bus.faults import RECEIVE_BUFFER_BYTES, grow_receive_buffer, socket_drops
 from monitor.bus.rawlog import RotatingBusLog
 from monitor.bus.rigcodec import RigCodec
 from monitor.bus.stats import BusStats
@@ -56,12 +56,17 @@ class _LiveBus:
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
-        self.bus: can.BusABC | None = open_bus(args.interface, args.channel, args.bitrate,
-                                               quiet=_quiet())
+        self.bus: can.BusABC | None = None
+        self.reopen()
 
     def reopen(self) -> None:
         a = self.args
         self.bus = open_bus(a.interface, a.channel, a.bitrate, quiet=_quiet())
+        granted = grow_receive_buffer(self.bus)
+        if granted is not None and granted < RECEIVE_BUFFER_BYTES:
+            log.info("socket receive buffer %d KiB (asked for %d KiB; the kernel caps it at "
+                     "net.core.rmem_max: raise that sysctl for more)", granted // 1024,
+                     RECEIVE_BUFFER_BYTES // 1024)
 
     def send(self, msg: can.Message) -> None:
         if self.bus is None:
