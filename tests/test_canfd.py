@@ -17,6 +17,7 @@ import can
 import numpy as np
 import pytest
 
+from monitor.app import canbus
 from monitor.app import replay as per_frame
 from monitor.app.canbus import CAN_MTU, interface_mtu, open_bus
 from monitor.app.options import monitor_config
@@ -289,3 +290,20 @@ def test_interface_mtu_reads_sysfs() -> None:
     assert interface_mtu("no-such-interface-here") is None
     lo = interface_mtu("lo")
     assert lo is None or lo > CAN_MTU
+
+
+def test_a_classic_interface_is_named_in_the_log(monkeypatch: pytest.MonkeyPatch,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    class FakeBus:
+        channel_info = "fake"
+
+    monkeypatch.setattr(can, "Bus", lambda **kwargs: FakeBus())
+    monkeypatch.setattr(canbus, "interface_mtu", lambda channel: CAN_MTU)
+    with caplog.at_level("INFO", logger="monitor.app.canbus"):
+        open_bus("socketcan", "can7")
+    assert "can7: classic CAN interface (MTU 16): no CAN FD frame can arrive" in caplog.text
+    caplog.clear()
+    monkeypatch.setattr(canbus, "interface_mtu", lambda channel: 72)
+    with caplog.at_level("INFO", logger="monitor.app.canbus"):
+        open_bus("socketcan", "can7")
+    assert "can7: CAN FD frames are received (socket FD-enabled, interface MTU 72)" in caplog.text
