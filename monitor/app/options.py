@@ -18,7 +18,7 @@ from monitor.pipeline import MonitorConfig
 from monitor.rig import Rig, build_decoder, build_model, builtin_rig, load_rig
 
 __all__ = ["OneLineParser", "add_monitor_options", "add_rig_option", "database",
-           "monitor_config", "nodes", "positive_float", "rate", "rig"]
+           "monitor_config", "nodes", "positive_float", "positive_int", "rate", "rig"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -36,6 +36,16 @@ def positive_float(text: str) -> float:
     if not (v > 0 and math.isfinite(v)):
         raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
     return v
+
+
+def positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
+    return n
 
 
 def rate(text: str) -> float:

@@ -30,7 +30,7 @@ from monitor.app.freshness import FreshnessSaver
 from monitor.app.notify import Notifier
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import MotorDatabase
-from monitor.bus.faults import RECEIVE_BUFFER_BYTES, grow_receive_buffer, socket_drops
+from monitor.bus.faults import grow_receive_buffer, socket_drops
 from monitor.bus.rawlog import RotatingBusLog
 from monitor.bus.rigcodec import RigCodec
 from monitor.bus.stats import BusStats
@@ -62,11 +62,14 @@ class _LiveBus:
     def reopen(self) -> None:
         a = self.args
         self.bus = open_bus(a.interface, a.channel, a.bitrate, quiet=_quiet())
-        granted = grow_receive_buffer(self.bus)
-        if granted is not None and granted < RECEIVE_BUFFER_BYTES:
-            log.info("socket receive buffer %d KiB (asked for %d KiB; the kernel caps it at "
-                     "net.core.rmem_max: raise that sysctl for more)", granted // 1024,
-                     RECEIVE_BUFFER_BYTES // 1024)
+        wanted = getattr(a, "receive_buffer_kib", None)
+        if wanted is None:
+            return
+        granted = grow_receive_buffer(self.bus, wanted * 1024)
+        if granted is not None and granted < 2 * wanted * 1024:
+            log.warning("socket receive buffer %d KiB, not the %d KiB asked for: the kernel "
+                        "caps it at net.core.rmem_max (raise that sysctl)", granted // 2048,
+                        wanted)
 
     def send(self, msg: can.Message) -> None:
         if self.bus is None:
@@ -176,6 +179,8 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
     notifier.ready(f"monitoring {where}")
     last_status = 0.0
     last_tick = 0.0
+    drained = True  # the last receive found the socket empty
+    newest = last_clock = 0.0  # the newest frame's time stamp; the time last ticked at
     dropped_before = 0  # socket drops of sockets closed before the current one
     backoff = 0.1
     down_since: float | None = None
@@ -186,7 +191,11 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
             now = time.time()
             if now - last_tick >= TICK_S:
                 last_tick = now
-                pipe.tick(now)
+                # Timeouts are judged where the reading is: while a backlog waits in the
+                # socket (a daemon held up for a moment), the time is that of the newest frame
+                # read, so the daemon's own lag never looks like a silent node.
+                pipe.tick(now if drained else max(newest, last_clock))
+                last_clock = now if drained else max(newest, last_clock)
                 sink.maybe_flush(mono)
                 outputs.count_compactions(recording, pipe.counters)
                 if raw is not None:
@@ -228,7 +237,9 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                 pipe.interface_back(time.time(), outage)
                 backoff = 0.1
                 down_since = None
+            drained = msg is None
             if msg is not None:
+                newest = max(newest, msg.timestamp)
                 if raw is not None:
                     raw(msg)  # every frame, whatever the pipeline makes of it
                 bus_stats(msg)
@@ -279,6 +290,12 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    "viewer) this often: what a SIGKILL can lose from it (default 0.1; above "
                    "0.25 only with --raw-dir, whose raw log keeps every frame; e.g. 2: larger "
                    "batches, files ~3.5x smaller before compaction)")
+    r.add_argument("--receive-buffer-kib", type=options.positive_int, default=None,
+                   metavar="KIB",
+                   help="the socket's receive buffer (default: the kernel's, "
+                   "net.core.rmem_default, a few hundred frames): larger, a daemon held up "
+                   "for a moment catches up later instead of losing frames; above "
+                   "net.core.rmem_max only with CAP_NET_ADMIN")
     r.add_argument("--metrics", default=None, metavar="FILE.prom",
                    help="write Prometheus metrics here every 5 s (node_exporter's textfile "
                    "collector directory); `motor-monitor status` reads them")

@@ -49,10 +49,10 @@ SO_MEMINFO = 55  # include/uapi/asm-generic/socket.h
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # include/uapi/asm-generic/socket.h
 
 RECEIVE_BUFFER_BYTES = 8 * 2**20
-"""The socket receive buffer the daemon asks for: about 10,000 CAN frames (a frame's socket
-buffer costs the kernel some 800 bytes), several seconds of a busy bus, so that a daemon held
-up for a moment (a loaded machine, a slow disk) catches up instead of losing frames. The
-kernel's default (net.core.rmem_default, 208 KiB) holds a few hundred."""
+"""A receive buffer of about 10,000 CAN frames (a frame's socket buffer costs the kernel
+some 800 bytes): several seconds of a busy bus. The kernel's default (net.core.rmem_default,
+208 KiB) holds a few hundred. A larger buffer turns a held-up daemon's losses into latency
+(`run --receive-buffer-kib`)."""
 SK_MEMINFO_DROPS = 8  # index into the u32 array (include/uapi/linux/sock_diag.h)
 
 
