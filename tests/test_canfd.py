@@ -7,6 +7,7 @@ to the same counters and events through the per-frame and the columnar engine.""
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from monitor.app.canbus import CAN_MTU, interface_mtu, open_bus
 from monitor.app.options import monitor_config
 from monitor.bus.codec import Decoded, Rejected, RejectReason, load_database
 from monitor.bus.rigcodec import RigCodec
+from monitor.columnar.decode import window_of
 from monitor.columnar.reader import read_chunks
 from monitor.columnar.replay import replay_file
 from monitor.pipeline import Counters, DiagnosisEvent, MonitorConfig, MonitorPipeline
@@ -179,9 +181,9 @@ def test_fd_rig_log_replays_in_both_engines(tmp_path: Path, suffix: str,
     cfg = monitor_config(NO_OVERRIDES, load_rig(FD_RIG))
     with caplog.at_level("WARNING"):
         res, _, events = _compare(path, _fd_codec, cfg)
-    # 16- and 64-byte messages: the columnar engine hands the file to the per-frame one
-    assert not res.columnar and res.fallback and "-byte CAN FD frames" in res.fallback
-    assert "frame by frame" in caplog.text
+    # 16- and 64-byte messages, signals beyond byte 8: decoded in columns all the same
+    assert res.columnar and res.fallback is None
+    assert "frame by frame" not in caplog.text
     assert res.counters[C.FRAMES_FD] == len(frames) and res.counters[C.SAMPLES_ESTIMATED] > 1500
     assert [e.state for e in events][:3] == ["fault_free", "fault", "outage"]
 
@@ -258,8 +260,7 @@ def test_replay_command_takes_an_fd_log(tmp_path: Path, engine: str) -> None:
     assert [e["state"] for e in events if e["cause"] == "estimate"][:3] == \
         ["fault_free", "fault", "outage"]
     assert ", 0 rejected" in rep.stderr, rep.stderr
-    if engine == "columnar":
-        assert "frame by frame" in rep.stderr, rep.stderr
+    assert "frame by frame" not in rep.stderr, rep.stderr
 
 
 # ------------------------------------------------------------------ the socket
@@ -307,3 +308,20 @@ def test_a_classic_interface_is_named_in_the_log(monkeypatch: pytest.MonkeyPatch
     with caplog.at_level("INFO", logger="monitor.app.canbus"):
         open_bus("socketcan", "can7")
     assert "can7: CAN FD frames are received (socket FD-enabled, interface MTU 72)" in caplog.text
+
+
+def test_a_signal_no_8_byte_window_holds_sends_the_file_frame_by_frame() -> None:
+    codec = _fd_codec()
+    status = codec.message("FdAxisStatus", 1)
+    signal = status.get_signal_by_name("CurrentFb")
+    assert window_of(signal, 64) == 12 and window_of(signal, 8) == 0
+    wide = copy.copy(signal)
+    wide.start = 60  # bits 60..91: bytes 7..11, still one window
+    assert window_of(wide, 64) == 7
+    wide.length, wide.start = 64, 4  # bytes 0..8: no 8-byte window
+    assert window_of(wide, 64) is None
+    big = copy.copy(signal)
+    big.byte_order, big.start = "big_endian", 8 * 60 + 7  # MSB first in byte 60: bytes 60..63
+    assert window_of(big, 64) == 56
+    big.start = 8 * 62 + 7  # would run past byte 63
+    assert window_of(big, 64) is None

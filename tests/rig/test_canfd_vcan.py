@@ -77,7 +77,7 @@ MON=$!
 motor-monitor run --interface socketcan --channel vcan1 \
     --metrics "$OUT/ours.prom" 2> ours.err &
 OURS=$!
-if wait_for mon.err "monitoring" 150 && wait_for ours.err "monitoring" 150; then echo "ready=1"
+if wait_for mon.err "monitoring" 240 && wait_for ours.err "monitoring" 240; then echo "ready=1"
 else echo "ready=0"; kill $MON $OURS $DUMP; exit 3; fi
 cansend vcan1 110##1$(printf '11%.0s' $(seq 8)); echo "cs1=$?"
 cansend vcan1 110##3$(printf '22%.0s' $(seq 64)); echo "cs2=$?"
@@ -105,7 +105,7 @@ def _counters(prom: Path) -> dict[str, int]:
 
 @pytest.mark.vcan
 def test_fd_frames_on_vcan_are_counted_and_decoded(vcan: RunOnVcan, tmp_path: Path) -> None:
-    res = vcan(SCRIPT, env={"OUT": str(tmp_path), "RIG": str(RIG)}, timeout=420.0,
+    res = vcan(SCRIPT, env={"OUT": str(tmp_path), "RIG": str(RIG)}, timeout=720.0,
                interfaces=("vcan0", "vcan1"))
     values = _values(res.stdout)
     mon_err = (tmp_path / "mon.err").read_text()
