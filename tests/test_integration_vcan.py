@@ -47,6 +47,7 @@ from rerun.chunk import RrdReader
 from monitor.app.replay import feed_log
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.pipeline import DiagnosisEvent, MonitorConfig
+from monitor.sinks.blueprint import counter_path
 from sim_ecu import VirtualECU
 from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
 from tests.support.pipeline import pipeline
@@ -435,9 +436,17 @@ def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_p
     # and the monitor received every frame the ECU sent.
     cap = read_capture(cap_log, mdb)
     assert not cap.rejected, cap.rejected[:5]
-    assert summary["frames"] == sent["current"] + sent["voltage"] + sent["truth"]
+    # Every frame is received or counted as dropped by the kernel (a one-CPU guest that
+    # stalls the daemon for a moment: its socket overflows; the counter reaches the recording).
+    rrd = tmp_path / "live.rrd"
+    _, kernel_drops = rrd_series(rrd, counter_path("bus/socket_drops"))
+    drops = int(kernel_drops[-1]) if len(kernel_drops) else 0
+    if drops:
+        print(f"[live] {drops} frames dropped by the kernel (counted)")
+    assert summary["frames"] + drops == sent["current"] + sent["voltage"] + sent["truth"]
     assert summary["rejected"] == 0
-    assert summary["estimated"] >= sent["current"] - 1  # the first current precedes a voltage
+    # the first current precedes a voltage
+    assert summary["estimated"] >= sent["current"] - 1 - drops
     jitter_report(cap, 0, "live")
     check_follows_truth(cap, 0, "live")
 
@@ -453,7 +462,6 @@ def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_p
     assert [e["state"] for e in events if e["cause"] == "estimate"][-1] == "fault_free"
 
     # The recording: closed cleanly on SIGTERM, gamma^ over the run.
-    rrd = tmp_path / "live.rrd"
     rrd_verify(rrd)
     t, v = rrd_series(rrd, "/motor/0/gamma/estimate")
     assert len(v) == summary["estimated"] >= 300, len(v)
