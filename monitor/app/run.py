@@ -194,8 +194,8 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                 # Timeouts are judged where the reading is: while a backlog waits in the
                 # socket (a daemon held up for a moment), the time is that of the newest frame
                 # read, so the daemon's own lag never looks like a silent node.
-                pipe.tick(now if drained else max(newest, last_clock))
                 last_clock = now if drained else max(newest, last_clock)
+                pipe.tick(last_clock)
                 sink.maybe_flush(mono)
                 outputs.count_compactions(recording, pipe.counters)
                 if raw is not None:
