@@ -25,9 +25,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
+from monitor.app.argtypes import OneLineParser
 from monitor.app.canbus import open_bus
 from monitor.app.freshness import FreshnessSaver
-from monitor.app.options import OneLineParser
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import N_NODES, MotorDatabase
 from monitor.bus.secoc import load_key

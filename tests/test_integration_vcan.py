@@ -337,7 +337,7 @@ def offline_events(mdb: MotorDatabase, frames: Iterable[can.Message]) -> list[Di
     return events
 
 
-def _run_vcan(vcan: RunOnVcan, script: str, out: Path, timeout: float = 240.0) -> dict[str, str]:
+def _run_vcan(vcan: RunOnVcan, script: str, out: Path, timeout: float = 480.0) -> dict[str, str]:
     res = vcan(SCRIPT_PRELUDE + script, env={"OUT": str(out)}, timeout=timeout)
     print(f"[vcan] {res.backend} run took {res.duration:.1f} s")
     values = script_values(res.stdout)
@@ -368,12 +368,15 @@ wait_for() {  # FILE PATTERN SECONDS: poll until FILE contains PATTERN
 # go out late rather than being skipped (a skip looks like a loss to the monitor, and a skip of
 # 16 like a repeat to the 4-bit alive counter).
 CATCH_UP=100000
+# The monitors hand their recording to the .rrd file every 0.25 s, the most allowed without
+# --raw-dir: in the one-CPU guest every chunk handed to Rerun costs ~5 ms of CPU in the SDK's
+# threads, 50 chunks/s at the default 0.1 s. What a SIGKILL loses at the default is boot B's test.
 start_capture_and_monitor() {  # NODES [more monitor options]
   nodes=$1; shift
   candump -L vcan0 > cap.log 2> candump.err &
   DUMP=$!
   motor-monitor run --interface socketcan --channel vcan0 --nodes "$nodes" \
-      --events "$OUT/ev.jsonl" "$@" 2> mon.err &
+      --events "$OUT/ev.jsonl" --record-flush-s 0.25 "$@" 2> mon.err &
   MON=$!
   if wait_for cap.log ' 180#' 150; then
     echo "ready=1"

@@ -388,7 +388,8 @@ def test_flood_is_survived_counted_and_bounded(boot_b: BootB) -> None:
           f"max {max(during):.1f} ({len(boot_b.rss)} samples)")
     assert frames > 20_000
     assert delta.get("bus/socket_drops", 0) > 0, delta  # dropped frames are counted
-    assert delta.get("rejected/unknown_id", 0) > 1000, delta
+    # (a few hundred at least, even on a guest the two cangens starve; ~20k on a quiet one)
+    assert delta.get("rejected/unknown_id", 0) > 100, delta
     assert delta.get("rejected/extended_id", 0) > 0 and delta.get("rejected/remote_frame", 0) > 0
     assert max(during) - rss0 < 32.0, (rss0, max(during))
     # estimation goes on, and fully after the flood

@@ -126,17 +126,30 @@ def test_fd_frames_on_vcan_are_counted_and_decoded(vcan: RunOnVcan, tmp_path: Pa
     n_ecu = sum(sent.values())
     assert sent["FdAxisStatus"] >= 1550, ecu_err  # 1600 samples at 100 Hz
 
-    # the FD rig's monitor: every frame counted, the twin's decoded
+    # the FD rig's monitor: every frame counted, the twin's decoded. The guest's one CPU is
+    # shared by two monitors and the twin: a stalled monitor's socket may overflow, and the
+    # kernel's drops (of the twin's frames: the cansend ones go out while all is idle) must
+    # then be counted, few (at most 5 %) and make up the difference exactly.
     rig = _counters(tmp_path / "rig.prom")
-    assert rig["frames/received"] == n_ecu + 4, (rig, sent)
-    assert rig["frames/fd"] == n_ecu + 3 and rig["frames/fd_esi"] == 1, rig
+    lost = rig.get("bus/socket_drops", 0)
+    if lost:
+        print(f"[fd] rig monitor: {lost} frames dropped by the kernel (counted)")
+    assert lost <= 0.05 * n_ecu, rig
+    assert rig["frames/received"] + lost == n_ecu + 4, (rig, sent)
+    assert rig["frames/fd"] + lost == n_ecu + 3 and rig["frames/fd_esi"] == 1, rig
     assert rig["rejected/fd_frame"] == 1 and rig["rejected/unknown_id"] == 3, rig
-    assert rig["samples/estimated"] >= sent["FdAxisStatus"] - 1, rig
+    assert rig["samples/estimated"] >= sent["FdAxisStatus"] - 1 - lost, rig
     assert rig["frames/received"] == outcome_total(rig), rig
-    # our bus's monitor: FD frames on its IDs are fd_frame, the rest unknown, none lost
+    # our bus's monitor: FD frames on its IDs are fd_frame, the rest unknown, none lost uncounted
     ours = _counters(tmp_path / "ours.prom")
-    assert ours["frames/received"] == n_ecu + 4 and ours["frames/fd"] == n_ecu + 3, ours
-    assert ours["rejected/fd_frame"] == 2 and ours["rejected/unknown_id"] == n_ecu + 2, ours
+    lost = ours.get("bus/socket_drops", 0)
+    if lost:
+        print(f"[fd] our bus's monitor: {lost} frames dropped by the kernel (counted)")
+    assert lost <= 0.05 * n_ecu, ours
+    assert ours["frames/received"] + lost == n_ecu + 4, ours
+    assert ours["frames/fd"] + lost == n_ecu + 3, ours
+    assert ours["rejected/fd_frame"] == 2, ours
+    assert ours["rejected/unknown_id"] + lost == n_ecu + 2, ours
     assert ours["frames/received"] == outcome_total(ours), ours
 
     # the live diagnosis follows the scenario (40 % loss at 4 s, outage 8-11 s)
