@@ -41,7 +41,7 @@ if wait_for mon.err "monitoring" 150; then echo "ready=1"
 else echo "ready=0"; kill $MON $DUMP; exit 3; fi
 # every sample sent, late if the one-CPU guest is busy (the rig's alive counter tells the
 # monitor the true sample period; a skipped sample would be a loss)
-sim-ecu --interface socketcan --channel vcan0 --rig "$RIG" --node 2 \
+nice -n 10 sim-ecu --interface socketcan --channel vcan0 --rig "$RIG" --node 2 \
     --scenario fault-outage-recovery --seed 1 --max-catch-up 100000 2> ecu.err
 echo "ecu_rc=$?"
 sleep 2

@@ -57,12 +57,13 @@ inject() {
   sleep "$GAP"
 }
 
-# ecu SEED LOG: start a healthy node-0 ECU (until stopped); its PID in $ECU. It shares the
-# guest's one CPU with the monitor and the injectors: on a loaded machine its late samples go
-# out late rather than skipped, since a skip of 16 looks like a repeat to the 4-bit alive
-# counter and would be counted in the window of whatever bad frame is being injected.
+# ecu SEED LOG: start a healthy node-0 ECU (until stopped); its PID in $ECU (nice execs it).
+# It shares the guest's one CPU with the monitor and the injectors, at nice 10: the monitor is
+# what is tested. On a loaded machine its late samples go out late rather than skipped, since
+# a skip of 16 looks like a repeat to the 4-bit alive counter and would be counted in the
+# window of whatever bad frame is being injected.
 ecu() {
-  sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario healthy --duration 0 \
+  nice -n 10 sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario healthy --duration 0 \
       --seed "$1" --max-catch-up 100000 2> "$2" &
   # shellcheck disable=SC2034 # read by the boot scripts that source this file
   ECU=$!
