@@ -20,10 +20,11 @@ motor-monitor -v run --interface socketcan --channel vcan0 --nodes 0 --rrd "$OUT
 MON=$!
 ecu 1 ecu1.err
 # Wrong CLI on a real SocketCAN kernel, while the daemon starts: a channel that does not exist.
-( motor-monitor run --interface socketcan --channel vcan9 > /dev/null 2> cli_mon_nochan.err
+( nice -n 19 motor-monitor run --interface socketcan --channel vcan9 > /dev/null \
+      2> cli_mon_nochan.err
   echo "$?" > cli_mon_nochan.rc ) &
 CLI1=$!
-( sim-ecu --interface socketcan --channel vcan9 --node 0 --scenario healthy > /dev/null \
+( nice -n 19 sim-ecu --interface socketcan --channel vcan9 --node 0 --scenario healthy > /dev/null \
       2> cli_ecu_nochan.err
   echo "$?" > cli_ecu_nochan.rc ) &
 CLI2=$!

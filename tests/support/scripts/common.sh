@@ -50,20 +50,22 @@ inject() {
   key=$1; shift
   mark "${key}_start"
   ok=0
-  for f in "$@"; do cansend vcan0 "$f" && ok=$((ok + 1)); done
+  for f in "$@"; do nice -n 19 cansend vcan0 "$f" && ok=$((ok + 1)); done
   mark "${key}_end"
   echo "sent_${key}=$ok"
   echo "alive_${key}=$(alive)"
   sleep "$GAP"
 }
 
-# ecu SEED LOG: start a healthy node-0 ECU (until stopped); its PID in $ECU (nice execs it).
-# It shares the guest's one CPU with the monitor and the injectors, at nice 10: the monitor is
-# what is tested. On a loaded machine its late samples go out late rather than skipped, since
-# a skip of 16 looks like a repeat to the 4-bit alive counter and would be counted in the
-# window of whatever bad frame is being injected.
+# ecu SEED LOG: start a healthy node-0 ECU (until stopped); its PID in $ECU. It shares the
+# guest's one CPU with the monitor, at the same priority: held up at nice 10 by a busy monitor,
+# it sent samples over 0.12 s late, which the monitor must read as 16 lost (its 4-bit alive
+# counter cannot tell them apart). The injectors and the command-line checks run at nice 19.
+# On a loaded machine its late samples go out late rather than skipped, since a skip of 16
+# looks like a repeat to the 4-bit alive counter and would be counted in the window of
+# whatever bad frame is being injected.
 ecu() {
-  nice -n 10 sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario healthy --duration 0 \
+  sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario healthy --duration 0 \
       --seed "$1" --max-catch-up 100000 2> "$2" &
   # shellcheck disable=SC2034 # read by the boot scripts that source this file
   ECU=$!
