@@ -80,7 +80,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 import rerun as rr
@@ -403,10 +403,7 @@ class RerunSink(RecordingOutlet):
             if path is None:
                 path = counter_path(name)
                 self._counters[name] = path
-                self._rec.log(
-                    path, series_style(name, COUNTER_COLOR, 1.5, stepped=True), static=True
-                )
-                self._rows_batched = True
+                self._log_static(path, series_style(name, COUNTER_COLOR, 1.5, stepped=True))
             ts = np.array([t for t, c in rows if name in c], dtype=np.float64)
             vs = np.array([c[name] for _, c in rows if name in c], dtype=np.float64)
             self._rec.send_columns(
@@ -574,9 +571,13 @@ class RerunSink(RecordingOutlet):
         _, name, color, width, stepped = next(s for s in STYLES if s[0] == suffix)
         style = series_style(name, color, width, stepped)
         if suffix in RUNS:
-            self._rec.log(path, style, _EXACT_LINE, static=True)
+            self._log_static(path, style, _EXACT_LINE)
         else:
-            self._rec.log(path, style, static=True)
+            self._log_static(path, style)
+
+    def _log_static(self, path: str, *archetypes: Any) -> None:
+        """A static row-wise ``log``: through the SDK's batcher, which the next `flush` pushes."""
+        self._rec.log(path, *archetypes, static=True)
         self._rows_batched = True
 
     def _new_node(self, node: int) -> _Node:
