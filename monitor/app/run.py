@@ -18,6 +18,7 @@ import argparse
 import logging
 import sys
 import time
+from collections.abc import Callable
 from contextlib import suppress
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from typing import Any
 import can
 
 from monitor.app import options, outputs
-from monitor.app.canbus import BusError, open_bus
+from monitor.app.canbus import BusError, open_bus, receive_batch, send_frame
 from monitor.app.freshness import FreshnessSaver
 from monitor.app.notify import Notifier
 from monitor.app.signals import StopOnSignals
@@ -49,6 +50,8 @@ log = logging.getLogger("motor_monitor")
 
 FRESHNESS_SAVE_PERIOD_S = 5.0
 TICK_S = 0.05  # timeouts, flushing and freshness saving, also while the bus is down
+RECEIVE_BATCH = 64  # frames per receive: the clocks are read between batches
+DRAIN_LIMIT_S = 2.0  # at most this long taking a backlog at stop (inside systemd's stop timeout)
 
 
 class _LiveBus:
@@ -74,7 +77,7 @@ class _LiveBus:
     def send(self, msg: can.Message) -> None:
         if self.bus is None:
             raise can.CanOperationError("interface is down")
-        self.bus.send(msg, timeout=0.01)
+        send_frame(self.bus, msg, 0.01)
 
     def drop(self) -> None:
         if self.bus is not None:
@@ -184,32 +187,44 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
     dropped_before = 0  # socket drops of sockets closed before the current one
     backoff = 0.1
     down_since: float | None = None
+
+    def take(msg: can.Message) -> None:
+        if raw is not None:
+            raw(msg)  # every frame, whatever the pipeline makes of it
+        bus_stats(msg)
+        pipe.feed(msg)
+
+    clock_due = True  # read the clocks (system calls) before the next receive
+    batches = 0  # since the clocks were last read
     try:
         while not stop.event.is_set():
-            mono = time.monotonic()
-            notifier.maybe_ping(mono)
-            now = time.time()
-            if now - last_tick >= TICK_S:
-                last_tick = now
-                # Timeouts are judged where the reading is: while a backlog waits in the
-                # socket (a daemon held up for a moment), the time is that of the newest frame
-                # read, so the daemon's own lag never looks like a silent node.
-                last_clock = now if drained else max(newest, last_clock)
-                pipe.tick(last_clock)
-                sink.maybe_flush(mono)
-                outputs.count_compactions(recording, pipe.counters)
-                if raw is not None:
-                    raw.maybe_flush(mono)
-                if fresh is not None:
-                    fresh.maybe_save(mono)
-                drops = None if live.bus is None else socket_drops(live.bus)
-                if drops is not None:  # the kernel's count for this socket, since it opened
-                    pipe.socket_drops(dropped_before + drops)
-            if mono - last_status >= 1.0:
-                last_status = mono
-                notifier.status(status_line(pipe, live.bus is not None))
+            if clock_due:
+                batches = 0
+                mono = time.monotonic()
+                notifier.maybe_ping(mono)
+                now = time.time()
+                if now - last_tick >= TICK_S:
+                    last_tick = now
+                    # Timeouts are judged where the reading is: while a backlog waits in the
+                    # socket (a daemon held up for a moment), the time is that of the newest
+                    # frame read, so the daemon's own lag never looks like a silent node.
+                    last_clock = now if drained else max(newest, last_clock)
+                    pipe.tick(last_clock)
+                    sink.maybe_flush(mono)
+                    outputs.count_compactions(recording, pipe.counters)
+                    if raw is not None:
+                        raw.maybe_flush(mono)
+                    if fresh is not None:
+                        fresh.maybe_save(mono)
+                    drops = None if live.bus is None else socket_drops(live.bus)
+                    if drops is not None:  # the kernel's count for this socket, since it opened
+                        pipe.socket_drops(dropped_before + drops)
+                if mono - last_status >= 1.0:
+                    last_status = mono
+                    notifier.status(status_line(pipe, live.bus is not None))
             bus = live.bus
             if bus is None:
+                clock_due = True
                 if stop.event.wait(backoff):
                     break
                 try:
@@ -219,8 +234,9 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                     log.debug("still down: %s", exc)
                 continue  # back only once a receive succeeds (a down link binds fine)
             try:
-                msg = bus.recv(timeout=0.05)
+                msgs = receive_batch(bus, TICK_S, RECEIVE_BATCH)
             except (can.CanError, OSError) as exc:
+                clock_due = True
                 dropped_before = pipe.counters.get(C.BUS_SOCKET_DROPS, 0)
                 live.drop()
                 if down_since is None:  # a new outage
@@ -237,15 +253,39 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                 pipe.interface_back(time.time(), outage)
                 backoff = 0.1
                 down_since = None
-            drained = msg is None
-            if msg is not None:
+            drained = len(msgs) < RECEIVE_BATCH
+            for msg in msgs:
                 newest = max(newest, msg.timestamp)
-                if raw is not None:
-                    raw(msg)  # every frame, whatever the pipeline makes of it
-                bus_stats(msg)
-                pipe.feed(msg)
+                take(msg)
+            # The clocks are read after a quiet wait, once the frames' own (kernel) time
+            # stamps pass the next tick, and every few batches whatever the time stamps say.
+            batches += 1
+            clock_due = not msgs or newest - last_tick >= TICK_S or batches >= 8
+        if live.bus is not None:
+            _drain(live.bus, take, time.time())
     finally:
         notifier.stopping("flushing the recording")
+
+
+def _drain(bus: can.BusABC, take: Callable[[can.Message], None], stopped: float) -> None:
+    """On a stop signal, take what the socket already holds: the frames received before
+    the signal (a daemon behind its bus has a backlog), up to the first batch that reaches
+    past it or `DRAIN_LIMIT_S` of work, so no frame the kernel had before the stop is
+    missing from the recording."""
+    deadline = time.monotonic() + DRAIN_LIMIT_S
+    n = 0
+    try:
+        while time.monotonic() < deadline:
+            msgs = receive_batch(bus, 0.0, RECEIVE_BATCH)
+            for msg in msgs:
+                take(msg)
+            n += len(msgs)
+            if not msgs or msgs[-1].timestamp > stopped:
+                break
+    except (can.CanError, OSError) as exc:
+        log.debug("draining the socket at stop: %s", exc)
+    if n:
+        log.info("took %d frame(s) left in the socket at stop", n)
 
 
 def status_line(pipe: MonitorPipeline, bus_up: bool) -> str:

@@ -10,7 +10,9 @@ never raises on what the frame holds: each frame ends in exactly one counted out
 
 Besides its outcome, a CAN FD frame is counted in `frames/fd` (and, when its error state
 indicator is set, `frames/fd_esi`): sub-counts of `frames/received`, not outcomes.
-* Alive counter repeated (a replay or duplicate): counted `e2e/repeated`, dropped.
+* Alive counter repeated (a replay or duplicate): counted `e2e/repeated`, dropped; but
+  an output-only frame due 16 or more periods after the previous sample, within the
+  silence timeout, is 16 m periods on: 16 m - 1 lost (`monitor.pipeline.periods.wrapped`).
   Counter jump (lost frames): counted `e2e/lost_frames` by the number lost; the sample is
   used and the estimator predicts through the gap (dt = k T from the timestamps).
 * A timestamp that does not advance: counted `time/non_monotonic`, dropped.
@@ -26,8 +28,9 @@ command of its node received before it (the ECU holds the command between its 20
 frames). Timestamps are the frames' own (kernel timestamps on SocketCAN). The number k of
 sample periods since the previous current sample comes from the alive counter (lost + 1),
 so bus or queue jitter cannot fake a missed sample; the timestamps only decide how many
-times the 4-bit counter wrapped in a long gap. k > 1 means missed samples that the
-estimator predicts through.
+times the 4-bit counter wrapped in a long gap, read against the node's sample grid so that
+a late frame is not taken for 16 lost (`monitor.pipeline.periods`). k > 1 means missed
+samples that the estimator predicts through.
 
 A node whose current frames stop for `silence_timeout_s` turns to `no_data` (see `tick`).
 A node's `Diagnosis` is due on every state change and at a steady rate (the bus publisher
@@ -70,6 +73,7 @@ from monitor.estimation.model import (
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import Counters
 from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.pipeline.periods import advance_grid, counter_periods, wrapped
 from monitor.sinks import base as sinks
 
 if TYPE_CHECKING:
@@ -160,6 +164,7 @@ class NodeMonitor:
         self.u_seen = np.zeros(model.m, dtype=bool)
         self.y = np.zeros(model.p)
         self.last_t: float | None = None
+        self.grid_t = math.nan  # when the last sample was due (`monitor.pipeline.periods`)
         self.last_publish: float = -math.inf
         self.truth_gamma: float | None = None
         self.samples = 0
@@ -274,7 +279,7 @@ class MonitorPipeline:
             self.counters.inc(C.IGNORED_NODE)
             return
         nm = self._node(d.node)
-        lost = self._check_counter(d)
+        lost = self._check_counter(d, nm)
         if lost is None:
             return
         if d.inputs:
@@ -289,19 +294,31 @@ class MonitorPipeline:
         if d.outputs:
             self._on_output(nm, d.timestamp, d.outputs, lost if d.counter is not None else None)
 
-    def _check_counter(self, d: Decoded) -> int | None:
-        """Frames lost before this one by its alive counter (0 if none), None to drop it."""
+    def _check_counter(self, d: Decoded, nm: NodeMonitor) -> int | None:
+        """Frames lost before this one by its alive counter (0 if none), None to drop it.
+
+        The same counter again is a duplicate or replay, unless the frame carries only
+        output samples and is due 16 periods or more after the previous one, within the
+        silence timeout (`periods.wrapped`): then 16 m - 1 samples were lost (a held-up
+        socket's drops, an ECU skipping samples), 15 by the counter."""
         check = self.tracker.observe(d)
         if check is None or check.outcome == CounterOutcome.OK:
             return 0
         if check.outcome == CounterOutcome.REPEATED:
-            self.counters.inc(C.E2E_REPEATED)
-            self._warn.warn(f"repeat-{d.kind}-{d.node}", f"node {d.node}: repeated {d.kind} "
-                            f"alive counter {d.counter} (replay or duplicate)")
-            return None
+            last = nm.last_t
+            if not (d.outputs and not d.inputs and d.truth is None and last is not None
+                    and wrapped((d.timestamp - nm.grid_t) * self.cfg.rate,
+                                d.timestamp - last, self.cfg.silence_timeout_s)):
+                self.counters.inc(C.E2E_REPEATED)
+                self._warn.warn(f"repeat-{d.kind}-{d.node}", f"node {d.node}: repeated "
+                                f"{d.kind} alive counter {d.counter} (replay or duplicate)")
+                return None
+            lost = 15
+        else:
+            lost = check.lost
         self.counters.inc(C.E2E_COUNTER_JUMPS)
-        self.counters.inc(C.E2E_LOST_FRAMES, check.lost)
-        return check.lost
+        self.counters.inc(C.E2E_LOST_FRAMES, lost)
+        return lost
 
     def _on_output(self, nm: NodeMonitor, t: float, outputs: tuple[float, ...],
                    lost: int | None) -> None:
@@ -311,6 +328,7 @@ class MonitorPipeline:
             self.counters.inc(C.SAMPLES_NO_VOLTAGE)
             return
         last = nm.last_t
+        grid = t
         if last is None:
             k = 1
         else:
@@ -323,10 +341,12 @@ class MonitorPipeline:
                 nm.restart()
                 k = 1
             else:
-                k = self._periods(dt, lost)
+                k = self._periods((t - nm.grid_t) * self.cfg.rate, dt, lost)
                 if k > 1:
                     self.counters.inc(C.SAMPLES_PREDICTED_THROUGH, k - 1)
+                grid = advance_grid(nm.grid_t, t, k, nm.T)
         nm.last_t = t
+        nm.grid_t = grid
         y = nm.y
         for i, v in enumerate(outputs):
             y[i] = v
@@ -355,26 +375,24 @@ class MonitorPipeline:
         if t - self._last_counters_t >= self.cfg.counters_period_s:
             self.emit_counters(t)
 
-    def _periods(self, dt: float, lost: int | None) -> int:
+    def _periods(self, gap: float, dt: float, lost: int | None) -> int:
         """Sample periods since the previous output sample.
 
         The alive counter says it exactly, modulo 16 (lost + 1): a frame delayed on the
-        bus or in a driver queue does not make a missed sample. The timestamps only pick
-        the multiple of 16 when a gap is longer than the counter can tell. A message
-        without a counter has only its timestamps: the nearest whole number of nominal
-        periods, and a sample further than `jitter_fraction` of a period from that grid is
-        counted as late (`time/jitter`).
+        bus or in a driver queue does not make a missed sample. The time since the previous
+        sample's due time (`gap`, in periods) only picks the multiple of 16
+        (`periods.counter_periods`). A message without a counter has only its time stamps
+        (`dt` since the previous arrival): the nearest whole number of nominal periods, and
+        a sample further than `jitter_fraction` of a period from that grid is counted as
+        late (`time/jitter`).
         """
-        k_time = dt * self.cfg.rate
         if lost is None:
+            k_time = dt * self.cfg.rate
             k = max(1, round(k_time))
             if abs(k_time - k) > self.cfg.jitter_fraction:
                 self.counters.inc(C.TIME_JITTER)
             return k
-        k_counter = lost + 1
-        if k_time < 12.0:
-            return k_counter
-        return k_counter + 16 * max(0, round((k_time - k_counter) / 16.0))
+        return counter_periods(gap, lost + 1)
 
     # ------------------------------------------------------------------ diagnosis out
 
