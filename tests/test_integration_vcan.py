@@ -366,8 +366,8 @@ wait_for() {  # FILE PATTERN SECONDS: poll until FILE contains PATTERN
 }
 # The ECUs share the guest's one CPU with the monitor, at a lower priority (nice 10: the monitor
 # is what is tested, and when it needs the CPU the ECUs' frames wait rather than overflow its
-# socket). Their late samples go out late rather than being skipped (a skip looks like a loss
-# to the monitor, and a skip of 16 like a repeat to the 4-bit alive counter).
+# socket). Their late samples go out late rather than being skipped (a skip is a loss to the
+# monitor); it reads a frame up to 15 periods late as late (monitor.pipeline.periods).
 CATCH_UP=100000
 # A recording monitor hands its recording to the .rrd file every 0.25 s, the most allowed without
 # --raw-dir: in the one-CPU guest every chunk handed to Rerun costs ~5 ms of CPU in the SDK's

@@ -179,8 +179,14 @@ def receive_batch(bus: can.BusABC, timeout: float, limit: int) -> list[can.Messa
     non-blocking."""
     raw = _raw_socket(bus)
     if raw is None:
+        got: list[can.Message] = []
         msg = bus.recv(timeout=timeout)
-        return [] if msg is None else [msg]
+        while msg is not None:
+            got.append(msg)
+            if len(got) >= limit:
+                break
+            msg = bus.recv(timeout=0.0)
+        return got
     sock, channel = raw
     try:
         ready, _, _ = select.select([sock], [], [], timeout)

@@ -6,7 +6,7 @@ results on every test log.
 * `ticks`: where `feed_log` calls ``pipe.tick`` (every `TICK_S` of bus time).
 * `admit`: `MonitorPipeline._check_counter`'s judgement of a repeated counter and
   `MonitorPipeline._on_output` up to the estimator step: no voltage yet, non-monotonic
-  time, a gap that restarts the estimator, the sample periods k on the node's grid
+  time, a gap that restarts the estimator, the sample periods k
   (`MonitorPipeline._periods`, `monitor.pipeline.periods`) and late samples.
 * `classify`: per node, samples and ticks in order: `OnlineClassifier.update` and
   `mark_no_data` (eq (76) with hysteresis and dwell), `MismatchDetector.update` and
@@ -57,7 +57,6 @@ def ticks(t: F8, last: F8, out_idx: I8) -> int:
 
 _counter_periods = njit(periods.counter_periods)
 _wrapped = njit(periods.wrapped)
-_advance_grid = njit(periods.advance_grid)
 
 
 @njit
@@ -65,24 +64,20 @@ def admit(t: F8, lost: I8, wrap: B1, seen: B1, last: F8, rate: float, max_gap: f
           silence: float, jitter_fraction: float, status: I8, k_out: I8, restart: B1,
           jitter: B1) -> None:
     """Per output sample: status 0 admitted, 1 no voltage yet, 2 time does not advance,
-    3 a repeated counter (`wrap`: one that may be 16 m lost samples) that is a repeat; k
-    sample periods since the previous one; restart after a gap over max_gap; jitter (late
-    sample without a counter). last[0]: the node's last admitted time, last[1] its grid
-    (NaN: none)."""
+    3 a repeated counter (`wrap`: one that may be 16 m - 1 lost samples) that is a repeat;
+    k sample periods since the previous one; restart after a gap over max_gap; jitter (late
+    sample without a counter). last[0]: the node's last admitted time (NaN: none)."""
     lt = last[0]
-    grid = last[1]
-    period = 1.0 / rate
     for i in range(t.shape[0]):
         restart[i] = False
         jitter[i] = False
         k_out[i] = 1
-        if wrap[i] and (lt != lt or not _wrapped((t[i] - grid) * rate, t[i] - lt, silence)):
+        if wrap[i] and (lt != lt or not _wrapped((t[i] - lt) * rate, t[i] - lt, silence)):
             status[i] = 3
             continue
         if not seen[i]:
             status[i] = 1
             continue
-        g = t[i]
         if lt != lt:
             k = 1
         else:
@@ -94,20 +89,17 @@ def admit(t: F8, lost: I8, wrap: B1, seen: B1, last: F8, rate: float, max_gap: f
                 restart[i] = True
                 k = 1
             else:
+                k_time = dt * rate
                 if lost[i] < 0:
-                    k_time = dt * rate
                     k = max(1, int(np.rint(k_time)))
                     if abs(k_time - k) > jitter_fraction:
                         jitter[i] = True
                 else:
-                    k = _counter_periods((t[i] - grid) * rate, lost[i] + 1)
-                g = _advance_grid(grid, t[i], k, period)
+                    k = _counter_periods(k_time, lost[i] + 1)
         status[i] = 0
         k_out[i] = k
         lt = t[i]
-        grid = g
     last[0] = lt
-    last[1] = grid
 
 
 @njit

@@ -72,7 +72,7 @@ class _Node:
         self.u_seen = np.zeros(model.m, np.bool_)
         self.truth = math.nan
         self.has_truth = False
-        self.last_admit = np.array([math.nan, math.nan])  # last admitted time, its grid
+        self.last_admit = np.array([math.nan])
         s = np.zeros(len(K.CLS_STATE))
         s[:] = [3.0, -1.0, 0.0, math.nan, -math.inf, 0.0, math.nan, math.nan, 0.0,
                 -math.inf, math.nan]
@@ -226,7 +226,7 @@ class _Replay:
             lz = np.zeros(len(cv), np.int64)
             lz[order] = lost_s
             # A repeat of an output-only message may be 16 m - 1 lost samples: `K.admit` judges
-            # it by the node's sample grid (`MonitorPipeline._check_counter`).
+            # it by the time since the previous sample (`MonitorPipeline._check_counter`).
             r_out_only = np.array([bool(r.outputs) and not r.inputs and r.truth is None
                                    for r in routes] or [False])
             deferred = rep & r_out_only[ra[has_c]]

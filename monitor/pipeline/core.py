@@ -28,8 +28,8 @@ command of its node received before it (the ECU holds the command between its 20
 frames). Timestamps are the frames' own (kernel timestamps on SocketCAN). The number k of
 sample periods since the previous current sample comes from the alive counter (lost + 1),
 so bus or queue jitter cannot fake a missed sample; the timestamps only decide how many
-times the 4-bit counter wrapped in a long gap, read against the node's sample grid so that
-a late frame is not taken for 16 lost (`monitor.pipeline.periods`). k > 1 means missed
+times the 4-bit counter wrapped in a long gap: the whole wraps that fit, so a frame up to
+15 periods late is not taken for 16 lost (`monitor.pipeline.periods`). k > 1 means missed
 samples that the estimator predicts through.
 
 A node whose current frames stop for `silence_timeout_s` turns to `no_data` (see `tick`).
@@ -73,7 +73,7 @@ from monitor.estimation.model import (
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import Counters
 from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
-from monitor.pipeline.periods import advance_grid, counter_periods, wrapped
+from monitor.pipeline.periods import counter_periods, wrapped
 from monitor.sinks import base as sinks
 
 if TYPE_CHECKING:
@@ -164,7 +164,6 @@ class NodeMonitor:
         self.u_seen = np.zeros(model.m, dtype=bool)
         self.y = np.zeros(model.p)
         self.last_t: float | None = None
-        self.grid_t = math.nan  # when the last sample was due (`monitor.pipeline.periods`)
         self.last_publish: float = -math.inf
         self.truth_gamma: float | None = None
         self.samples = 0
@@ -307,8 +306,8 @@ class MonitorPipeline:
         if check.outcome == CounterOutcome.REPEATED:
             last = nm.last_t
             if not (d.outputs and not d.inputs and d.truth is None and last is not None
-                    and wrapped((d.timestamp - nm.grid_t) * self.cfg.rate,
-                                d.timestamp - last, self.cfg.silence_timeout_s)):
+                    and wrapped((d.timestamp - last) * self.cfg.rate, d.timestamp - last,
+                                self.cfg.silence_timeout_s)):
                 self.counters.inc(C.E2E_REPEATED)
                 self._warn.warn(f"repeat-{d.kind}-{d.node}", f"node {d.node}: repeated "
                                 f"{d.kind} alive counter {d.counter} (replay or duplicate)")
@@ -328,7 +327,6 @@ class MonitorPipeline:
             self.counters.inc(C.SAMPLES_NO_VOLTAGE)
             return
         last = nm.last_t
-        grid = t
         if last is None:
             k = 1
         else:
@@ -341,12 +339,10 @@ class MonitorPipeline:
                 nm.restart()
                 k = 1
             else:
-                k = self._periods((t - nm.grid_t) * self.cfg.rate, dt, lost)
+                k = self._periods(dt, lost)
                 if k > 1:
                     self.counters.inc(C.SAMPLES_PREDICTED_THROUGH, k - 1)
-                grid = advance_grid(nm.grid_t, t, k, nm.T)
         nm.last_t = t
-        nm.grid_t = grid
         y = nm.y
         for i, v in enumerate(outputs):
             y[i] = v
@@ -375,24 +371,24 @@ class MonitorPipeline:
         if t - self._last_counters_t >= self.cfg.counters_period_s:
             self.emit_counters(t)
 
-    def _periods(self, gap: float, dt: float, lost: int | None) -> int:
+    def _periods(self, dt: float, lost: int | None) -> int:
         """Sample periods since the previous output sample.
 
         The alive counter says it exactly, modulo 16 (lost + 1): a frame delayed on the
-        bus or in a driver queue does not make a missed sample. The time since the previous
-        sample's due time (`gap`, in periods) only picks the multiple of 16
-        (`periods.counter_periods`). A message without a counter has only its time stamps
-        (`dt` since the previous arrival): the nearest whole number of nominal periods, and
-        a sample further than `jitter_fraction` of a period from that grid is counted as
-        late (`time/jitter`).
+        bus or in a driver queue does not make a missed sample. The time since the
+        previous sample only picks the multiple of 16 (`periods.counter_periods`: the
+        whole wraps that fit, so a late frame is not taken for 16 lost). A message without
+        a counter has only its time stamps: the nearest whole number of nominal periods,
+        and a sample further than `jitter_fraction` of a period from that grid is counted
+        as late (`time/jitter`).
         """
+        k_time = dt * self.cfg.rate
         if lost is None:
-            k_time = dt * self.cfg.rate
             k = max(1, round(k_time))
             if abs(k_time - k) > self.cfg.jitter_fraction:
                 self.counters.inc(C.TIME_JITTER)
             return k
-        return counter_periods(gap, lost + 1)
+        return counter_periods(k_time, lost + 1)
 
     # ------------------------------------------------------------------ diagnosis out
 
