@@ -364,10 +364,10 @@ wait_for() {  # FILE PATTERN SECONDS: poll until FILE contains PATTERN
     sleep 0.1
   done
 }
-# The ECUs share the guest's one CPU with the monitor, at a lower priority (nice 10: the monitor
-# is what is tested, and when it needs the CPU the ECUs' frames wait rather than overflow its
-# socket). Their late samples go out late rather than being skipped (a skip is a loss to the
-# monitor); it reads a frame up to 15 periods late as late (monitor.pipeline.periods).
+# The ECUs share the guest's one CPU with the monitor and candump at the same priority: at nice
+# 10 they were held up 0.1-0.25 s at a time behind them. Their late samples go out late rather
+# than being skipped (a skip is a loss to the monitor); it reads a frame up to 15 periods late
+# as late (monitor.pipeline.periods), and takes a held-up socket's backlog in batches.
 CATCH_UP=100000
 # A recording monitor hands its recording to the .rrd file every 0.25 s, the most allowed without
 # --raw-dir: in the one-CPU guest every chunk handed to Rerun costs ~5 ms of CPU in the SDK's
@@ -401,7 +401,7 @@ stop_monitor_and_capture() {
 
 LIVE_SCRIPT = r"""
 start_capture_and_monitor 0 --rrd "$OUT/live.rrd" --record-flush-s 0.25
-nice -n 10 sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario fault-outage-recovery \
+sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario fault-outage-recovery \
     --seed 1 --max-catch-up "$CATCH_UP" 2> ecu.err
 echo "ecu_rc=$?"
 stop_monitor_and_capture
@@ -470,8 +470,8 @@ def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_p
     t_bus, v = rrd_series(rrd, "/motor/0/gamma/estimate")
     assert len(v) == summary["estimated"] >= 300, len(v)
     assert t_bus[-1] - t_bus[0] == pytest.approx(truth[-1][0] - t_start, abs=0.05)
-    # the windows in scenario time, from the SimTruth frame sent with each sample (the ECU at
-    # nice 10 may send samples late, which stretches bus time)
+    # the windows in scenario time, from the SimTruth frame sent with each sample (an ECU held
+    # up in the busy guest sends samples late, which stretches bus time)
     t = np.interp(t_bus, np.array([tt for tt, _ in truth]), np.arange(len(truth)) / 100.0)
     fault = v[(t >= 5.0) & (t <= 7.0)]
     outage = v[(t >= 9.0) & (t <= 10.5)]
@@ -544,10 +544,10 @@ def test_canplayer_replays_a_log_into_the_monitor(
 
 TWO_NODES_SCRIPT = r"""
 start_capture_and_monitor 0,1
-nice -n 10 sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario fault-outage-recovery \
+sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario fault-outage-recovery \
     --seed 1 --max-catch-up "$CATCH_UP" 2> ecu0.err &
 E0=$!
-nice -n 10 sim-ecu --interface socketcan --channel vcan0 --node 1 --scenario healthy --duration 16 \
+sim-ecu --interface socketcan --channel vcan0 --node 1 --scenario healthy --duration 16 \
     --seed 0 --max-catch-up "$CATCH_UP" 2> ecu1.err &
 E1=$!
 wait $E0
