@@ -22,12 +22,15 @@ def test_batches_keep_order_and_stop_at_the_limit_or_when_empty() -> None:
         for i in range(100):
             send_frame(tx, can.Message(arbitration_id=0x100 + i % 7, data=bytes([i]),
                                        is_extended_id=False, is_fd=i % 3 == 0), 0.01)
-        first = receive_batch(rx, 1.0, 64)
-        rest = receive_batch(rx, 1.0, 64)
-        assert [len(first), len(rest)] == [64, 36]
-        assert [m.data[0] for m in first + rest] == list(range(100))
-        assert [m.is_fd for m in first + rest] == [i % 3 == 0 for i in range(100)]
-        assert receive_batch(rx, 0.05, 64) == []
+        got: list[can.Message] = []
+        receive_batch(rx, 1.0, 64, got)
+        assert len(got) == 64
+        receive_batch(rx, 1.0, 64, got)  # appended
+        assert len(got) == 100
+        assert [m.data[0] for m in got] == list(range(100))
+        assert [m.is_fd for m in got] == [i % 3 == 0 for i in range(100)]
+        receive_batch(rx, 0.05, 64, got)
+        assert len(got) == 100
     finally:
         tx.shutdown()
         rx.shutdown()
@@ -36,10 +39,12 @@ def test_batches_keep_order_and_stop_at_the_limit_or_when_empty() -> None:
 def test_a_batch_waits_for_its_first_frame_only() -> None:
     tx, rx = _pair()
     try:
-        assert receive_batch(rx, 0.0, 8) == []
+        got: list[can.Message] = []
+        receive_batch(rx, 0.0, 8, got)
+        assert got == []
         send_frame(tx, can.Message(arbitration_id=0x7E0, data=b"\x01", is_extended_id=False),
                    0.01)
-        got = receive_batch(rx, 2.0, 8)
+        receive_batch(rx, 2.0, 8, got)
         assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(0x7E0, b"\x01")]
     finally:
         tx.shutdown()

@@ -438,6 +438,8 @@ def test_sigkill_recording_readable_to_a_quarter_second(boot_b: BootB) -> None:
     shell = boot_b.mark("killed") - boot_b.mark("kill")
     print(f"\n[SIGKILL] kill time - last sample on disk: {1e3 * margin:.0f} ms "
           f"(the kill itself took {1e3 * shell:.0f} ms of shell time)")
-    assert math.isfinite(margin) and margin >= -0.01
+    # A sample on disk may be as late as the kill itself (the daemon runs until the signal
+    # lands; a daemon that keeps up records what arrives while the shell sends it).
+    assert math.isfinite(margin) and margin >= -(shell + 0.01)
     assert margin <= MAX_KILL_LOSS_S, f"{1e3 * margin:.0f} ms lost"
 

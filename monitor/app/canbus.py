@@ -172,32 +172,31 @@ def _raw_socket(bus: can.BusABC) -> tuple[socket.socket, str] | None:
     return (sock, str(bus.channel)) if isinstance(sock, socket.socket) else None
 
 
-def receive_batch(bus: can.BusABC, timeout: float, limit: int) -> list[can.Message]:
-    """Up to `limit` frames: waits up to `timeout` for the first, then takes what the socket
-    already holds without waiting. Empty on a timeout. Raises `can.CanError` as
-    ``bus.recv`` does, e.g. when the interface goes down. Leaves a SocketCAN socket
-    non-blocking."""
+def receive_batch(bus: can.BusABC, timeout: float, limit: int, into: list[can.Message]) -> None:
+    """Append up to `limit` frames to `into`: waits up to `timeout` for the first, then takes
+    what the socket already holds without waiting (none on a timeout). Raises `can.CanError`
+    as ``bus.recv`` does, e.g. when the interface goes down, with the frames read before
+    the failure already in `into`. Leaves a SocketCAN socket non-blocking."""
+    start = len(into)
     raw = _raw_socket(bus)
     if raw is None:
-        got: list[can.Message] = []
         msg = bus.recv(timeout=timeout)
         while msg is not None:
-            got.append(msg)
-            if len(got) >= limit:
+            into.append(msg)
+            if len(into) - start >= limit:
                 break
             msg = bus.recv(timeout=0.0)
-        return got
+        return
     sock, channel = raw
     try:
         ready, _, _ = select.select([sock], [], [], timeout)
     except OSError as exc:
         raise can.CanOperationError(f"Failed to receive: {exc.strerror}", exc.errno) from exc
     if not ready:
-        return []
+        return
     if sock.getblocking():  # once: python-can's own recv and send select() first anyway
         sock.setblocking(False)
-    out: list[can.Message] = []
-    while len(out) < limit:
+    while len(into) - start < limit:
         try:
             msg = capture_message(sock)
         except can.CanOperationError as exc:
@@ -207,8 +206,7 @@ def receive_batch(bus: can.BusABC, timeout: float, limit: int) -> list[can.Messa
         if msg is None:
             break
         msg.channel = channel
-        out.append(msg)
-    return out
+        into.append(msg)
 
 
 def send_frame(bus: can.BusABC, msg: can.Message, timeout: float) -> None:

@@ -233,9 +233,13 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                     backoff = min(2.0, backoff * 2)
                     log.debug("still down: %s", exc)
                 continue  # back only once a receive succeeds (a down link binds fine)
+            msgs: list[can.Message] = []
             try:
-                msgs = receive_batch(bus, TICK_S, RECEIVE_BATCH)
+                receive_batch(bus, TICK_S, RECEIVE_BATCH, msgs)
             except (can.CanError, OSError) as exc:
+                for msg in msgs:  # read before the failure: kept like every other
+                    newest = max(newest, msg.timestamp)
+                    take(msg)
                 clock_due = True
                 dropped_before = pipe.counters.get(C.BUS_SOCKET_DROPS, 0)
                 live.drop()
@@ -274,16 +278,21 @@ def _drain(bus: can.BusABC, take: Callable[[can.Message], None], stopped: float)
     missing from the recording."""
     deadline = time.monotonic() + DRAIN_LIMIT_S
     n = 0
-    try:
-        while time.monotonic() < deadline:
-            msgs = receive_batch(bus, 0.0, RECEIVE_BATCH)
-            for msg in msgs:
-                take(msg)
-            n += len(msgs)
-            if not msgs or msgs[-1].timestamp > stopped:
-                break
-    except (can.CanError, OSError) as exc:
-        log.debug("draining the socket at stop: %s", exc)
+    while time.monotonic() < deadline:
+        msgs: list[can.Message] = []
+        failure: Exception | None = None
+        try:
+            receive_batch(bus, 0.0, RECEIVE_BATCH, msgs)
+        except (can.CanError, OSError) as exc:
+            failure = exc
+        for msg in msgs:  # also those read before a failure
+            take(msg)
+        n += len(msgs)
+        if failure is not None:
+            log.debug("draining the socket at stop: %s", failure)
+            break
+        if not msgs or msgs[-1].timestamp > stopped:
+            break
     if n:
         log.info("took %d frame(s) left in the socket at stop", n)
 
