@@ -83,7 +83,7 @@ cansend vcan1 110##1$(printf '11%.0s' $(seq 8)); echo "cs1=$?"
 cansend vcan1 110##3$(printf '22%.0s' $(seq 64)); echo "cs2=$?"
 cansend vcan1 7FF##0$(printf '33%.0s' $(seq 12)); echo "cs3=$?"
 cansend vcan1 023#0000000000000000; echo "cs4=$?"
-nice -n 10 sim-ecu --interface socketcan --channel vcan1 --rig "$RIG" --node 1 \
+sim-ecu --interface socketcan --channel vcan1 --rig "$RIG" --node 1 \
     --scenario fault-outage-recovery --seed 1 --max-catch-up 100000 2> ecu.err
 echo "ecu_rc=$?"
 sleep 2
