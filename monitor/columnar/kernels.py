@@ -72,7 +72,7 @@ def admit(t: F8, lost: I8, wrap: B1, seen: B1, last: F8, rate: float, max_gap: f
         restart[i] = False
         jitter[i] = False
         k_out[i] = 1
-        if wrap[i] and (lt != lt or not _wrapped((t[i] - lt) * rate, t[i] - lt, silence)):
+        if wrap[i] and (lt != lt or not _wrapped(t[i] - lt, rate, silence)):
             status[i] = 3
             continue
         if not seen[i]:

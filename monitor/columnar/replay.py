@@ -324,10 +324,9 @@ class _Replay:
         kk = np.ones(len(oi), np.int64)
         restart = np.zeros(len(oi), np.bool_)
         jitter = np.zeros(len(oi), np.bool_)
-        K.admit(t_o, lost_all[fr[oi]], wrap_all[fr[oi]], seen[oi], nm.last_admit, cfg.rate,
-                cfg.max_gap_s, cfg.silence_timeout_s, cfg.jitter_fraction, status, kk, restart,
-                jitter)
         cand = wrap_all[fr[oi]]
+        K.admit(t_o, lost_all[fr[oi]], cand, seen[oi], nm.last_admit, cfg.rate, cfg.max_gap_s,
+                cfg.silence_timeout_s, cfg.jitter_fraction, status, kk, restart, jitter)
         if cand.any():
             n_rep = int((status[cand] == 3).sum())
             n_wrap = int(cand.sum()) - n_rep

@@ -306,7 +306,7 @@ class MonitorPipeline:
         if check.outcome == CounterOutcome.REPEATED:
             last = nm.last_t
             if not (d.outputs and not d.inputs and d.truth is None and last is not None
-                    and wrapped((d.timestamp - last) * self.cfg.rate, d.timestamp - last,
+                    and wrapped(d.timestamp - last, self.cfg.rate,
                                 self.cfg.silence_timeout_s)):
                 self.counters.inc(C.E2E_REPEATED)
                 self._warn.warn(f"repeat-{d.kind}-{d.node}", f"node {d.node}: repeated "

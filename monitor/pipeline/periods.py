@@ -32,9 +32,9 @@ def counter_periods(k_time: float, k_counter: int) -> int:
     return k_counter + 16 * max(0, m)
 
 
-def wrapped(k_time: float, since_s: float, silence_s: float) -> bool:
+def wrapped(dt: float, rate: float, silence_s: float) -> bool:
     """True if a frame repeating the previous counter is 16 m periods later (16 m - 1
-    samples lost) rather than a duplicate or replay: 16 periods or more after the previous
-    sample (`k_time`, in periods), and within the silence timeout of it (`since_s`,
-    seconds). After a silence the counter is not trusted: the frame is taken as a replay."""
-    return k_time + EARLY_TOLERANCE >= 16.0 and since_s < silence_s
+    samples lost) rather than a duplicate or replay: `dt` seconds after the previous sample
+    is 16 periods at `rate` or more, and within the silence timeout. After a silence the
+    counter is not trusted: the frame is taken as a replay."""
+    return dt * rate + EARLY_TOLERANCE >= 16.0 and dt < silence_s
