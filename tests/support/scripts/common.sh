@@ -61,7 +61,7 @@ inject() {
 # guest's one CPU with the monitor, at the same priority (the injectors and the command-line
 # checks run at nice 19). No SimTruth frames: the boots compare with the capture, not with the
 # truth, and in the guest every system call costs some 0.3 ms of its CPU. Held up, it sends its
-# late samples late rather than skipping them (the monitor reads them on its sample grid).
+# late samples late rather than skipping them (the monitor reads up to 15 periods late as late).
 ecu() {
   sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario healthy --duration 0 \
       --no-truth --seed "$1" --max-catch-up 100000 2> "$2" &
