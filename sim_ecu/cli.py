@@ -209,7 +209,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if isinstance(decoder, MotorDatabase) and motor is None and args.rig:
                 motor = _rig_motor(rig)
             db = decoder
-            if args.secoc_state is not None and isinstance(db, MotorDatabase) and db.secoc:
+            if args.secoc_state is not None and db.secoc is not None:
                 margin = math.ceil(STATE_MARGIN_S * max(args.rate, args.voltage_rate))
                 restored = db.secoc.load_state(args.secoc_state, tx_margin=margin)
                 log.info("SecOC state %s: %s", args.secoc_state,

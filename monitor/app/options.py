@@ -51,7 +51,7 @@ def rig(args: argparse.Namespace) -> Rig:
 
 def database(args: argparse.Namespace, the_rig: Rig | None = None) -> MotorDatabase | RigCodec:
     """The rig's frame decoder, with SecOC verification when --key is given (a key file
-    only we can read; our own bus only)."""
+    only we can read; our own bus, or a rig whose messages have SecOC)."""
     key = load_key(args.key) if getattr(args, "key", None) else None
     return build_decoder(the_rig or rig(args), secoc_key=key)
 

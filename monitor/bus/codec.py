@@ -89,6 +89,7 @@ __all__ = [
     "KINDS",
     "N_NODES",
     "SECOC_KINDS",
+    "VERDICT_REASON",
     "CodecError",
     "Decoded",
     "Kind",
@@ -125,7 +126,7 @@ class RejectReason(StrEnum):
     FD_FRAME = "fd_frame"  # CAN FD frame for a classic DBC message, or the reverse
 
 
-_VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {
+VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {  # SecOC's verdicts as outcomes
     Verdict.BAD_MAC: RejectReason.BAD_MAC,
     Verdict.STALE_FRESHNESS: RejectReason.STALE_FRESHNESS,
     Verdict.UNSYNCED: RejectReason.UNSYNCED,
@@ -403,7 +404,7 @@ class MotorDatabase:
         if route.secoc is not None and self._secoc is not None:
             failed = self._secoc.verify(route.secoc, (route.kind, route.node), data)
             if failed is not None:
-                return Rejected(_VERDICT_REASON[failed[0]], arbitration_id, timestamp,
+                return Rejected(VERDICT_REASON[failed[0]], arbitration_id, timestamp,
                                 route.node, route.kind, failed[1])
         elif route.sync is not None and self._secoc is not None:
             index = route.sync.kind_index(data)
@@ -411,7 +412,7 @@ class MotorDatabase:
                 failed = self._secoc.verify_sync(route.sync, (SECOC_KINDS[index], route.node),
                                                  data)
                 if failed is not None:
-                    return Rejected(_VERDICT_REASON[failed[0]], arbitration_id, timestamp,
+                    return Rejected(VERDICT_REASON[failed[0]], arbitration_id, timestamp,
                                     route.node, route.kind, failed[1])
         try:
             signals = cast(

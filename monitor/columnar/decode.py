@@ -144,7 +144,8 @@ class RouteTable:
     def of(cls, codec: Any, m: int, p: int) -> RouteTable:
         """The table of a `MotorDatabase` or `RigCodec` for a model with m inputs and p
         outputs. `NotColumnar` for SecOC, other codecs, or messages over 8 bytes."""
-        if getattr(codec, "secoc_enabled", False):
+        if getattr(codec, "secoc_enabled", False) or getattr(codec, "secured", False):
+            # (a rig's sync frames, even unverified, are counted as the per-frame path does)
             raise NotColumnar("SecOC verification keeps per-frame freshness state")
         routes: list[Route] = []
         if isinstance(codec, MotorDatabase):
