@@ -137,7 +137,8 @@ def run_live(args: argparse.Namespace) -> int:
             live.drop()
             raise
         counters = Counters()
-        bus_stats = BusStats(bitrate=float(args.bitrate or args.nominal_bitrate))
+        bus_stats = BusStats(bitrate=float(args.bitrate or args.nominal_bitrate),
+                             data_bitrate=args.data_bitrate)
         sinks: list[Sink] = [LogSink()]
         if journal_available():
             sinks.append(JournalSink())
@@ -351,5 +352,9 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     r.add_argument("--nominal-bitrate", type=int, default=500_000,
                    help="the bus's bit rate for the bus-load figure when --bitrate is not "
                    "given (default 500000; vcan has none)")
+    r.add_argument("--data-bitrate", type=options.positive_float, default=None,
+                   metavar="BITS_PER_S",
+                   help="a CAN FD bus's data-phase bit rate, for the bus-load figure: FD frames "
+                   "that switch rates (BRS) send their data at it (default: the nominal rate)")
     options.add_monitor_options(r)
     r.set_defaults(func=run_live)
