@@ -104,9 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--key",
         metavar="FILE",
-        help="sign MotorCurrent and MotorVoltage with SecOC (truncated AES-CMAC and freshness "
-        "counter) under the AES-128/256 key in FILE: 32 or 64 hex digits or 16/32 raw "
-        "bytes, accessible by its owner only (chmod 600)",
+        help="sign MotorCurrent and MotorVoltage (with --rig: the rig's messages that have "
+        "SecOC) with SecOC (truncated AES-CMAC and freshness counter) and send sync frames, "
+        "under the AES-128/256 key in FILE: 32 or 64 hex digits or 16/32 raw bytes, "
+        "accessible by its owner only (chmod 600)",
     )
     p.add_argument(
         "--secoc-state",

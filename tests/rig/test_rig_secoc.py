@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -189,6 +190,27 @@ def test_replay_with_the_key_from_the_command_line(tmp_path: Path) -> None:
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert "bad_mac" in res.stderr or "unsynced" in res.stderr, res.stderr
+
+
+def test_sim_ecu_signs_a_rigs_frames_and_keeps_its_counters(tmp_path: Path) -> None:
+    key = tmp_path / "key.hex"
+    key.write_text(KEY.hex() + "\n")
+    key.chmod(0o600)
+    state = tmp_path / "tx.json"
+    argv = [str(BIN / "sim-ecu"), "--rig", str(RIG), "--node", "2", "--scenario", "healthy",
+            "--interface", "virtual", "--channel", "secure", "--duration", "1.5", "--key",
+            str(key), "--secoc-state", str(state)]
+    res = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"sent AxisStatus=150 AxisCommand=\d+ SimTruth=150 sync=4\b",
+                     res.stderr), res.stderr
+    tx = json.loads(state.read_text())["freshness"]
+    assert tx["tx/axisstatus/2"] >= 150 and "tx/axiscommand/2" in tx, tx
+    # a rig without SecOC refuses the key in one line
+    res = subprocess.run([*argv[:2], str(RIGS / "press.toml"), *argv[3:]], capture_output=True,
+                         text=True, timeout=300)
+    assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert "no message of the rig has SecOC" in res.stderr, res.stderr
 
 
 TEXT = RIG.read_text()
