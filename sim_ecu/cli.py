@@ -25,9 +25,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
+from monitor.app.argtypes import OneLineParser
 from monitor.app.canbus import open_bus
 from monitor.app.freshness import FreshnessSaver
-from monitor.app.options import OneLineParser
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import N_NODES, MotorDatabase
 from monitor.bus.secoc import load_key
@@ -104,9 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--key",
         metavar="FILE",
-        help="sign MotorCurrent and MotorVoltage with SecOC (truncated AES-CMAC and freshness "
-        "counter) under the AES-128/256 key in FILE: 32 or 64 hex digits or 16/32 raw "
-        "bytes, accessible by its owner only (chmod 600)",
+        help="sign MotorCurrent and MotorVoltage (with --rig: the rig's messages that have "
+        "SecOC) with SecOC (truncated AES-CMAC and freshness counter) and send sync frames, "
+        "under the AES-128/256 key in FILE: 32 or 64 hex digits or 16/32 raw bytes, "
+        "accessible by its owner only (chmod 600)",
     )
     p.add_argument(
         "--secoc-state",
@@ -209,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if isinstance(decoder, MotorDatabase) and motor is None and args.rig:
                 motor = _rig_motor(rig)
             db = decoder
-            if args.secoc_state is not None and isinstance(db, MotorDatabase) and db.secoc:
+            if args.secoc_state is not None and db.secoc is not None:
                 margin = math.ceil(STATE_MARGIN_S * max(args.rate, args.voltage_rate))
                 restored = db.secoc.load_state(args.secoc_state, tx_margin=margin)
                 log.info("SecOC state %s: %s", args.secoc_state,

@@ -47,6 +47,7 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
+from monitor.app.canbus import send_frame
 from monitor.bus.codec import N_NODES, SECOC_KINDS, CodecError, Kind, MotorDatabase
 from monitor.errors import MonitorError
 from monitor.estimation.model import DCMotorParameters, ModelError, dc_motor
@@ -327,8 +328,9 @@ class VirtualECU:
     every rate/voltage_rate samples, and always at a change of the command; >= rate means
     every sample). `motor` overrides the Table 1 parameters; when None, a ``motor`` mapping
     in ``scenario.extra`` is used if present. `send_timeout` (default a quarter period) is
-    passed to ``bus.send``; `max_catch_up` is how many late samples `run` may send back to
-    back before it skips ahead instead. `key` (16 or 32 bytes, e.g. from
+    how long a send may wait for a full queue (`monitor.app.canbus.send_frame`);
+    `max_catch_up` is how many late samples `run` may send back to back before it skips
+    ahead instead. `key` (16 or 32 bytes, e.g. from
     `monitor.bus.secoc.load_key`) signs the current and voltage frames with SecOC on a copy of
     `db` of the ECU's own (None: sign only if `db` has a key). Raises `ECUError` (one line)
     on a bad configuration.
@@ -532,7 +534,7 @@ def run_paced(bus: can.BusABC, sim: SampleSource, stats: ECUStats, n: int | None
                     continue
             for msg in sim.step(True, wall0):
                 try:
-                    bus.send(msg, timeout=send_timeout)
+                    send_frame(bus, msg, send_timeout)
                 except (can.CanError, OSError) as exc:
                     stats.send_errors += 1
                     if failing == 0:

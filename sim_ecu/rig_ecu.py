@@ -6,7 +6,10 @@ process and measurement noise scaled by the scenario) is stepped with the scenar
 command on every input and its loss of effectiveness gamma on each faulty actuator; the
 output message goes out every sample, messages that carry only inputs at `input_rate` and
 whenever the command changes, and the truth message (if the rig names one) every sample.
-Protected messages get their alive counter and E2E CRC from `monitor.bus.rigcodec`.
+Protected messages get their alive counter and E2E CRC from `monitor.bus.rigcodec`; with a
+SecOC key (a codec built with one) secured messages are signed, and the rig's sync message
+announces each secured stream's freshness at start, before its first frame, and then once
+per second, as our own ECU does.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from collections.abc import Iterator
 
 import can
 import numpy as np
+from cantools.database.can import Message
 
 from monitor.bus.rigcodec import RigCodec
 from monitor.rig import Rig, build_model
@@ -55,10 +59,16 @@ class RigECU:
         self.input_names = tuple(n for n, s in codec.specs.items()
                                  if s.inputs and not s.outputs)
         self.truth_name = rig.truth.message if rig.truth is not None else None
-        self.kinds = tuple(dict.fromkeys((self.out_name, *self.input_names,
-                                          *(() if self.truth_name is None
-                                            else (self.truth_name,)))))
-        self.kind_of = {codec.frame_id(k, node): k for k in self.kinds}
+        sent = tuple(dict.fromkeys((self.out_name, *self.input_names,
+                                    *(() if self.truth_name is None else (self.truth_name,)))))
+        # the secured streams it announces in sync frames (only when it signs)
+        self.synced = tuple(n for n in sent if codec.specs[n].secoc is not None
+                            ) if codec.secoc_enabled else ()
+        self.kinds = (*sent, "sync") if self.synced else sent
+        self.kind_of = {codec.frame_id(k, node): k for k in sent}
+        if self.synced:
+            assert codec.sync is not None
+            self.kind_of[codec.frame_id(codec.sync.message, node)] = "sync"
         self.stats = self._new_stats()
 
     @property
@@ -109,6 +119,7 @@ class _RigSimulation:
         self.k = 0
         self.counters: dict[str, int] = {}
         self.last_u: float | None = None
+        self.sync_pending = False
         self.last_scenario_time = (max(ecu.samples_for(ecu.scenario.duration), 1) - 1) / ecu.rate
 
     def _u(self, t: float) -> np.ndarray:
@@ -146,16 +157,35 @@ class _RigSimulation:
         if ecu.truth_name is not None and ecu.truth_name not in names:
             names.append(ecu.truth_name)
         msgs: list[can.Message] = []
+        # sync frames at start and each whole second (a second skipped while catching up
+        # is sent with the next sample sent), before the sample's frames
+        sync_due = bool(ecu.synced) and (k == 0 or math.floor(t + 1e-9) != math.floor(
+            (k - 1) / ecu.rate + 1e-9))
+        if emit and (sync_due or self.sync_pending):
+            self.sync_pending = False
+            for name in ecu.synced:
+                msgs.append(self._message(*ecu.codec.encode_sync(name, ecu.node),
+                                          time_base + t, ecu.codec.sync_message(ecu.node)))
+                self.stats.produced["sync"] += 1
+        else:
+            self.sync_pending = self.sync_pending or sync_due
         for name in names:
             counter = self._counter(name)
             if not emit:
                 continue
             fid, ext, data = ecu.codec.encode_sample(name, ecu.node, u, y,
                                                       float(gamma.max()), counter)
-            msgs.append(can.Message(timestamp=time_base + t, arbitration_id=fid,
-                                    is_extended_id=ext, data=data))
+            msgs.append(self._message(fid, ext, data, time_base + t,
+                                      ecu.codec.message(name, ecu.node)))
             self.stats.produced[name] += 1
         plant.advance(u, gamma)
         self.k += 1
         self.stats.samples += 1
         return msgs
+
+    @staticmethod
+    def _message(fid: int, ext: bool, data: bytes, ts: float,
+                 dbc_message: Message) -> can.Message:
+        fd = bool(dbc_message.is_fd)  # as the rig's DBC says
+        return can.Message(timestamp=ts, arbitration_id=fid, is_extended_id=ext, is_fd=fd,
+                           bitrate_switch=fd, data=data)

@@ -323,6 +323,7 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
         RejectReason.BAD_MAC: _decode(keyed, 0x113, good),  # unsigned frame, keyed monitor
         RejectReason.STALE_FRESHNESS: _decode(keyed, 0x113, signed),  # replayed
         RejectReason.UNSYNCED: unsynced,
+        RejectReason.FD_FRAME: mdb.decode(0x113, good, False, False, False, 0.0, True),
     }
     assert set(cases) == set(RejectReason)
     for reason, result in cases.items():
@@ -332,7 +333,8 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
         assert "\n" not in result.detail
     for reason in (RejectReason.WRONG_LENGTH, RejectReason.BAD_CRC,
                    RejectReason.OUT_OF_RANGE, RejectReason.MALFORMED, RejectReason.BAD_MAC,
-                   RejectReason.STALE_FRESHNESS, RejectReason.UNSYNCED):
+                   RejectReason.STALE_FRESHNESS, RejectReason.UNSYNCED,
+                   RejectReason.FD_FRAME):
         assert (cases[reason].node, cases[reason].kind) == (3, "current")
     assert cases[RejectReason.UNKNOWN_ID].node is None
 
@@ -341,7 +343,7 @@ def test_reject_reason_values() -> None:
     assert {r.value for r in RejectReason} == {
         "unknown_id", "wrong_length", "bad_crc", "out_of_range", "malformed",
         "remote_frame", "error_frame", "extended_id", "bad_mac", "stale_freshness",
-        "unsynced",
+        "unsynced", "fd_frame",
     }
 
 

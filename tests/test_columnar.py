@@ -43,6 +43,7 @@ from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.support.bad_frames import frame_kinds
+from tests.support.pipeline import stalled, without_currents
 
 RIGS = Path(__file__).resolve().parent / "rigs"
 NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
@@ -111,7 +112,7 @@ def _bad_frames(start: float, period: float) -> list[can.Message]:
 
 
 def _sim_frames(scenario: str, *, bad: bool = False, drop: int = 0, repeat: int = 0,
-                nodes: tuple[int, ...] = (0,)) -> list[can.Message]:
+                late: bool = False, nodes: tuple[int, ...] = (0,)) -> list[can.Message]:
     db = load_database()
     frames: list[can.Message] = []
     for node in nodes:
@@ -122,6 +123,16 @@ def _sim_frames(scenario: str, *, bad: bool = False, drop: int = 0, repeat: int 
         frames = [m for i, m in enumerate(frames) if i % drop != 5]
     if repeat:
         frames = [x for i, m in enumerate(frames) for x in ((m, m) if i % repeat == 3 else (m,))]
+    if late:
+        # a held-up sender's backlogs (late, not lost), counter wraps of lost frames (not
+        # repeats), and a frame replayed after a silence (a repeat)
+        for t0, periods in ((1003.0005, 14), (1004.5005, 9), (1021.0005, 40)):
+            frames = stalled(frames, t0, t0 + periods / 100.0)
+        frames = without_currents(without_currents(frames, 600, 15), 900, 31)
+        last = max((m for m in frames if m.arbitration_id == 0x110), key=lambda m: m.timestamp)
+        frames.append(can.Message(arbitration_id=0x110, data=last.data, is_extended_id=False,
+                                  timestamp=last.timestamp + 0.7))
+        frames.sort(key=lambda m: m.timestamp)
     if bad:
         # a gap that restarts the estimator, with frames of other kinds in it: a silence
         frames = [m for m in frames if not 1010.0 <= m.timestamp < 1015.6]
@@ -191,6 +202,9 @@ def test_reader_gives_python_cans_frames(tmp_path: Path, suffix: str) -> None:
     frames = _sim_frames("healthy", bad=True)[:3000]
     frames.append(can.Message(timestamp=frames[-1].timestamp + 0.01, arbitration_id=0x123,
                               data=bytes(range(12)), is_fd=True, is_extended_id=False))
+    frames.append(can.Message(timestamp=frames[-1].timestamp + 0.01, arbitration_id=0x124,
+                              data=bytes(range(64)), is_fd=True, bitrate_switch=True,
+                              error_state_indicator=True, is_extended_id=False))
     path = _write(frames, tmp_path / f"x{suffix}")
     want = list(can.LogReader(str(path)))
     got = [c.message(i) for c in read_chunks(path, 256) for i in range(len(c))]
@@ -199,20 +213,24 @@ def test_reader_gives_python_cans_frames(tmp_path: Path, suffix: str) -> None:
         assert g.timestamp == w.timestamp
         assert (g.arbitration_id, g.is_extended_id, g.is_remote_frame, g.is_error_frame) == \
             (w.arbitration_id, w.is_extended_id, w.is_remote_frame, w.is_error_frame)
-        assert bytes(g.data) == bytes(w.data)[:8]
+        assert (g.is_fd, g.bitrate_switch, g.error_state_indicator) == \
+            (w.is_fd, w.bitrate_switch, w.error_state_indicator)
+        assert bytes(g.data) == bytes(w.data)  # CAN FD payloads whole, not cut to 8 bytes
     lengths = [int(c.length[i]) for c in read_chunks(path, 256) for i in range(len(c))]
     assert lengths == [len(w.data) for w in want]
 
 
-@pytest.mark.parametrize(("scenario", "bad", "drop", "repeat", "suffix"), [
-    ("fault-outage-recovery", False, 0, 0, ".log"),
-    ("healthy", False, 0, 0, ".blf"),
-    ("fault-outage-recovery", True, 97, 211, ".log"),
-    ("fault-outage-recovery", True, 0, 0, ".asc"),
+@pytest.mark.parametrize(("scenario", "bad", "drop", "repeat", "late", "suffix"), [
+    ("fault-outage-recovery", False, 0, 0, False, ".log"),
+    ("healthy", False, 0, 0, False, ".blf"),
+    ("fault-outage-recovery", True, 97, 211, False, ".log"),
+    ("fault-outage-recovery", True, 0, 0, False, ".asc"),
+    ("fault-outage-recovery", True, 0, 0, True, ".log"),
 ])
 def test_columnar_equals_per_frame_on_sim_logs(tmp_path: Path, scenario: str, bad: bool,
-                                               drop: int, repeat: int, suffix: str) -> None:
-    frames = _sim_frames(scenario, bad=bad, drop=drop, repeat=repeat)
+                                               drop: int, repeat: int, late: bool,
+                                               suffix: str) -> None:
+    frames = _sim_frames(scenario, bad=bad, drop=drop, repeat=repeat, late=late)
     path = _write(frames, tmp_path / f"run{suffix}")
     res, _, a = _compare(path, load_database(), load_database(), MonitorConfig(nodes=(0,)))
     assert res.columnar
@@ -223,9 +241,13 @@ def test_columnar_equals_per_frame_on_sim_logs(tmp_path: Path, scenario: str, ba
                      "rejected/out_of_range", "rejected/malformed", "rejected/remote_frame",
                      "rejected/extended_id", "ignored/node", "ignored/diagnosis"):
             assert c.get(name, 0) > 0, name
-        if suffix == ".log":
+        if repeat:
             assert c.get("e2e/repeated", 0) > 0 and c.get("e2e/lost_frames", 0) > 0
         assert c.get("estimator/restarts", 0) > 0 and c.get("nodes/silent", 0) > 0
+    if late:
+        c = res.counters
+        assert c.get("e2e/repeated", 0) == 1 and c.get("e2e/counter_jumps", 0) >= 2, c
+        assert c.get("samples/predicted_through", 0) >= 15 + 31, c
 
 
 def test_columnar_equals_per_frame_two_nodes_all_monitored(tmp_path: Path) -> None:

@@ -47,6 +47,7 @@ from rerun.chunk import RrdReader
 from monitor.app.replay import feed_log
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.pipeline import DiagnosisEvent, MonitorConfig
+from monitor.sinks.blueprint import counter_path
 from sim_ecu import VirtualECU
 from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
 from tests.support.pipeline import pipeline
@@ -71,7 +72,7 @@ DELAY_BOUND_S = 0.5
 #: the daemon shares the guest's one CPU with the ECUs and candump, and on a loaded machine it
 #: processes the socket's backlog late. The estimator's delay itself (in sample time, from
 #: the events) is held to DELAY_BOUND_S by `check_event_sequence`.
-FRAME_LAG_S = 0.5
+FRAME_LAG_S = 1.5
 #: Hand-over from no_data to the first estimate, left out of the frame-by-frame comparison.
 STARTUP_S = 0.1
 #: The monitor turns a node no_data after 0.5 s without current frames.
@@ -336,7 +337,7 @@ def offline_events(mdb: MotorDatabase, frames: Iterable[can.Message]) -> list[Di
     return events
 
 
-def _run_vcan(vcan: RunOnVcan, script: str, out: Path, timeout: float = 240.0) -> dict[str, str]:
+def _run_vcan(vcan: RunOnVcan, script: str, out: Path, timeout: float = 480.0) -> dict[str, str]:
     res = vcan(SCRIPT_PRELUDE + script, env={"OUT": str(out)}, timeout=timeout)
     print(f"[vcan] {res.backend} run took {res.duration:.1f} s")
     values = script_values(res.stdout)
@@ -363,10 +364,14 @@ wait_for() {  # FILE PATTERN SECONDS: poll until FILE contains PATTERN
     sleep 0.1
   done
 }
-# The ECUs share the guest's one CPU with the monitor: on a loaded machine their late samples
-# go out late rather than being skipped (a skip looks like a loss to the monitor, and a skip of
-# 16 like a repeat to the 4-bit alive counter).
+# The ECUs share the guest's one CPU with the monitor and candump at the same priority: at nice
+# 10 they were held up 0.1-0.25 s at a time behind them. Their late samples go out late rather
+# than being skipped (a skip is a loss to the monitor); it reads a frame up to 15 periods late
+# as late (monitor.pipeline.periods), and takes a held-up socket's backlog in batches.
 CATCH_UP=100000
+# A recording monitor hands its recording to the .rrd file every 0.25 s, the most allowed without
+# --raw-dir: in the one-CPU guest every chunk handed to Rerun costs ~5 ms of CPU in the SDK's
+# threads, 50 chunks/s at the default 0.1 s. What a SIGKILL loses at the default is boot B's test.
 start_capture_and_monitor() {  # NODES [more monitor options]
   nodes=$1; shift
   candump -L vcan0 > cap.log 2> candump.err &
@@ -395,7 +400,7 @@ stop_monitor_and_capture() {
 # ----------------------------------------------------------------------------- 1: live
 
 LIVE_SCRIPT = r"""
-start_capture_and_monitor 0 --rrd "$OUT/live.rrd"
+start_capture_and_monitor 0 --rrd "$OUT/live.rrd" --record-flush-s 0.25
 sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario fault-outage-recovery \
     --seed 1 --max-catch-up "$CATCH_UP" 2> ecu.err
 echo "ecu_rc=$?"
@@ -435,9 +440,17 @@ def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_p
     # and the monitor received every frame the ECU sent.
     cap = read_capture(cap_log, mdb)
     assert not cap.rejected, cap.rejected[:5]
-    assert summary["frames"] == sent["current"] + sent["voltage"] + sent["truth"]
+    # Every frame is received or counted as dropped by the kernel (a one-CPU guest that
+    # stalls the daemon for a moment: its socket overflows; the counter reaches the recording).
+    rrd = tmp_path / "live.rrd"
+    _, kernel_drops = rrd_series(rrd, counter_path("bus/socket_drops"))
+    drops = int(kernel_drops[-1]) if len(kernel_drops) else 0
+    if drops:
+        print(f"[live] {drops} frames dropped by the kernel (counted)")
+    assert summary["frames"] + drops == sent["current"] + sent["voltage"] + sent["truth"]
     assert summary["rejected"] == 0
-    assert summary["estimated"] >= sent["current"] - 1  # the first current precedes a voltage
+    # the first current precedes a voltage
+    assert summary["estimated"] >= sent["current"] - 1 - drops
     jitter_report(cap, 0, "live")
     check_follows_truth(cap, 0, "live")
 
@@ -453,12 +466,13 @@ def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_p
     assert [e["state"] for e in events if e["cause"] == "estimate"][-1] == "fault_free"
 
     # The recording: closed cleanly on SIGTERM, gamma^ over the run.
-    rrd = tmp_path / "live.rrd"
     rrd_verify(rrd)
-    t, v = rrd_series(rrd, "/motor/0/gamma/estimate")
+    t_bus, v = rrd_series(rrd, "/motor/0/gamma/estimate")
     assert len(v) == summary["estimated"] >= 300, len(v)
-    t = t - t[0]
-    assert t[-1] == pytest.approx(truth[-1][0] - t_start, abs=0.05)
+    assert t_bus[-1] - t_bus[0] == pytest.approx(truth[-1][0] - t_start, abs=0.05)
+    # the windows in scenario time, from the SimTruth frame sent with each sample (an ECU held
+    # up in the busy guest sends samples late, which stretches bus time)
+    t = np.interp(t_bus, np.array([tt for tt, _ in truth]), np.arange(len(truth)) / 100.0)
     fault = v[(t >= 5.0) & (t <= 7.0)]
     outage = v[(t >= 9.0) & (t <= 10.5)]
     healthy = v[(t >= 1.0) & (t <= 3.9)]

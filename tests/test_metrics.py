@@ -16,7 +16,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from monitor.bus.codec import load_database
-from monitor.bus.stats import BusStats, frame_bits
+from monitor.bus.stats import BusStats, fd_frame_bits, frame_bits, frame_time_s
 from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
 from monitor.sinks.base import FanOut
 from monitor.sinks.journal import JOURNAL_SOCKET, TRANSITION_ID, JournalSink
@@ -30,6 +30,34 @@ BIN = Path(sys.executable).parent
 def test_frame_bits_worst_case_stuffing() -> None:
     assert frame_bits(can.Message(arbitration_id=1, data=bytes(8), is_extended_id=False)) == 135
     assert frame_bits(can.Message(arbitration_id=1, data=bytes(8), is_extended_id=True)) == 160
+
+
+def test_fd_frames_take_their_length_and_data_rate() -> None:
+    """A 64-byte CAN FD frame, standard ID: 17 arbitration bits + 4 stuff + 12 trailer at
+    the nominal rate; 517 (ESI, DLC, data) + 129 stuff + 4 stuff count + 21 CRC + 7 fixed
+    stuff + 1 CRC delimiter in the data phase (ISO 11898-1:2015, worst-case stuffing)."""
+    fd64 = can.Message(arbitration_id=0x22, data=bytes(64), is_fd=True, bitrate_switch=True,
+                       is_extended_id=False)
+    assert fd_frame_bits(fd64) == (33, 679)
+    assert frame_time_s(fd64, 500_000, 2_000_000) == pytest.approx(33 / 500e3 + 679 / 2e6)
+    slow = can.Message(arbitration_id=0x22, data=bytes(64), is_fd=True, is_extended_id=False)
+    assert frame_time_s(slow, 500_000, 2_000_000) == pytest.approx(712 / 500e3)  # no BRS
+    assert frame_time_s(fd64, 500_000) == pytest.approx(712 / 500e3)  # no data rate given
+    classic = can.Message(arbitration_id=1, data=bytes(8), is_extended_id=False)
+    assert frame_time_s(classic, 500_000, 2_000_000) == pytest.approx(135 / 500e3)
+    fd8 = can.Message(arbitration_id=1, data=bytes(8), is_fd=True, is_extended_id=False)
+    assert sum(fd_frame_bits(fd8)) > frame_bits(classic)  # the longer CRC and stuff count
+    ext = can.Message(arbitration_id=1, data=bytes(8), is_fd=True, is_extended_id=True)
+    assert fd_frame_bits(ext)[0] > fd_frame_bits(fd8)[0]
+    lengths = [sum(fd_frame_bits(can.Message(data=bytes(n), is_fd=True)))
+               for n in (0, 8, 12, 16, 20, 24, 32, 48, 64)]
+    assert lengths == sorted(lengths) and len(set(lengths)) == len(lengths)
+    # 100 such frames a second on 500 kbit/s nominal, 2 Mbit/s data: the load is their time
+    stats = BusStats(bitrate=500_000, data_bitrate=2_000_000)
+    for k in range(201):
+        stats(can.Message(timestamp=k / 100, arbitration_id=0x22, data=bytes(64), is_fd=True,
+                          bitrate_switch=True, is_extended_id=False))
+    assert stats.load == pytest.approx(100 * (33 / 500e3 + 679 / 2e6), rel=0.02)
 
 
 def test_metrics_file_parses_and_agrees_with_the_counters(tmp_path: Path) -> None:

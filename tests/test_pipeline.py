@@ -15,7 +15,7 @@ from monitor.diagnosis import HealthState
 from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario
-from tests.support.pipeline import feed_all, pipeline
+from tests.support.pipeline import feed_all, pipeline, stalled, without_currents
 
 T0 = 1_700_000_000.0
 
@@ -212,6 +212,48 @@ def test_late_frames_are_not_mistaken_for_lost_ones(db: MotorDatabase,
     assert pipe.counters.get("samples/predicted_through", 0) == 0
     assert [e.state for e in events][:4] == ["fault_free", "fault", "outage", "fault"] or \
         [e.state for e in events][:4] == ["fault_free", "fault", "outage", "fault_free"]
+
+
+@pytest.mark.parametrize("periods", [9, 15])
+def test_a_held_up_senders_backlog_is_late_not_lost(db: MotorDatabase,
+                                                    frames: list[can.Message],
+                                                    periods: int) -> None:
+    # The first frame of the backlog is `periods` late, more than half a counter wrap:
+    # rounded to the nearest wrap it would be 16 lost; as the whole wraps that fit, late.
+    pipe, _, _ = _pipe(db)
+    t0 = T0 + 3.0005
+    feed_all(pipe, stalled(frames, t0, t0 + periods / 100.0))
+    assert pipe.counters.get("samples/predicted_through", 0) == 0
+    assert pipe.counters.get("e2e/lost_frames", 0) == 0
+
+
+@pytest.mark.parametrize("n", [15, 31])
+def test_a_counter_wrap_of_lost_frames_is_not_a_repeat(db: MotorDatabase,
+                                                       frames: list[can.Message], n: int) -> None:
+    # 15 or 31 lost frames give the next one its predecessor's counter: due 16 or 32 periods
+    # on, within the silence timeout, it is n lost samples, not a replay.
+    pipe, _, _ = _pipe(db)
+    feed_all(pipe, without_currents(frames, 300, n))
+    c = pipe.counters
+    assert c.get("e2e/repeated", 0) == 0
+    assert c["samples/predicted_through"] == n
+    assert (c.get("e2e/counter_jumps"), c.get("e2e/lost_frames")) == (1, 15)
+
+
+def test_same_counter_soon_or_after_silence_is_a_repeat(db: MotorDatabase,
+                                                        frames: list[can.Message]) -> None:
+    # A duplicate a millisecond later, and the last frame replayed after the node went silent.
+    last = [m for m in frames if m.arbitration_id == 0x110][200]
+    head = frames[:frames.index(last) + 1]
+
+    def again(m: can.Message, dt: float) -> can.Message:
+        return can.Message(arbitration_id=m.arbitration_id, data=m.data,
+                           is_extended_id=False, timestamp=m.timestamp + dt)
+
+    pipe, _, _ = _pipe(db)
+    feed_all(pipe, [*head, again(last, 0.001), again(last, 0.6)])
+    assert pipe.counters["e2e/repeated"] == 2
+    assert pipe.counters.get("e2e/counter_jumps", 0) == 0
 
 
 def test_long_gap_counts_whole_counter_wraps(db: MotorDatabase,

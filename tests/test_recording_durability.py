@@ -617,12 +617,12 @@ def test_close_gives_up_on_a_slow_compaction_and_leftovers_are_swept(tmp_path: P
 
 
 def test_memory_and_files_stay_bounded_over_many_rotations(tmp_path: Path) -> None:
-    """2e6 samples, about 20 rotations, 3 files kept: the SDK's per-file chunk manifest is freed
+    """2e6 samples, about 16 rotations, 3 files kept: the SDK's per-file chunk manifest is freed
     at each rotation, and no thread or stream is leaked. (Without rotation, the same run grows
     by ~100 MB: a footer manifest entry per chunk.)"""
     n = 2_000_000
     keep = 3
-    sink = RotatingRerunSink(tmp_path, max_bytes=20_000_000, max_age_s=None, keep=keep,
+    sink = RotatingRerunSink(tmp_path, max_bytes=15_000_000, max_age_s=None, keep=keep,
                              nodes=(0,), batch_size=64)  # fmt: skip
     warm = n // 10
     rss: list[float] = []

@@ -1,15 +1,14 @@
 """Command-line options shared by the commands: argument types (each refuses a bad value
 with one line naming it), the options every monitoring command has, and what they build
-(the database, the configuration)."""
+(the database, the configuration). The argument types live in `monitor.app.argtypes`."""
 
 from __future__ import annotations
 
 import argparse
-import math
 from dataclasses import replace
 from pathlib import Path
-from typing import NoReturn
 
+from monitor.app.argtypes import OneLineParser, nodes, positive_float, positive_int, rate
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.rigcodec import RigCodec
 from monitor.bus.secoc import load_key
@@ -18,46 +17,7 @@ from monitor.pipeline import MonitorConfig
 from monitor.rig import Rig, build_decoder, build_model, builtin_rig, load_rig
 
 __all__ = ["OneLineParser", "add_monitor_options", "add_rig_option", "database",
-           "monitor_config", "nodes", "positive_float", "rate", "rig"]
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse prints its usage block before an error: two lines. One is enough."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-def positive_float(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (v > 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
-    return v
-
-
-def rate(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
-    if not (math.isfinite(v) and 0.0 < v <= 100_000.0):
-        raise argparse.ArgumentTypeError(f"must be a rate in Hz, 0 < rate <= 100000: {text!r}")
-    return v
-
-
-def nodes(text: str) -> tuple[int, ...] | None:
-    if text == "all":
-        return None
-    try:
-        found = tuple(sorted({int(x) for x in text.split(",") if x.strip()}))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"nodes must be 'all' or e.g. 0,1,2: {text!r}") from None
-    if not found or any(not 0 <= n <= 15 for n in found):
-        raise argparse.ArgumentTypeError(f"node numbers must lie in 0..15: {text!r}")
-    return found
+           "monitor_config", "nodes", "positive_float", "positive_int", "rate", "rig"]
 
 
 def add_rig_option(p: argparse.ArgumentParser) -> None:
@@ -91,7 +51,7 @@ def rig(args: argparse.Namespace) -> Rig:
 
 def database(args: argparse.Namespace, the_rig: Rig | None = None) -> MotorDatabase | RigCodec:
     """The rig's frame decoder, with SecOC verification when --key is given (a key file
-    only we can read; our own bus only)."""
+    only we can read; our own bus, or a rig whose messages have SecOC)."""
     key = load_key(args.key) if getattr(args, "key", None) else None
     return build_decoder(the_rig or rig(args), secoc_key=key)
 

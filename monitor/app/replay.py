@@ -135,16 +135,6 @@ def _replay_archive(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-def _jobs(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
-    return n
-
-
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     p = sub.add_parser("replay", conflict_handler="resolve",
                        help="run candump .log, .asc or .blf files (or directories, or patterns "
@@ -161,7 +151,7 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    help="columnar (default): each log read, decoded and estimated in chunks of "
                    "arrays, the same diagnosis and counters several times faster; per-frame: "
                    "frame by frame through the live daemon's pipeline")
-    p.add_argument("--jobs", type=_jobs, default=None, metavar="N",
+    p.add_argument("--jobs", type=options.positive_int, default=None, metavar="N",
                    help="replay N logs at once in local processes (default 1)")
     p.add_argument("--cluster", default=None, metavar="ADDRESS",
                    help="replay on the Dask cluster whose scheduler is at ADDRESS, e.g. "

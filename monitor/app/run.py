@@ -18,6 +18,7 @@ import argparse
 import logging
 import sys
 import time
+from collections.abc import Callable
 from contextlib import suppress
 from pathlib import Path
 from typing import Any
@@ -25,12 +26,12 @@ from typing import Any
 import can
 
 from monitor.app import options, outputs
-from monitor.app.canbus import BusError, open_bus
+from monitor.app.canbus import BusError, open_bus, receive_batch, send_frame
 from monitor.app.freshness import FreshnessSaver
 from monitor.app.notify import Notifier
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import MotorDatabase
-from monitor.bus.faults import socket_drops
+from monitor.bus.faults import grow_receive_buffer, socket_drops
 from monitor.bus.rawlog import RotatingBusLog
 from monitor.bus.rigcodec import RigCodec
 from monitor.bus.stats import BusStats
@@ -49,6 +50,8 @@ log = logging.getLogger("motor_monitor")
 
 FRESHNESS_SAVE_PERIOD_S = 5.0
 TICK_S = 0.05  # timeouts, flushing and freshness saving, also while the bus is down
+RECEIVE_BATCH = 64  # frames per receive: the clocks are read between batches
+DRAIN_LIMIT_S = 2.0  # at most this long taking a backlog at stop (inside systemd's stop timeout)
 
 
 class _LiveBus:
@@ -56,17 +59,25 @@ class _LiveBus:
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
-        self.bus: can.BusABC | None = open_bus(args.interface, args.channel, args.bitrate,
-                                               quiet=_quiet())
+        self.bus: can.BusABC | None = None
+        self.reopen()
 
     def reopen(self) -> None:
         a = self.args
         self.bus = open_bus(a.interface, a.channel, a.bitrate, quiet=_quiet())
+        wanted = getattr(a, "receive_buffer_kib", None)
+        if wanted is None:
+            return
+        granted = grow_receive_buffer(self.bus, wanted * 1024)
+        if granted is not None and granted < 2 * wanted * 1024:
+            log.warning("socket receive buffer %d KiB, not the %d KiB asked for: the kernel "
+                        "caps it at net.core.rmem_max (raise that sysctl)", granted // 2048,
+                        wanted)
 
     def send(self, msg: can.Message) -> None:
         if self.bus is None:
             raise can.CanOperationError("interface is down")
-        self.bus.send(msg, timeout=0.01)
+        send_frame(self.bus, msg, 0.01)
 
     def drop(self) -> None:
         if self.bus is not None:
@@ -126,7 +137,8 @@ def run_live(args: argparse.Namespace) -> int:
             live.drop()
             raise
         counters = Counters()
-        bus_stats = BusStats(bitrate=float(args.bitrate or args.nominal_bitrate))
+        bus_stats = BusStats(bitrate=float(args.bitrate or args.nominal_bitrate),
+                             data_bitrate=args.data_bitrate)
         sinks: list[Sink] = [LogSink()]
         if journal_available():
             sinks.append(JournalSink())
@@ -171,31 +183,49 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
     notifier.ready(f"monitoring {where}")
     last_status = 0.0
     last_tick = 0.0
+    drained = True  # the last receive found the socket empty
+    newest = last_clock = 0.0  # the newest frame's time stamp; the time last ticked at
     dropped_before = 0  # socket drops of sockets closed before the current one
     backoff = 0.1
     down_since: float | None = None
+
+    def take(msg: can.Message) -> None:
+        if raw is not None:
+            raw(msg)  # every frame, whatever the pipeline makes of it
+        bus_stats(msg)
+        pipe.feed(msg)
+
+    clock_due = True  # read the clocks (system calls) before the next receive
+    batches = 0  # since the clocks were last read
     try:
         while not stop.event.is_set():
-            mono = time.monotonic()
-            notifier.maybe_ping(mono)
-            now = time.time()
-            if now - last_tick >= TICK_S:
-                last_tick = now
-                pipe.tick(now)
-                sink.maybe_flush(mono)
-                outputs.count_compactions(recording, pipe.counters)
-                if raw is not None:
-                    raw.maybe_flush(mono)
-                if fresh is not None:
-                    fresh.maybe_save(mono)
-                drops = None if live.bus is None else socket_drops(live.bus)
-                if drops is not None:  # the kernel's count for this socket, since it opened
-                    pipe.socket_drops(dropped_before + drops)
-            if mono - last_status >= 1.0:
-                last_status = mono
-                notifier.status(status_line(pipe, live.bus is not None))
+            if clock_due:
+                batches = 0
+                mono = time.monotonic()
+                notifier.maybe_ping(mono)
+                now = time.time()
+                if now - last_tick >= TICK_S:
+                    last_tick = now
+                    # Timeouts are judged where the reading is: while a backlog waits in the
+                    # socket (a daemon held up for a moment), the time is that of the newest
+                    # frame read, so the daemon's own lag never looks like a silent node.
+                    last_clock = now if drained else max(newest, last_clock)
+                    pipe.tick(last_clock)
+                    sink.maybe_flush(mono)
+                    outputs.count_compactions(recording, pipe.counters)
+                    if raw is not None:
+                        raw.maybe_flush(mono)
+                    if fresh is not None:
+                        fresh.maybe_save(mono)
+                    drops = None if live.bus is None else socket_drops(live.bus)
+                    if drops is not None:  # the kernel's count for this socket, since it opened
+                        pipe.socket_drops(dropped_before + drops)
+                if mono - last_status >= 1.0:
+                    last_status = mono
+                    notifier.status(status_line(pipe, live.bus is not None))
             bus = live.bus
             if bus is None:
+                clock_due = True
                 if stop.event.wait(backoff):
                     break
                 try:
@@ -204,9 +234,14 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                     backoff = min(2.0, backoff * 2)
                     log.debug("still down: %s", exc)
                 continue  # back only once a receive succeeds (a down link binds fine)
+            msgs: list[can.Message] = []
             try:
-                msg = bus.recv(timeout=0.05)
+                receive_batch(bus, TICK_S, RECEIVE_BATCH, msgs)
             except (can.CanError, OSError) as exc:
+                for msg in msgs:  # read before the failure: kept like every other
+                    newest = max(newest, msg.timestamp)
+                    take(msg)
+                clock_due = True
                 dropped_before = pipe.counters.get(C.BUS_SOCKET_DROPS, 0)
                 live.drop()
                 if down_since is None:  # a new outage
@@ -223,13 +258,44 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                 pipe.interface_back(time.time(), outage)
                 backoff = 0.1
                 down_since = None
-            if msg is not None:
-                if raw is not None:
-                    raw(msg)  # every frame, whatever the pipeline makes of it
-                bus_stats(msg)
-                pipe.feed(msg)
+            drained = len(msgs) < RECEIVE_BATCH
+            for msg in msgs:
+                newest = max(newest, msg.timestamp)
+                take(msg)
+            # The clocks are read after a quiet wait, once the frames' own (kernel) time
+            # stamps pass the next tick, and every few batches whatever the time stamps say.
+            batches += 1
+            clock_due = not msgs or newest - last_tick >= TICK_S or batches >= 8
+        if live.bus is not None:
+            _drain(live.bus, take, time.time())
     finally:
         notifier.stopping("flushing the recording")
+
+
+def _drain(bus: can.BusABC, take: Callable[[can.Message], None], stopped: float) -> None:
+    """On a stop signal, take what the socket already holds: the frames received before
+    the signal (a daemon behind its bus has a backlog), up to the first batch that reaches
+    past it or `DRAIN_LIMIT_S` of work, so no frame the kernel had before the stop is
+    missing from the recording."""
+    deadline = time.monotonic() + DRAIN_LIMIT_S
+    n = 0
+    while time.monotonic() < deadline:
+        msgs: list[can.Message] = []
+        failure: Exception | None = None
+        try:
+            receive_batch(bus, 0.0, RECEIVE_BATCH, msgs)
+        except (can.CanError, OSError) as exc:
+            failure = exc
+        for msg in msgs:  # also those read before a failure
+            take(msg)
+        n += len(msgs)
+        if failure is not None:
+            log.debug("draining the socket at stop: %s", failure)
+            break
+        if not msgs or msgs[-1].timestamp > stopped:
+            break
+    if n:
+        log.info("took %d frame(s) left in the socket at stop", n)
 
 
 def status_line(pipe: MonitorPipeline, bus_up: bool) -> str:
@@ -254,13 +320,15 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    help="start a new file past this size, MiB (default 256)")
     r.add_argument("--rotate-minutes", type=options.positive_float, default=60.0,
                    help="start a new file after this long, minutes (default 60)")
-    r.add_argument("--keep", type=int, default=168,
-                   help="recordings kept in DIR, oldest deleted first (default 168)")
+    r.add_argument("--keep", type=int, default=4000,
+                   help="recordings kept in DIR, oldest deleted first (default 4000: a week "
+                   "of a full 16-node bus in 256 MiB files, README 'Recording size')")
     r.add_argument("--secoc-state", default=None, metavar="FILE",
                    help="persist SecOC freshness here (with --key): restarts resume at once")
-    r.add_argument("--max-total-gb", type=options.positive_float, default=20.0,
-                   help="recordings in DIR never exceed this, GiB (default 20; the same for "
-                   "the raw logs in --raw-dir)")
+    r.add_argument("--max-total-gb", type=options.positive_float, default=128.0,
+                   help="recordings in DIR never exceed this, GiB (default 128: a week of a "
+                   "full 16-node bus with a third to spare; the same for the raw logs in "
+                   "--raw-dir; lower it on a small disk)")
     r.add_argument("--raw-dir", default=None, metavar="DIR",
                    help="write every received frame to rotating bus logs in DIR (the lossless "
                    "record: replay re-diagnoses them), same rotation and retention")
@@ -272,11 +340,21 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    "viewer) this often: what a SIGKILL can lose from it (default 0.1; above "
                    "0.25 only with --raw-dir, whose raw log keeps every frame; e.g. 2: larger "
                    "batches, files ~3.5x smaller before compaction)")
+    r.add_argument("--receive-buffer-kib", type=options.positive_int, default=None,
+                   metavar="KIB",
+                   help="the socket's receive buffer (default: the kernel's, "
+                   "net.core.rmem_default, a few hundred frames): larger, a daemon held up "
+                   "for a moment catches up later instead of losing frames; above "
+                   "net.core.rmem_max only with CAP_NET_ADMIN")
     r.add_argument("--metrics", default=None, metavar="FILE.prom",
                    help="write Prometheus metrics here every 5 s (node_exporter's textfile "
                    "collector directory); `motor-monitor status` reads them")
     r.add_argument("--nominal-bitrate", type=int, default=500_000,
                    help="the bus's bit rate for the bus-load figure when --bitrate is not "
                    "given (default 500000; vcan has none)")
+    r.add_argument("--data-bitrate", type=options.positive_float, default=None,
+                   metavar="BITS_PER_S",
+                   help="a CAN FD bus's data-phase bit rate, for the bus-load figure: FD frames "
+                   "that switch rates (BRS) send their data at it (default: the nominal rate)")
     options.add_monitor_options(r)
     r.set_defaults(func=run_live)

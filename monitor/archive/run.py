@@ -30,8 +30,8 @@ from monitor.archive.engine import (
     FrameProgress,
     PerFileEngine,
     ReplaySettings,
+    columnar_engine,
     monitor_setup,
-    per_frame_engine,
 )
 from monitor.archive.inputs import LogInput
 from monitor.archive.progress import EXTRA_HINT, ProgressBar, progress_bar
@@ -84,7 +84,7 @@ def _open_outputs(events: Path | None, rrd: Path | None,
 
 
 def replay_one(path: Path, settings: ReplaySettings, *, events: Path | None = None,
-               rrd: Path | None = None, engine: PerFileEngine = per_frame_engine,
+               rrd: Path | None = None, engine: PerFileEngine = columnar_engine,
                progress: FrameProgress | None = None) -> LogResult:
     """One log through `engine`: its events as JSON lines to `events`, its recording to
     `rrd` (each if given). Never raises for the log: a log that cannot be read (missing,
@@ -179,7 +179,7 @@ def _size(path: Path) -> int:
 
 def run_archive(logs: Sequence[LogInput], settings: ReplaySettings, out: Path, *,
                 rrd: bool = False, jobs: int = 1, cluster: str | None = None,
-                engine: PerFileEngine = per_frame_engine, show_progress: bool | None = None,
+                engine: PerFileEngine = columnar_engine, show_progress: bool | None = None,
                 fleet_png: bool = True) -> ArchiveRun:
     """Every log of `logs`, each with its events (and recording with `rrd`) under `out`,
     then the summary (Parquet, CSV) and the fleet PNG in `out`. `jobs` > 1 runs on as many

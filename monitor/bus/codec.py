@@ -30,7 +30,9 @@ Without a key sync frames decode as plain ``sync`` samples (`Decoded.value` is
 SyncFreshness), nothing checked.
 
 Decoding never raises: every frame yields `Decoded` or `Rejected` with a reason from
-`RejectReason`. Checks run cheapest-first: error/remote/extended flags, id lookup, length,
+`RejectReason`. Checks run cheapest-first: error/remote/extended flags, id lookup, frame
+format (every message of our bus is classic CAN: a CAN FD frame with its ID is ``fd_frame``,
+whatever its length), length,
 CRC, reserved bits (unused bits must be 0 -- a non-zero one means the sender uses another
 DBC revision, reported as ``malformed``), the SecOC MAC and freshness (with a key), then
 the DBC min/max of every signal (NaN fails). An authentic frame consumes its freshness
@@ -87,6 +89,7 @@ __all__ = [
     "KINDS",
     "N_NODES",
     "SECOC_KINDS",
+    "VERDICT_REASON",
     "CodecError",
     "Decoded",
     "Kind",
@@ -120,9 +123,10 @@ class RejectReason(StrEnum):
     BAD_MAC = "bad_mac"  # SecOC: the authenticator does not verify (forged or unsigned)
     STALE_FRESHNESS = "stale_freshness"  # SecOC: authentic, but replayed or too far ahead
     UNSYNCED = "unsynced"  # SecOC: the stream's freshness is unknown until a sync frame
+    FD_FRAME = "fd_frame"  # CAN FD frame for a classic DBC message, or the reverse
 
 
-_VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {
+VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {  # SecOC's verdicts as outcomes
     Verdict.BAD_MAC: RejectReason.BAD_MAC,
     Verdict.STALE_FRESHNESS: RejectReason.STALE_FRESHNESS,
     Verdict.UNSYNCED: RejectReason.UNSYNCED,
@@ -358,6 +362,7 @@ class MotorDatabase:
         is_remote: bool,
         is_error: bool,
         timestamp: float,
+        is_fd: bool = False,
     ) -> Decoded | Rejected:
         """Classify one received frame; never raises (hot path: ~10k frames/s).
 
@@ -376,6 +381,10 @@ class MotorDatabase:
         if route is None:
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not in {self.source}")
+        if is_fd:
+            return Rejected(RejectReason.FD_FRAME, arbitration_id, timestamp, route.node,
+                            route.kind, f"CAN FD frame of {len(data)} bytes; "
+                            f"{route.message.name} is a classic CAN message")
         if type(data) is not bytes:
             try:
                 data = bytes(data)
@@ -395,7 +404,7 @@ class MotorDatabase:
         if route.secoc is not None and self._secoc is not None:
             failed = self._secoc.verify(route.secoc, (route.kind, route.node), data)
             if failed is not None:
-                return Rejected(_VERDICT_REASON[failed[0]], arbitration_id, timestamp,
+                return Rejected(VERDICT_REASON[failed[0]], arbitration_id, timestamp,
                                 route.node, route.kind, failed[1])
         elif route.sync is not None and self._secoc is not None:
             index = route.sync.kind_index(data)
@@ -403,7 +412,7 @@ class MotorDatabase:
                 failed = self._secoc.verify_sync(route.sync, (SECOC_KINDS[index], route.node),
                                                  data)
                 if failed is not None:
-                    return Rejected(_VERDICT_REASON[failed[0]], arbitration_id, timestamp,
+                    return Rejected(VERDICT_REASON[failed[0]], arbitration_id, timestamp,
                                     route.node, route.kind, failed[1])
         try:
             signals = cast(
@@ -436,7 +445,7 @@ class MotorDatabase:
     def decode_can(self, msg: can.Message) -> Decoded | Rejected:
         """`decode` for a python-can message (flags read from the message, not guessed)."""
         return self.decode(msg.arbitration_id, bytes(msg.data), msg.is_extended_id,
-                           msg.is_remote_frame, msg.is_error_frame, msg.timestamp)
+                           msg.is_remote_frame, msg.is_error_frame, msg.timestamp, msg.is_fd)
 
 
 def default_dbc_path() -> Path:

@@ -20,7 +20,7 @@ from typing import Any
 
 import can
 
-__all__ = ["describe_error_frame", "socket_drops"]
+__all__ = ["RECEIVE_BUFFER_BYTES", "describe_error_frame", "grow_receive_buffer", "socket_drops"]
 
 # error classes in the CAN ID
 _CLASSES = (
@@ -46,6 +46,13 @@ _CONTROLLER = (
 )
 
 SO_MEMINFO = 55  # include/uapi/asm-generic/socket.h
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # include/uapi/asm-generic/socket.h
+
+RECEIVE_BUFFER_BYTES = 8 * 2**20
+"""A receive buffer of about 10,000 CAN frames (a frame's socket buffer costs the kernel
+some 800 bytes): several seconds of a busy bus. The kernel's default (net.core.rmem_default,
+208 KiB) holds a few hundred. A larger buffer turns a held-up daemon's losses into latency
+(`run --receive-buffer-kib`)."""
 SK_MEMINFO_DROPS = 8  # index into the u32 array (include/uapi/linux/sock_diag.h)
 
 
@@ -79,3 +86,24 @@ def socket_drops(bus: Any) -> int | None:
     if len(raw) < 4 * (SK_MEMINFO_DROPS + 1):
         return None
     return int(struct.unpack_from("I", raw, 4 * SK_MEMINFO_DROPS)[0])
+
+
+def grow_receive_buffer(bus: Any, wanted: int = RECEIVE_BUFFER_BYTES) -> int | None:
+    """Ask for a `wanted`-byte receive buffer on a SocketCAN bus's socket: past
+    net.core.rmem_max with SO_RCVBUFFORCE where the process may (CAP_NET_ADMIN), else up to
+    rmem_max with SO_RCVBUF. Returns the buffer the kernel granted (bytes, as it reports
+    them: twice the request, for its bookkeeping), or None if not a SocketCAN bus."""
+    sock = getattr(bus, "socket", None)
+    if not isinstance(sock, socket.socket):
+        return None
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, wanted)
+    except OSError:  # EPERM without CAP_NET_ADMIN (the hardened unit): capped at rmem_max
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, wanted)
+        except OSError:
+            return None
+    try:
+        return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    except OSError:
+        return None

@@ -5,12 +5,24 @@ IDs, as the DBC defines them) and routes each frame to a node by the rig's layou
 ``<message>_N<node>`` names, a node number in bits of the arbitration ID (the DBC lists
 node 0's messages), or an explicit table per node. Each rig message has its protection:
 none, or AUTOSAR E2E profile 2 checked by `cantools.autosar.end_to_end` (CRC in byte 0,
-alive counter in the low nibble of byte 1, a data ID per message). Decoding never raises:
+alive counter in the low nibble of byte 1, a data ID per message), each with or without
+SecOC (below). CAN FD messages (the
+DBC's ``VFrameFormat`` StandardCAN_FD / ExtendedCAN_FD, up to 64 bytes) are decoded like
+classic ones; a frame whose format is not the message's (FD for a classic message, or
+the reverse) is ``fd_frame``, before its length is looked at. Decoding never raises:
 every frame is `Decoded` (the model's inputs and outputs converted to the model's units)
 or `Rejected` with a reason from `RejectReason`, like `monitor.bus.codec.MotorDatabase`
 for our own bus.
 
-SecOC is not offered for rig files yet; our own bus (`MotorDatabase`) has it.
+SecOC (`monitor.bus.secoc`, as on our own bus): a secured message carries a truncated
+freshness value and a truncated AES-CMAC in signals the rig names (`RigSecOC`); its SecOC
+data ID is its arbitration ID's low 16 bits (so each node's stream has its own), and with
+E2E the CRC byte is written after the MAC and left out of it. One sync message per node
+(`RigSync`: SyncKind, SyncFreshness, SyncAuthenticator in signals the rig names) carries
+the full freshness of each stream, SyncKind telling which. With a key (`secoc_key`) the
+codec signs what it encodes and rejects, inside `decode`, what does not verify
+(``bad_mac``, ``stale_freshness``, ``unsynced``); without one, secured frames decode
+unverified and sync frames are plain ``sync`` samples, as on our bus.
 """
 
 from __future__ import annotations
@@ -28,14 +40,39 @@ from cantools.database.can import Database, Message, Signal
 from cantools.database.can.formats.arxml import AutosarEnd2EndProperties, AutosarMessageSpecifics
 from numpy.typing import NDArray
 
-from monitor.bus.codec import Decoded, Rejected, RejectReason, load_dbcs
-from monitor.bus.errors import CodecError
+from monitor.bus.codec import VERDICT_REASON, Decoded, Rejected, RejectReason, load_dbcs
+from monitor.bus.errors import CodecError, SecOCError
+from monitor.bus.secoc import DEFAULT_WINDOW, SecOC, SecOCLayout, SyncLayout
 from monitor.errors import one_line
 
 if TYPE_CHECKING:
     import can
 
-__all__ = ["Resolver", "RigCodec", "RigMessage", "load_rig_dbcs"]
+__all__ = ["Resolver", "RigCodec", "RigMessage", "RigSecOC", "RigSync", "load_rig_dbcs"]
+
+
+@dataclass(frozen=True)
+class RigSecOC:
+    """A message's SecOC: its freshness and MAC signals, the full freshness length (bits),
+    the SyncKind value of its stream and the stream's name in the freshness counters (a
+    lower-case word: ``rx/<stream>/<node>`` in a state file)."""
+
+    freshness: str
+    authenticator: str
+    freshness_length: int
+    sync_kind: int
+    stream: str
+
+
+@dataclass(frozen=True)
+class RigSync:
+    """The rig's SecOC sync message (as the rig names it) and its signals."""
+
+    message: str
+    kind: str
+    freshness: str
+    authenticator: str
+    freshness_length: int
 
 
 @dataclass(frozen=True)
@@ -51,6 +88,7 @@ class RigMessage:
     counter: str | None = None
     crc: str | None = None
     data_id: int | None = None  # None: frame_id & 0xFF
+    secoc: RigSecOC | None = None
 
 
 Resolver = Callable[[str, int], "tuple[Message, int] | None"]
@@ -65,6 +103,8 @@ class _Route:
     spec: RigMessage
     node: int
     limits: tuple[tuple[str, float, float], ...]
+    secoc: SecOCLayout | None = None
+    sync: SyncLayout | None = None
 
 
 def load_rig_dbcs(paths: Sequence[Path]) -> Database:
@@ -80,26 +120,35 @@ class RigCodec:
 
     `messages` says how to read each rig message; `resolve(name, node)` gives the DBC
     message of a rig message for a node and the frame's arbitration ID (None if the node
-    has no such message); `nodes` are the nodes to route. Built and checked by
-    `monitor.rig.check`.
+    has no such message); `nodes` are the nodes to route; `sync` is the SecOC sync message
+    (needed when a message has SecOC), `secoc_key` the key that signs and verifies. Built
+    and checked by `monitor.rig.check`.
     """
 
     def __init__(self, db: Database, source: str, messages: Sequence[RigMessage],
-                 resolve: Resolver, nodes: Sequence[int]) -> None:
+                 resolve: Resolver, nodes: Sequence[int], *, sync: RigSync | None = None,
+                 secoc_key: bytes | None = None, secoc_window: int = DEFAULT_WINDOW) -> None:
         self._db = db
         self.source = source
-        self.secoc = None
-        self.secoc_enabled = False
         self.specs: dict[str, RigMessage] = {m.name: m for m in messages}
+        self.sync = sync
         self._routes: dict[tuple[int, bool], _Route] = {}
         self._by_name: dict[tuple[str, int], tuple[_Route, int]] = {}
-        for spec in messages:
+        self._sync_streams = {m.secoc.sync_kind: m.secoc.stream
+                              for m in messages if m.secoc is not None}
+        if self._sync_streams and sync is None:
+            raise CodecError(f"{source}: SecOC needs a sync message")
+        data_ids: dict[int, str] = {}
+        sync_spec = None if sync is None else RigMessage(sync.message)
+        for spec in (*messages, *(() if sync_spec is None else (sync_spec,))):
             for node in nodes:
                 found = resolve(spec.name, node)
                 if found is None:
                     continue
                 message, frame_id = found
-                route = _Route(message, spec, node, _limits(message, spec))
+                route = self._secured(
+                    _Route(message, spec, node, _limits(message, spec)), frame_id,
+                    spec is sync_spec)
                 key = (frame_id, message.is_extended_frame)
                 other = self._routes.get(key)
                 if other is not None and other is not route:
@@ -110,6 +159,57 @@ class RigCodec:
                 self._by_name[(spec.name, node)] = (route, frame_id)
                 if spec.e2e:
                     _attach_e2e(message, frame_id if spec.data_id is None else spec.data_id)
+                if route.secoc is not None:
+                    _attach_secoc(message, route.secoc)
+                layout = route.secoc or route.sync
+                if layout is not None:
+                    seen = data_ids.setdefault(layout.data_id, f"{message.name} of node {node}")
+                    if seen != f"{message.name} of node {node}":
+                        raise CodecError(f"{source}: {message.name} of node {node} and {seen} "
+                                         f"have the same SecOC data ID 0x{layout.data_id:04X} "
+                                         "(the ID's low 16 bits)")
+        self._secoc: SecOC | None = None
+        if secoc_key is not None:
+            if not self._sync_streams:
+                raise CodecError(f"{source}: a SecOC key, but no rig message has SecOC")
+            self._secoc = SecOC(secoc_key, window=secoc_window)
+
+    def _secured(self, route: _Route, frame_id: int, is_sync: bool) -> _Route:
+        """`route` with its SecOC layout (data ID: the frame ID's low 16 bits)."""
+        msg, sec, data_id = route.message, route.spec.secoc, frame_id & 0xFFFF
+        try:
+            if is_sync:
+                assert self.sync is not None
+                s = self.sync
+                kind, fv, auth = (msg.get_signal_by_name(n)
+                                  for n in (s.kind, s.freshness, s.authenticator))
+                return _Route(msg, route.spec, route.node, route.limits,
+                              sync=SyncLayout.from_signals(msg, kind, fv, auth, data_id=data_id,
+                                                           freshness_bits=s.freshness_length))
+            if sec is None:
+                return route
+            fv, auth = (msg.get_signal_by_name(n) for n in (sec.freshness, sec.authenticator))
+            return _Route(msg, route.spec, route.node, route.limits, secoc=SecOCLayout.from_signals(
+                msg, fv, auth, data_id=data_id, freshness_bits=sec.freshness_length,
+                crc_byte=route.spec.e2e))
+        except KeyError as exc:
+            raise CodecError(f"{msg.name}: no signal {exc.args[0]} for SecOC") from None
+        except SecOCError as exc:
+            raise CodecError(str(exc)) from None
+
+    @property
+    def secoc(self) -> SecOC | None:
+        """The SecOC engine (freshness counters) when a key was given."""
+        return self._secoc
+
+    @property
+    def secoc_enabled(self) -> bool:
+        return self._secoc is not None
+
+    @property
+    def secured(self) -> bool:
+        """Whether any rig message has SecOC (verified only with a key)."""
+        return bool(self._sync_streams)
 
     @property
     def nodes(self) -> tuple[int, ...]:
@@ -121,6 +221,12 @@ class RigCodec:
 
     def message(self, name: str, node: int) -> Message:
         return self._lookup(name, node)[0].message
+
+    def sync_message(self, node: int) -> Message:
+        """`node`'s SecOC sync message (`CodecError` if the rig has none)."""
+        if self.sync is None:
+            raise CodecError("this rig has no SecOC sync message")
+        return self.message(self.sync.message, node)
 
     def _lookup(self, name: str, node: int) -> tuple[_Route, int]:
         hit = self._by_name.get((name, node))
@@ -157,12 +263,30 @@ class RigCodec:
             payload = msg.encode(signals, scaling=True, padding=False, strict=True)
         except (cantools.database.EncodeError, ValueError, OverflowError) as exc:
             raise CodecError(f"{msg.name}: {one_line(exc)}") from None
+        if route.secoc is not None and self._secoc is not None:
+            assert spec.secoc is not None
+            payload = self._secoc.sign(route.secoc, (spec.secoc.stream, node), payload)
         if spec.e2e:
             protected = apply_profile2_crc(payload, msg)
             if protected is None:
                 raise CodecError(f"{msg.name}: cantools did not apply the E2E profile 2 CRC")
             payload = bytes(protected)
         return frame_id, msg.is_extended_frame, bytes(payload)
+
+    def encode_sync(self, name: str, node: int) -> tuple[int, bool, bytes]:
+        """The sync frame announcing the freshness of rig message `name`'s stream of `node`
+        (the value of the last frame signed on it, 0 before the first; key needed)."""
+        spec = self.specs[name]
+        if spec.secoc is None or self.sync is None:
+            raise CodecError(f"{name} has no SecOC")
+        if self._secoc is None:
+            raise CodecError(f"{self.sync.message}: sync frames need a SecOC key")
+        route = self._lookup(self.sync.message, node)[0]
+        assert route.sync is not None
+        frame_id, ext, payload = self.encode(self.sync.message, node,
+                                             {self.sync.kind: spec.secoc.sync_kind})
+        return frame_id, ext, self._secoc.sign_sync(route.sync, (spec.secoc.stream, node),
+                                                    payload)
 
     def encode_sample(self, name: str, node: int, u: Sequence[float] | NDArray[np.float64],
                       y: Sequence[float] | NDArray[np.float64],
@@ -180,7 +304,7 @@ class RigCodec:
     # -- decoding -----------------------------------------------------------------------
 
     def decode(self, arbitration_id: int, data: bytes, is_extended: bool, is_remote: bool,
-               is_error: bool, timestamp: float) -> Decoded | Rejected:
+               is_error: bool, timestamp: float, is_fd: bool = False) -> Decoded | Rejected:
         """Classify one received frame; never raises."""
         if is_error:
             return Rejected(RejectReason.ERROR_FRAME, arbitration_id, timestamp)
@@ -196,12 +320,21 @@ class RigCodec:
                             detail=f"not a rig message in {self.source}")
         spec, message, node = route.spec, route.message, route.node
         data = bytes(data)
+        if is_fd != message.is_fd:
+            want, got = ("CAN FD", "classic CAN") if message.is_fd else ("classic CAN", "CAN FD")
+            return Rejected(RejectReason.FD_FRAME, arbitration_id, timestamp, node, None,
+                            f"{got} frame of {len(data)} bytes; {message.name} is a {want} "
+                            "message")
         if len(data) != message.length:
             return Rejected(RejectReason.WRONG_LENGTH, arbitration_id, timestamp, node,
                             None, f"{len(data)} bytes, expected {message.length}")
         if spec.e2e and not check_profile2_crc(data, message):
             return Rejected(RejectReason.BAD_CRC, arbitration_id, timestamp, node, None,
                             f"crc 0x{data[0]:02X}, counter {data[1] & 0xF}")
+        if self._secoc is not None and (route.secoc is not None or route.sync is not None):
+            failed = self._verify(route, data)
+            if failed is not None:
+                return Rejected(failed[0], arbitration_id, timestamp, node, None, failed[1])
         try:
             signals = cast("dict[str, float]",
                            message.decode(data, decode_choices=False, scaling=True,
@@ -214,6 +347,10 @@ class RigCodec:
             if not lo <= v <= hi:  # also catches NaN and inf
                 return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp, node,
                                 None, f"{name}={v} not in [{lo}, {hi}]")
+        if route.sync is not None:
+            assert self.sync is not None
+            return Decoded("sync", node, timestamp, float(signals[self.sync.freshness]), None,
+                           signals)
         inputs = tuple((i, float(signals[s]) * f) for i, s, f in spec.inputs)
         outputs = tuple(float(signals[s]) * f for s, f in spec.outputs)
         truth = None if spec.truth is None else float(signals[spec.truth])
@@ -222,10 +359,26 @@ class RigCodec:
                        None if spec.counter is None else int(signals[spec.counter]),
                        signals, inputs, outputs, truth)
 
+    def _verify(self, route: _Route, data: bytes) -> tuple[RejectReason, str] | None:
+        """Why a secured or sync frame is rejected (None: authentic and fresh)."""
+        assert self._secoc is not None
+        if route.secoc is not None:
+            assert route.spec.secoc is not None
+            failed = self._secoc.verify(route.secoc, (route.spec.secoc.stream, route.node),
+                                        data)
+        else:
+            assert route.sync is not None
+            index = route.sync.kind_index(data)
+            stream = self._sync_streams.get(index)
+            if stream is None:
+                return RejectReason.OUT_OF_RANGE, f"SyncKind {index} names no secured message"
+            failed = self._secoc.verify_sync(route.sync, (stream, route.node), data)
+        return None if failed is None else (VERDICT_REASON[failed[0]], failed[1])
+
     def decode_can(self, msg: can.Message) -> Decoded | Rejected:
         """`decode` for a python-can message."""
         return self.decode(msg.arbitration_id, bytes(msg.data), msg.is_extended_id,
-                           msg.is_remote_frame, msg.is_error_frame, msg.timestamp)
+                           msg.is_remote_frame, msg.is_error_frame, msg.timestamp, msg.is_fd)
 
 
 def _limits(message: Message, spec: RigMessage) -> tuple[tuple[str, float, float], ...]:
@@ -253,3 +406,11 @@ def _attach_e2e(message: Message, data_id: int) -> None:
     specifics = AutosarMessageSpecifics()
     specifics.e2e = e2e
     message.autosar = specifics
+
+
+def _attach_secoc(message: Message, layout: SecOCLayout) -> None:
+    """The properties cantools' SecOC helpers read (`cantools.autosar.secoc`); cantools has
+    no setter for them (ARXML fills them), as `monitor.bus.scheme` does for our bus."""
+    if message.autosar is None:
+        message.autosar = AutosarMessageSpecifics()
+    message.autosar._secoc = layout.properties()

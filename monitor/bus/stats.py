@@ -1,6 +1,7 @@
 """Traffic statistics of the bus, the way an operator watches it: frames per second and
-period jitter per arbitration ID, and the bus load (the share of the bit rate the frames
-take, counted with the bits of a classic CAN frame including stuffing at its worst).
+period jitter per arbitration ID, and the bus load (the share of time the frames take on the
+wire, counted with the bits of each frame including stuffing at its worst: a classic frame
+at the nominal bit rate, a CAN FD frame's data phase at the data bit rate when it switches).
 Fed every received frame (a python-can `Listener`); read by the metrics sink."""
 
 from __future__ import annotations
@@ -10,7 +11,10 @@ from dataclasses import dataclass, field
 
 import can
 
-__all__ = ["BusStats", "IdStats", "frame_bits"]
+__all__ = ["BusStats", "IdStats", "fd_frame_bits", "frame_bits", "frame_time_s"]
+
+FD_TRAILER_BITS = 12
+"""ACK slot, ACK delimiter, end of frame (7) and intermission (3), at the nominal rate."""
 
 
 def frame_bits(msg: can.Message) -> int:
@@ -19,6 +23,39 @@ def frame_bits(msg: can.Message) -> int:
     g = 54 if msg.is_extended_id else 34
     s = 0 if msg.is_remote_frame else min(len(msg.data), 8)
     return g + 8 * s + 13 + (g + 8 * s - 1) // 4
+
+
+def fd_frame_bits(msg: can.Message) -> tuple[int, int]:
+    """(bits at the nominal rate, bits in the data phase) of a CAN FD frame, worst-case
+    stuffing (ISO 11898-1:2015).
+
+    Arbitration phase, SOF to BRS: 17 bits standard, 36 extended. Data phase: ESI, DLC and
+    the data (1 + 4 + 8 n), dynamically stuffed like everything before them (at most one
+    stuff bit per 4 bits after the first, those of the arbitration bits counted there);
+    the stuff count (4) and the CRC (17 bits up to 16 data bytes, else 21) with their fixed
+    stuff bits (one before the stuff count, one after every fourth bit); the CRC
+    delimiter, where the rate switches back. Then `FD_TRAILER_BITS` at the nominal rate.
+    """
+    n = len(msg.data)
+    head = 36 if msg.is_extended_id else 17
+    body = 1 + 4 + 8 * n
+    crc = 17 if n <= 16 else 21
+    head_stuff = (head - 1) // 4
+    body_stuff = (head + body - 1) // 4 - head_stuff
+    fixed = 1 + (4 + crc - 1) // 4
+    return head + head_stuff + FD_TRAILER_BITS, body + body_stuff + 4 + crc + fixed + 1
+
+
+def frame_time_s(msg: can.Message, nominal_bitrate: float,
+                 data_bitrate: float | None = None) -> float:
+    """Seconds `msg` takes on the wire (worst-case stuffing): a classic frame at the nominal
+    rate; a CAN FD frame's data phase at `data_bitrate` if it switches rates (BRS) and one
+    is given, else at the nominal rate too."""
+    if not msg.is_fd:
+        return frame_bits(msg) / nominal_bitrate
+    nominal, data = fd_frame_bits(msg)
+    fast = data_bitrate if data_bitrate and msg.bitrate_switch else nominal_bitrate
+    return nominal / nominal_bitrate + data / fast
 
 
 @dataclass
@@ -53,16 +90,18 @@ class IdStats:
 
 @dataclass
 class BusStats(can.Listener):
-    """Counts every frame; `load(window)` is the bus load over the last window."""
+    """Counts every frame; `load` is the bus load over the last completed second (`bitrate`
+    the nominal bit rate, `data_bitrate` a CAN FD bus's data-phase rate, None: the same)."""
 
     bitrate: float = 500_000.0
+    data_bitrate: float | None = None
     ids: dict[tuple[int, bool], IdStats] = field(default_factory=dict)
     frames: int = 0
     error_frames: int = 0
-    bits: int = 0
-    _window_bits: int = 0
+    busy_s: float = 0.0  # time on the wire of every frame counted
+    _window_busy_s: float = 0.0
     _window_start: float | None = None
-    load: float = 0.0  # share of the bit rate over the last completed second
+    load: float = 0.0  # share of the time over the last completed second
 
     def on_message_received(self, msg: can.Message) -> None:
         self.frames += 1
@@ -75,12 +114,12 @@ class BusStats(can.Listener):
         if st is None:
             st = self.ids[key] = IdStats()
         st.add(t)
-        b = frame_bits(msg)
-        self.bits += b
+        busy = frame_time_s(msg, self.bitrate, self.data_bitrate)
+        self.busy_s += busy
         if self._window_start is None:
             self._window_start = t
         if t - self._window_start >= 1.0:
-            self.load = self._window_bits / ((t - self._window_start) * self.bitrate)
-            self._window_bits = 0
+            self.load = self._window_busy_s / (t - self._window_start)
+            self._window_busy_s = 0.0
             self._window_start = t
-        self._window_bits += b
+        self._window_busy_s += busy

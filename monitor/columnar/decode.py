@@ -7,20 +7,25 @@ the E2E properties the codec attached, the node of every ID, the signals' [min, 
 the codec checks, the reserved bits of our bus. `RouteTable.decode(chunk)` then gives every
 frame the verdict the codec's ``decode`` gives it, in the codec's order of checks:
 
-* our bus: error, remote, extended, unknown ID, length != 8, CRC, reserved bits set
-  (``malformed``), limits (``out_of_range``);
-* a rig: error, remote, ID of the other length (``extended_id``) or unknown, length !=
-  the message's, CRC (E2E messages), limits.
+* our bus: error, remote, extended, unknown ID, a CAN FD frame (``fd_frame``), length !=
+  8, CRC, reserved bits set (``malformed``), limits (``out_of_range``);
+* a rig: error, remote, ID of the other length (``extended_id``) or unknown, frame format
+  not the message's (``fd_frame``), length != the message's, CRC (E2E messages), limits.
 
 and, for the frames it accepts, the values the pipeline reads off `Decoded`: the model's
 inputs (index, value in the model's unit), outputs, a simulator's truth, the alive
 counter, as columns. SecOC cannot be columnar (every frame's verdict depends on the
 freshness state of its stream): `RouteTable.of` refuses a codec with a key
-(`NotColumnar`), and the replay runs that file frame by frame.
+(`NotColumnar`), and the replay runs that file frame by frame. CAN FD messages of up to
+64 bytes are decoded in columns: each signal is read from the 8-byte window of the payload
+that holds it (a signal wider than any such window, or E2E on a message over 8 bytes, sends
+the file frame by frame); FD frames on a rig's classic messages, or on our bus, get their
+``fd_frame`` verdict here.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -63,15 +68,40 @@ class Route:
     inputs: tuple[tuple[int, str, float], ...]  # (input index, signal, factor)
     outputs: tuple[tuple[str, float], ...]  # (signal, factor)
     truth: str | None
+    fd: bool = False  # a CAN FD message in the DBC
     stream: int = 0  # alive-counter stream (kind, node)
-    extractors: dict[str, SignalExtractor] = field(default_factory=dict)
+    extractors: dict[str, tuple[int, SignalExtractor]] = field(default_factory=dict)
 
-    def extractor(self, name: str) -> SignalExtractor:
-        ex = self.extractors.get(name)
-        if ex is None:
-            ex = SignalExtractor(self.message.get_signal_by_name(name), self.length)
-            self.extractors[name] = ex
-        return ex
+    def extractor(self, name: str) -> tuple[int, SignalExtractor]:
+        """(first byte of the 8-byte window that holds signal `name`, its extractor there)."""
+        hit = self.extractors.get(name)
+        if hit is None:
+            signal = self.message.get_signal_by_name(name)
+            first = window_of(signal, self.length)
+            if first is None:
+                raise NotColumnar(f"{self.message.name}: {name} spans more than 8 bytes")
+            if first:
+                signal = copy.copy(signal)
+                signal.start -= 8 * first  # byte-aligned shift: either byte order
+            hit = (first, SignalExtractor(signal, min(self.length, 8)))
+            self.extractors[name] = hit
+        return hit
+
+
+def window_of(signal: Any, length: int) -> int | None:
+    """The first byte of an 8-byte window of a `length`-byte payload holding `signal`
+    (0 for payloads of up to 8 bytes), None if no such window holds it."""
+    if length <= 8:
+        return 0
+    n = int(signal.length)
+    if signal.byte_order == "little_endian":
+        lo, hi = signal.start // 8, (signal.start + n - 1) // 8
+    else:  # Motorola: from the MSB's byte on, in big-endian bit order
+        msb = 8 * (signal.start // 8) + 7 - signal.start % 8
+        lo, hi = signal.start // 8, (msb + n - 1) // 8
+    if hi - lo >= 8 or hi >= length:
+        return None
+    return min(lo, length - 8)
 
 
 @dataclass
@@ -114,7 +144,8 @@ class RouteTable:
     def of(cls, codec: Any, m: int, p: int) -> RouteTable:
         """The table of a `MotorDatabase` or `RigCodec` for a model with m inputs and p
         outputs. `NotColumnar` for SecOC, other codecs, or messages over 8 bytes."""
-        if getattr(codec, "secoc_enabled", False):
+        if getattr(codec, "secoc_enabled", False) or getattr(codec, "secured", False):
+            # (a rig's sync frames, even unverified, are counted as the per-frame path does)
             raise NotColumnar("SecOC verification keeps per-frame freshness state")
         routes: list[Route] = []
         if isinstance(codec, MotorDatabase):
@@ -134,13 +165,22 @@ class RouteTable:
                 routes.append(Route(
                     fid, ext, rr.message, rr.node, spec.name, int(rr.message.length), spec.e2e,
                     0, tuple(rr.limits), spec.counter, tuple(spec.inputs),
-                    tuple(spec.outputs), spec.truth))
+                    tuple(spec.outputs), spec.truth, bool(rr.message.is_fd)))
             our = False
         else:
             raise NotColumnar(f"no columnar decoder for {type(codec).__name__}")
         for r in routes:
-            if not 0 < r.length <= 8:
+            if not 0 < r.length <= 64:
                 raise NotColumnar(f"{r.message.name}: {r.length}-byte frames")
+            if r.length > 8 and r.e2e:
+                raise NotColumnar(f"{r.message.name}: E2E on {r.length}-byte CAN FD frames")
+            if r.length > 8:
+                used = [s for _, s, _ in r.inputs] + [s for s, _ in r.outputs] + \
+                    [name for name, _, _ in r.limits]
+                used += [x for x in (r.truth, r.counter) if x is not None]
+                for name in dict.fromkeys(used):
+                    if window_of(r.message.get_signal_by_name(name), r.length) is None:
+                        raise NotColumnar(f"{r.message.name}: {name} spans more than 8 bytes")
             if any(i >= m for i, _, _ in r.inputs) or len(r.outputs) > p:
                 raise NotColumnar(f"{r.message.name}: more signals than the model has")
         return cls(routes, m=m, p=p, our_bus=our)
@@ -181,26 +221,28 @@ class RouteTable:
         for ri in present.tolist():
             r = self.routes[ri]
             rows = np.flatnonzero(route == ri)
+            bad = c.is_fd[rows] != r.fd
+            code[rows[bad]] = _CODE[RejectReason.FD_FRAME]
+            rows = rows[~bad]
             bad = c.length[rows] != r.length
             code[rows[bad]] = _CODE[RejectReason.WRONG_LENGTH]
             rows = rows[~bad]
             if not len(rows):
                 continue
-            data = c.data[rows]
+            data = c.data[rows, :max(8, r.length)]
             if r.e2e:
-                ok = profile2_ok(r.message, data, r.length)
+                ok = profile2_ok(r.message, data[:, :8], r.length)
                 code[rows[~ok]] = _CODE[RejectReason.BAD_CRC]
                 rows, data = rows[ok], data[ok]
-            le, be = payload_integers(data)
+            vals = _Values(r, data)
             if r.reserved_mask:
                 mask = np.uint64(r.reserved_mask & 0xFFFFFFFFFFFFFFFF)
-                bad = (le & mask) != 0
+                bad = (vals.window(0)[0] & mask) != 0
                 code[rows[bad]] = _CODE[RejectReason.MALFORMED]
                 keep = ~bad
-                rows, le, be = rows[keep], le[keep], be[keep]
+                rows, vals = rows[keep], vals.subset(keep)
             if not len(rows):
                 continue
-            vals = _Values(r, le, be)
             inside = np.ones(len(rows), np.bool_)
             for name, lo, hi in r.limits:
                 v = vals.get(name)
@@ -226,22 +268,33 @@ class RouteTable:
 
 
 class _Values:
-    """Signals of one route's payloads, each extracted once."""
+    """Signals of one route's payloads (rows of `data`, at least 8 bytes wide), each
+    extracted once, from the 8-byte window that holds it."""
 
-    def __init__(self, route: Route, le: NDArray[np.uint64], be: NDArray[np.uint64]) -> None:
+    def __init__(self, route: Route, data: NDArray[np.uint8]) -> None:
         self.route = route
-        self.le = le
-        self.be = be
+        self.data = data
+        self.windows: dict[int, tuple[NDArray[np.uint64], NDArray[np.uint64]]] = {}
         self.cache: dict[str, NDArray[np.float64]] = {}
+
+    def window(self, first: int) -> tuple[NDArray[np.uint64], NDArray[np.uint64]]:
+        """(little-endian, big-endian) integers of bytes first..first+7 of every payload."""
+        w = self.windows.get(first)
+        if w is None:
+            w = payload_integers(self.data[:, first:first + 8])
+            self.windows[first] = w
+        return w
 
     def get(self, name: str) -> NDArray[np.float64]:
         v = self.cache.get(name)
         if v is None:
-            v = self.route.extractor(name).extract(self.le, self.be)
+            first, ex = self.route.extractor(name)
+            v = ex.extract(*self.window(first))
             self.cache[name] = v
         return v
 
     def subset(self, keep: NDArray[np.bool_]) -> _Values:
-        out = _Values(self.route, self.le[keep], self.be[keep])
+        out = _Values(self.route, self.data[keep])
+        out.windows = {k: (le[keep], be[keep]) for k, (le, be) in self.windows.items()}
         out.cache = {k: v[keep] for k, v in self.cache.items()}
         return out

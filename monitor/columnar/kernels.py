@@ -4,9 +4,10 @@ classes it calls) statement by statement; tests/test_columnar.py holds them to t
 results on every test log.
 
 * `ticks`: where `feed_log` calls ``pipe.tick`` (every `TICK_S` of bus time).
-* `admit`: `MonitorPipeline._on_output` up to the estimator step: no voltage yet,
-  non-monotonic time, a gap that restarts the estimator, the sample periods k
-  (`MonitorPipeline._periods`) and late samples.
+* `admit`: `MonitorPipeline._check_counter`'s judgement of a repeated counter and
+  `MonitorPipeline._on_output` up to the estimator step: no voltage yet, non-monotonic
+  time, a gap that restarts the estimator, the sample periods k
+  (`MonitorPipeline._periods`, `monitor.pipeline.periods`) and late samples.
 * `classify`: per node, samples and ticks in order: `OnlineClassifier.update` and
   `mark_no_data` (eq (76) with hysteresis and dwell), `MismatchDetector.update` and
   `reset`, the health-state transitions and the due `Diagnosis` of `_on_output` and
@@ -21,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from monitor.estimation.jit import njit
+from monitor.pipeline import periods
 
 __all__ = ["CLS_PARAMS", "CLS_STATE", "TICK_S", "admit", "classify", "ticks"]
 
@@ -53,17 +55,26 @@ def ticks(t: F8, last: F8, out_idx: I8) -> int:
     return k
 
 
+_counter_periods = njit(periods.counter_periods)
+_wrapped = njit(periods.wrapped)
+
+
 @njit
-def admit(t: F8, lost: I8, seen: B1, last: F8, rate: float, max_gap: float,
-          jitter_fraction: float, status: I8, k_out: I8, restart: B1, jitter: B1) -> None:
-    """Per output sample: status 0 admitted, 1 no voltage yet, 2 time does not advance; k
-    sample periods since the previous one; restart after a gap over max_gap; jitter (late
+def admit(t: F8, lost: I8, wrap: B1, seen: B1, last: F8, rate: float, max_gap: float,
+          silence: float, jitter_fraction: float, status: I8, k_out: I8, restart: B1,
+          jitter: B1) -> None:
+    """Per output sample: status 0 admitted, 1 no voltage yet, 2 time does not advance,
+    3 a repeated counter (`wrap`: one that may be 16 m - 1 lost samples) that is a repeat;
+    k sample periods since the previous one; restart after a gap over max_gap; jitter (late
     sample without a counter). last[0]: the node's last admitted time (NaN: none)."""
     lt = last[0]
     for i in range(t.shape[0]):
         restart[i] = False
         jitter[i] = False
         k_out[i] = 1
+        if wrap[i] and (lt != lt or not _wrapped(t[i] - lt, rate, silence)):
+            status[i] = 3
+            continue
         if not seen[i]:
             status[i] = 1
             continue
@@ -84,11 +95,7 @@ def admit(t: F8, lost: I8, seen: B1, last: F8, rate: float, max_gap: float,
                     if abs(k_time - k) > jitter_fraction:
                         jitter[i] = True
                 else:
-                    kc = lost[i] + 1
-                    if k_time < 12.0:
-                        k = kc
-                    else:
-                        k = kc + 16 * max(0, int(np.rint((k_time - kc) / 16.0)))
+                    k = _counter_periods(k_time, lost[i] + 1)
         status[i] = 0
         k_out[i] = k
         lt = t[i]

@@ -16,9 +16,11 @@ Every reader gives exactly the frames python-can's `can.LogReader` gives for the
 * ``.asc`` and ``.blf``: python-can's readers (measured: 80,000 and 210,000 frames/s on
   one core of the development machine), their messages copied into the arrays.
 
-A frame's payload is ``data[i, :min(length[i], 8)]``; `length` is the payload's true length
-(CAN FD up to 64: the columns keep the first 8 bytes, enough for every decision the monitor
-makes on a longer frame, which is ``wrong_length``).
+A frame's payload is ``data[i, :length[i]]``. `data` is 8 bytes wide, or 64 when the chunk
+holds a CAN FD frame longer than 8 bytes, so no payload is ever cut short; `fd`,
+`bitrate_switch` and `error_state_indicator` carry the CAN FD flags (candump ``##<flags>``,
+BLF's FD objects), so an FD frame gets the same outcome (``fd_frame`` on a classic message,
+decoded on an FD one) in both replay paths.
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ from monitor.estimation.jit import njit
 __all__ = ["LOG_SUFFIXES", "FrameChunk", "LogReadError", "chunk_from_messages", "read_chunks"]
 
 DEFAULT_CHUNK_FRAMES = 1 << 18
+CLASSIC_WIDTH = 8
+FD_WIDTH = 64  # the longest CAN FD payload
 _READ_BYTES = 1 << 24  # candump text read per call (about 330,000 lines)
 
 
@@ -64,41 +68,75 @@ class FrameChunk:
     remote: NDArray[np.bool_]
     error: NDArray[np.bool_]
     length: NDArray[np.int64]
-    data: NDArray[np.uint8]  # (n, 8), zero beyond the length
+    data: NDArray[np.uint8]  # (n, 8) or (n, 64) with long FD frames; zero beyond the length
+    fd: NDArray[np.bool_] | None = None  # None: no CAN FD frame in the chunk
+    bitrate_switch: NDArray[np.bool_] | None = None
+    error_state_indicator: NDArray[np.bool_] | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self)
+        if self.fd is None:
+            self.fd = np.zeros(n, np.bool_)
+        if self.bitrate_switch is None:
+            self.bitrate_switch = np.zeros(n, np.bool_)
+        if self.error_state_indicator is None:
+            self.error_state_indicator = np.zeros(n, np.bool_)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
+    @property
+    def is_fd(self) -> NDArray[np.bool_]:
+        """The CAN FD flag of every row."""
+        assert self.fd is not None  # __post_init__
+        return self.fd
+
+    @property
+    def is_esi(self) -> NDArray[np.bool_]:
+        """The CAN FD error state indicator of every row (the sender is error passive)."""
+        assert self.error_state_indicator is not None  # __post_init__
+        return self.error_state_indicator
+
     def message(self, i: int) -> can.Message:
         """Row i as a python-can message (for the rare frames handled one by one)."""
-        n = min(int(self.length[i]), 8)
+        n = min(int(self.length[i]), self.data.shape[1])
+        assert self.bitrate_switch is not None and self.error_state_indicator is not None
         return can.Message(timestamp=float(self.t[i]), arbitration_id=int(self.arbitration_id[i]),
                            is_extended_id=bool(self.extended[i]),
                            is_remote_frame=bool(self.remote[i]),
                            is_error_frame=bool(self.error[i]),
+                           is_fd=bool(self.is_fd[i]),
+                           bitrate_switch=bool(self.bitrate_switch[i]),
+                           error_state_indicator=bool(self.error_state_indicator[i]),
                            data=bytes(self.data[i, :n]), check=False)
 
 
-def _empty(n: int) -> FrameChunk:
+def _empty(n: int, width: int = CLASSIC_WIDTH) -> FrameChunk:
     return FrameChunk(np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.bool_),
                       np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.zeros(n, np.int64),
-                      np.zeros((n, 8), np.uint8))
+                      np.zeros((n, width), np.uint8), np.zeros(n, np.bool_),
+                      np.zeros(n, np.bool_), np.zeros(n, np.bool_))
 
 
 def chunk_from_messages(msgs: Iterable[can.Message]) -> FrameChunk:
     """Columns of python-can messages (exactly what the per-frame path would feed)."""
     rows = list(msgs)
-    c = _empty(len(rows))
+    long_fd = any(len(m.data or b"") > CLASSIC_WIDTH for m in rows)
+    c = _empty(len(rows), FD_WIDTH if long_fd else CLASSIC_WIDTH)
+    assert c.bitrate_switch is not None and c.error_state_indicator is not None
     for i, m in enumerate(rows):
         c.t[i] = m.timestamp
         c.arbitration_id[i] = m.arbitration_id
         c.extended[i] = m.is_extended_id
         c.remote[i] = m.is_remote_frame
         c.error[i] = m.is_error_frame
+        c.is_fd[i] = m.is_fd
+        c.bitrate_switch[i] = m.bitrate_switch
+        c.error_state_indicator[i] = m.error_state_indicator
         d = bytes(m.data or b"")
         c.length[i] = len(d)
         if d:
-            k = min(len(d), 8)
+            k = min(len(d), c.data.shape[1])
             c.data[i, :k] = np.frombuffer(d[:k], np.uint8)
     return c
 
@@ -165,9 +203,10 @@ def _candump_chunks(path: Path, fh: io.BufferedReader) -> Iterator[FrameChunk]:
 def _parse_candump(path: Path, text: bytes) -> FrameChunk:
     buf = np.frombuffer(text, np.uint8)
     cap = text.count(b"\n") + 1
-    c = _empty(cap)
+    c = _empty(cap, FD_WIDTH if b"##" in text else CLASSIC_WIDTH)
+    assert c.bitrate_switch is not None and c.error_state_indicator is not None
     n = _scan_candump(buf, c.t, c.arbitration_id, c.extended, c.remote, c.error, c.length,
-                      c.data)
+                      c.data, c.is_fd, c.bitrate_switch, c.error_state_indicator)
     if n < 0:  # a line the scanner does not take: python-can reads this chunk
         try:
             reader = can.io.canutils.CanutilsLogReader(io.StringIO(text.decode()))
@@ -175,7 +214,8 @@ def _parse_candump(path: Path, text: bytes) -> FrameChunk:
         except (*READ_ERRORS, UnicodeDecodeError) as exc:
             raise malformed(path, exc) from None
     return FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
-                      c.error[:n], c.length[:n], c.data[:n])
+                      c.error[:n], c.length[:n], c.data[:n], c.is_fd[:n],
+                      c.bitrate_switch[:n], c.error_state_indicator[:n])
 
 
 _POW10 = np.array([10.0 ** k for k in range(23)])
@@ -202,10 +242,12 @@ def _is_space(ch: int) -> bool:
 @njit
 def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[np.int64],
                   ext: NDArray[np.bool_], remote: NDArray[np.bool_], err: NDArray[np.bool_],
-                  length: NDArray[np.int64], data: NDArray[np.uint8]) -> int:
+                  length: NDArray[np.int64], data: NDArray[np.uint8], fd: NDArray[np.bool_],
+                  brs: NDArray[np.bool_], esi: NDArray[np.bool_]) -> int:
     """Frames of candump -L lines into the arrays; returns the count, -1 for a line it does
-    not take as plain (the caller then asks python-can)."""
+    not take as plain (the caller then asks python-can). `data` is 8 or 64 bytes wide."""
     pow10 = _POW10
+    width = data.shape[1]
     size = buf.shape[0]
     n = 0
     i = 0
@@ -284,9 +326,13 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
         if h >= k or nid == 0 or nid > 8:
             return -1
         h += 1  # '#'
+        is_fd = False
+        flags = 0
         if h < k and buf[h] == 35:  # CAN FD: '##' and a flags digit
             if h + 1 >= k or _hexval(buf[h + 1]) < 0 or buf[h + 1] > 57:
                 return -1
+            is_fd = True
+            flags = buf[h + 1] - 48
             h += 2
         is_remote = False
         nbytes = 0
@@ -299,14 +345,15 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
             if (k - h) % 2 != 0:
                 return -1
             nbytes = (k - h) // 2
+            if nbytes > width:  # longer than CAN FD allows: python-can decides
+                return -1
             for b in range(nbytes):
                 hi = _hexval(buf[h + 2 * b])
                 lo = _hexval(buf[h + 2 * b + 1])
                 if hi < 0 or lo < 0:
                     return -1
-                if b < 8:
-                    data[n, b] = hi * 16 + lo
-            for b in range(nbytes, 8):
+                data[n, b] = hi * 16 + lo
+            for b in range(nbytes, width):
                 data[n, b] = 0
         t[n] = ts
         if (cid & 0x20000000) != 0 and (cid & 0x80) != 0:
@@ -315,7 +362,10 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
             ext[n] = True  # python-can's Message default
             remote[n] = False
             length[n] = 0
-            for b in range(8):
+            fd[n] = False
+            brs[n] = False
+            esi[n] = False
+            for b in range(width):
                 data[n, b] = 0
         else:
             ids[n] = cid & 0x1FFFFFFF
@@ -323,8 +373,11 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
             ext[n] = nid > 3
             remote[n] = is_remote
             length[n] = 0 if is_remote else nbytes
+            fd[n] = is_fd
+            brs[n] = is_fd and (flags & 1) != 0
+            esi[n] = is_fd and (flags & 2) != 0
             if is_remote:
-                for b in range(8):
+                for b in range(width):
                     data[n, b] = 0
         n += 1
         i = nxt

@@ -148,6 +148,12 @@ class _Replay:
             return
         cnt = self.counters
         cnt.inc(C.FRAMES_RECEIVED, n)
+        fd = c.is_fd
+        if fd.any():  # sub-counts of frames/received, as MonitorPipeline.feed counts them
+            cnt.inc(C.FRAMES_FD, int(fd.sum()))
+            esi = fd & c.is_esi
+            if esi.any():
+                cnt.inc(C.FRAMES_FD_ESI, int(esi.sum()))
         events: list[tuple[int, int, int, Any]] = []  # (key, node order, seq, event)
         for i in np.flatnonzero(c.error).tolist():
             self._error_frame(c, i, events)
@@ -192,6 +198,7 @@ class _Replay:
                 self._node(nd)
         # alive counters, per (kind, node) stream, in frame order
         lost = np.full(n, -1, np.int64)
+        wrap = np.zeros(n, np.bool_)  # repeated counters `K.admit` judges
         ctr = dec.counter[acc]
         has_c = ctr >= 0
         if has_c.any():
@@ -218,10 +225,19 @@ class _Replay:
             rep[order] = repeated
             lz = np.zeros(len(cv), np.int64)
             lz[order] = lost_s
+            # A repeat of an output-only message may be 16 m - 1 lost samples: `K.admit` judges
+            # it by the time since the previous sample (`MonitorPipeline._check_counter`).
+            r_out_only = np.array([bool(r.outputs) and not r.inputs and r.truth is None
+                                   for r in routes] or [False])
+            deferred = rep & r_out_only[ra[has_c]]
+            lz[deferred] = 15
+            rep &= ~deferred
             lost[ci] = lz
-            if repeated.any():
-                cnt.inc(C.E2E_REPEATED, int(repeated.sum()))
-                self._warn("repeat", f"repeated alive counters: {int(repeated.sum())} frames")
+            wrap[ci] = deferred
+            n_rep = int(rep.sum())
+            if n_rep:
+                cnt.inc(C.E2E_REPEATED, n_rep)
+                self._warn("repeat", f"repeated alive counters: {n_rep} frames")
             if jump.any():
                 cnt.inc(C.E2E_COUNTER_JUMPS, int(jump.sum()))
                 cnt.inc(C.E2E_LOST_FRAMES, int(lost_s.sum()))
@@ -234,7 +250,7 @@ class _Replay:
         order_of = {nd: k for k, nd in enumerate(self.nodes)}
         for nd, nm in self.nodes.items():
             sel = node == nd
-            self._node_chunk(nm, c, dec, acc[sel], ra[sel], lost, tick_idx,
+            self._node_chunk(nm, c, dec, acc[sel], ra[sel], lost, wrap, tick_idx,
                              first_pos.get(nd, -1), order_of[nd], events)
         self.offset += n
         events.sort(key=lambda e: (e[0], e[1], e[2]))
@@ -264,7 +280,8 @@ class _Replay:
 
     def _node_chunk(self, nm: _Node, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
                     ra: NDArray[np.int64], lost_all: NDArray[np.int64],
-                    tick_idx: NDArray[np.int64], created: int, order: int,
+                    wrap_all: NDArray[np.bool_], tick_idx: NDArray[np.int64], created: int,
+                    order: int,
                     events: list[tuple[int, int, int, Any]]) -> None:
         cnt = self.counters
         cfg = self.cfg
@@ -307,8 +324,18 @@ class _Replay:
         kk = np.ones(len(oi), np.int64)
         restart = np.zeros(len(oi), np.bool_)
         jitter = np.zeros(len(oi), np.bool_)
-        K.admit(t_o, lost_all[fr[oi]], seen[oi], nm.last_admit, cfg.rate, cfg.max_gap_s,
-                cfg.jitter_fraction, status, kk, restart, jitter)
+        cand = wrap_all[fr[oi]]
+        K.admit(t_o, lost_all[fr[oi]], cand, seen[oi], nm.last_admit, cfg.rate, cfg.max_gap_s,
+                cfg.silence_timeout_s, cfg.jitter_fraction, status, kk, restart, jitter)
+        if cand.any():
+            n_rep = int((status[cand] == 3).sum())
+            n_wrap = int(cand.sum()) - n_rep
+            if n_rep:
+                cnt.inc(C.E2E_REPEATED, n_rep)
+                self._warn("repeat", f"repeated alive counters: {n_rep} frames")
+            if n_wrap:
+                cnt.inc(C.E2E_COUNTER_JUMPS, n_wrap)
+                cnt.inc(C.E2E_LOST_FRAMES, 15 * n_wrap)
         if (status == 1).any():
             cnt.inc(C.SAMPLES_NO_VOLTAGE, int((status == 1).sum()))
         if (status == 2).any():

@@ -11,6 +11,11 @@ from typing import Final
 __all__ = ["Counters", "bus_error", "rejected", "transition"]
 
 FRAMES_RECEIVED: Final = "frames/received"
+#: Of the frames received, those in CAN FD format, and those of them whose error state
+#: indicator says the sender is error passive. Not outcomes: each such frame is also in
+#: exactly one outcome counter (decoded, or e.g. ``rejected/fd_frame``).
+FRAMES_FD: Final = "frames/fd"
+FRAMES_FD_ESI: Final = "frames/fd_esi"
 REJECTED_PREFIX: Final = "rejected/"
 IGNORED_NODE: Final = "ignored/node"
 IGNORED_DIAGNOSIS: Final = "ignored/diagnosis"

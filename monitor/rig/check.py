@@ -1,5 +1,5 @@
 """A rig checked against its DBC files and its model: messages and signals exist, units
-convert, protection signals sit where AUTOSAR E2E profile 2 puts them, the model's shapes
+convert, protection signals sit where AUTOSAR E2E profile 2 and SecOC put them, the model's shapes
 agree with the signals and its faults are observable. Builds what the monitor runs with:
 the frame decoder and the discrete model."""
 
@@ -14,8 +14,9 @@ from dataclasses import replace
 from cantools.database.can import Database, Message, Signal
 
 from monitor.bus.codec import MotorDatabase, load_database
-from monitor.bus.errors import CodecError
-from monitor.bus.rigcodec import RigCodec, RigMessage, load_rig_dbcs
+from monitor.bus.errors import CodecError, SecOCError
+from monitor.bus.rigcodec import RigCodec, RigMessage, RigSecOC, RigSync, load_rig_dbcs
+from monitor.bus.secoc import SecOCLayout, SyncLayout
 from monitor.errors import MonitorError
 from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, ModelError, dc_motor
 from monitor.rig.spec import Rig, SignalRef
@@ -70,7 +71,7 @@ def _resolver(rig: Rig, db: Database, fail: Fail) -> tuple[Callable[[str, int],
             hit = _SUFFIX.match(m.name)
             if hit:
                 nodes_of.setdefault(hit["name"], set()).add(int(hit["node"]))
-        for name in rig.messages:
+        for name in rig.bus_messages:
             if name not in nodes_of:
                 raise fail(_key_of(rig, name), f"no message {name}_N<node> in the DBC")
         nodes = sorted(set.union(*(nodes_of[n] for n in rig.messages)))
@@ -82,7 +83,7 @@ def _resolver(rig: Rig, db: Database, fail: Fail) -> tuple[Callable[[str, int],
         return resolve, nodes
     if lay.kind == "id_bits":
         mask = (1 << lay.bits) - 1
-        for name in rig.messages:
+        for name in rig.bus_messages:
             found = by_name.get(name)
             if found is None:
                 raise fail(_key_of(rig, name), f"no message {name} in the DBC")
@@ -106,7 +107,7 @@ def _resolver(rig: Rig, db: Database, fail: Fail) -> tuple[Callable[[str, int],
         return resolve_bits, list(range(mask + 1))
     # explicit
     for node, table in lay.explicit.items():
-        for name in rig.messages:
+        for name in rig.bus_messages:
             if name not in table:
                 raise fail(f"bus.node_messages.{node}", f"no entry for rig message {name}")
             if table[name] not in by_name:
@@ -124,6 +125,8 @@ def _resolver(rig: Rig, db: Database, fail: Fail) -> tuple[Callable[[str, int],
 
 
 def _key_of(rig: Rig, message: str) -> str:
+    if rig.secoc is not None and message == rig.secoc.message and message not in rig.messages:
+        return "secoc.sync"
     for group, refs in (("inputs", rig.inputs), ("outputs", rig.outputs)):
         for i, r in enumerate(refs):
             if r.message == message:
@@ -133,6 +136,7 @@ def _key_of(rig: Rig, message: str) -> str:
 
 def _rig_messages(rig: Rig, sample: Callable[[str], Message], fail: Fail) -> list[RigMessage]:
     """Each rig message's reading instructions, checked against a DBC message of it."""
+    streams = _streams(rig, fail)
     out = []
     for name in rig.messages:
         m = sample(name)
@@ -171,11 +175,80 @@ def _rig_messages(rig: Rig, sample: Callable[[str], Message], fail: Fail) -> lis
         out.append(RigMessage(name, inputs, outputs, truth, e2e,
                               prot.counter if e2e and prot else None,
                               prot.crc if e2e and prot else None,
-                              prot.data_id if prot else None))
+                              prot.data_id if prot else None,
+                              _secoc(rig, name, m, e2e, streams, fail)))
     for name in rig.protection:
         if name not in rig.messages:
             raise fail(f"protection.{name}", "not a message of the rig's signals")
     return out
+
+
+def _streams(rig: Rig, fail: Fail) -> dict[str, tuple[int, str]]:
+    """Each secured rig message's SyncKind and stream name (its name in lower case: the
+    freshness counters' ``rx/<stream>/<node>``), checked to be distinct."""
+    secured = [n for n in rig.messages
+               if (p := rig.protection.get(n)) is not None and p.secoc is not None]
+    out: dict[str, tuple[int, str]] = {}
+    for i, name in enumerate(secured):
+        sec = rig.protection[name].secoc
+        assert sec is not None
+        kind = i if sec.sync_kind is None else sec.sync_kind
+        stream = re.sub(r"[^a-z0-9_]", "_", name.lower())
+        stream = stream if stream[:1].isalpha() else "m" + stream
+        for other, (k, st) in out.items():
+            if k == kind:
+                raise fail(f"protection.{name}.secoc.sync_kind", f"SyncKind {kind} is "
+                           f"{other}'s too: give each secured message its own")
+            if st == stream:
+                raise fail(f"protection.{name}", f"{name} and {other} have the same name in "
+                           "lower case (their freshness counters would share a name)")
+        out[name] = (kind, stream)
+    return out
+
+
+def _secoc(rig: Rig, name: str, m: Message, e2e: bool, streams: dict[str, tuple[int, str]],
+           fail: Fail) -> RigSecOC | None:
+    """Rig message `name`'s SecOC, its signals and their places checked in `m`."""
+    prot = rig.protection.get(name)
+    if prot is None or prot.secoc is None:
+        return None
+    assert rig.secoc is not None  # the loader requires [secoc] for a secured message
+    sec, key = prot.secoc, f"protection.{name}.secoc"
+    sigs = {s.name: s for s in m.signals}
+    for field, signal in (("freshness", sec.freshness), ("authenticator", sec.authenticator)):
+        if signal not in sigs:
+            raise fail(f"{key}.{field}", f"{m.name} has no signal {signal}")
+    try:  # the data ID is each node's frame ID (the codec's); its place is checked here
+        SecOCLayout.from_signals(m, sigs[sec.freshness], sigs[sec.authenticator], data_id=0,
+                                 freshness_bits=rig.secoc.freshness_length, crc_byte=e2e)
+    except SecOCError as exc:
+        raise fail(key, str(exc)) from None
+    kind, stream = streams[name]
+    return RigSecOC(sec.freshness, sec.authenticator, rig.secoc.freshness_length, kind, stream)
+
+
+def _sync(rig: Rig, m: Message, streams: dict[str, tuple[int, str]], fail: Fail) -> RigSync:
+    """The rig's sync message, its signals and their places checked in `m`."""
+    s = rig.secoc
+    assert s is not None
+    if s.message in rig.messages:
+        raise fail("secoc.sync", f"{s.message} carries the model's signals; the sync message "
+                   "must be a message of its own")
+    sigs = {x.name: x for x in m.signals}
+    for field in ("kind", "freshness", "authenticator"):
+        if getattr(s, field) not in sigs:
+            raise fail(f"secoc.{field}", f"{m.name} has no signal {getattr(s, field)}")
+    try:
+        layout = SyncLayout.from_signals(m, sigs[s.kind], sigs[s.freshness],
+                                         sigs[s.authenticator], data_id=0,
+                                         freshness_bits=s.freshness_length)
+    except SecOCError as exc:
+        raise fail("secoc", str(exc)) from None
+    top = max(k for k, _ in streams.values())
+    if top >> layout.kind_bits:
+        raise fail("secoc.kind", f"{m.name}.{s.kind} has {layout.kind_bits} bit(s), too few "
+                   f"for SyncKind {top}")
+    return RigSync(s.message, s.kind, s.freshness, s.authenticator, s.freshness_length)
 
 
 def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
@@ -189,8 +262,9 @@ def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
             if rig.source is None:  # our rig with --dbc: the error names the file already
                 raise
             raise fail("bus.dbc", str(exc)) from None
-    if secoc_key is not None:
-        raise fail("bus", "SecOC (--key) is available on our own bus only, not on a rig's DBC")
+    if secoc_key is not None and rig.secoc is None:
+        raise fail("secoc", "a SecOC key (--key) was given, but no message of the rig has "
+                   "SecOC (protection.<message>.secoc)")
     try:
         db = load_rig_dbcs(rig.dbc)
     except CodecError as exc:
@@ -208,8 +282,11 @@ def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
         raise fail(_key_of(rig, name), f"no {name} message for nodes {nodes}")
 
     messages = _rig_messages(rig, sample, fail)
+    sync = None if rig.secoc is None else _sync(rig, sample(rig.secoc.message),
+                                                 _streams(rig, fail), fail)
     try:
-        return RigCodec(db, ", ".join(p.name for p in rig.dbc), messages, resolve, nodes)
+        return RigCodec(db, ", ".join(p.name for p in rig.dbc), messages, resolve, nodes,
+                        sync=sync, secoc_key=secoc_key)
     except CodecError as exc:
         raise fail("bus", str(exc)) from None
 

@@ -22,7 +22,9 @@ from monitor.rig.spec import (
     ModelSpec,
     ProtectionSpec,
     Rig,
+    SecOCSpec,
     SignalRef,
+    SyncSpec,
 )
 
 __all__ = ["RigError", "builtin_rig", "load_rig", "parse_rig"]
@@ -169,6 +171,7 @@ def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None) -> Rig:
     for name in list(prot_t.data):
         protection[name] = _protection(prot_t.table(name), fail)
     prot_t.done()
+    secoc = _sync(top.take("secoc", dict, None), protection, fail)
 
     model_t = top.table("model", required=True)
     model, rate = _model(model_t, len(inputs), len(outputs), fail)
@@ -180,7 +183,7 @@ def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None) -> Rig:
     top.done()
     rig = Rig(dbc=dbc, layout=layout, inputs=inputs, outputs=outputs, truth=truth,
               protection=protection, model=model, rate=rate, diagnosis=diagnosis,
-              nodes=nodes, source=source)
+              nodes=nodes, source=source, secoc=secoc)
     from monitor.rig.check import check_rig  # the DBC and the model, checked against the rig
 
     return check_rig(rig, fail)
@@ -249,9 +252,11 @@ def _refs(signals: _Table, name: str, fail: Callable[[str, str], RigError]
 
 
 def _protection(t: _Table, fail: Callable[[str, str], RigError]) -> ProtectionSpec:
-    kind = t.take("kind", str)
+    kind = t.take("kind", str, "none")
+    secoc_t = t.take("secoc", dict, None)
+    secoc = None if secoc_t is None else _secoc(_Table(secoc_t, t.key("secoc"), fail))
     if kind == "none":
-        spec = ProtectionSpec("none")
+        spec = ProtectionSpec("none", secoc=secoc)
     elif kind == "e2e_profile2":
         data_id = t.take("data_id", (int, str), "id_low_byte")
         if data_id == "id_low_byte":
@@ -260,9 +265,43 @@ def _protection(t: _Table, fail: Callable[[str, str], RigError]) -> ProtectionSp
             did = data_id
         else:
             raise fail(t.key("data_id"), "must be \"id_low_byte\" or an integer 0..255")
-        spec = ProtectionSpec("e2e_profile2", t.take("counter", str), t.take("crc", str), did)
+        spec = ProtectionSpec("e2e_profile2", t.take("counter", str), t.take("crc", str), did,
+                              secoc)
     else:
         raise fail(t.key("kind"), f"must be none or e2e_profile2, got {kind!r}")
+    t.done()
+    return spec
+
+
+def _secoc(t: _Table) -> SecOCSpec:
+    kind = t.take("sync_kind", int, None)
+    if kind is not None and kind < 0:
+        raise t.fail(t.key("sync_kind"), f"must be >= 0, got {kind}")
+    spec = SecOCSpec(t.take("freshness", str, SecOCSpec.freshness),
+                     t.take("authenticator", str, SecOCSpec.authenticator), kind)
+    t.done()
+    return spec
+
+
+def _sync(doc: Mapping[str, Any] | None, protection: Mapping[str, ProtectionSpec],
+          fail: Callable[[str, str], RigError]) -> SyncSpec | None:
+    """The [secoc] table: needed exactly when a message has protection.<message>.secoc."""
+    secured = [name for name, p in protection.items() if p.secoc is not None]
+    if doc is None:
+        if secured:
+            raise fail("secoc.sync", f"missing: protection.{secured[0]}.secoc needs the "
+                       "rig's SecOC sync message ([secoc] sync = \"<message>\")")
+        return None
+    t = _Table(doc, "secoc", fail)
+    if not secured:
+        raise fail("secoc", "no message is secured (protection.<message>.secoc): remove "
+                   "[secoc] or secure a message")
+    length = t.take("freshness_length", int, SyncSpec.freshness_length)
+    if length % 8 or not 8 <= length <= 64:
+        raise fail(t.key("freshness_length"), f"must be a multiple of 8 in 8..64, got {length}")
+    spec = SyncSpec(t.take("sync", str), t.take("kind", str, SyncSpec.kind),
+                    t.take("freshness", str, SyncSpec.freshness),
+                    t.take("authenticator", str, SyncSpec.authenticator), length)
     t.done()
     return spec
 

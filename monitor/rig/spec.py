@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-__all__ = ["DiagnosisSpec", "LayoutSpec", "ModelSpec", "ProtectionSpec", "Rig", "SignalRef"]
+__all__ = ["DiagnosisSpec", "LayoutSpec", "ModelSpec", "ProtectionSpec", "Rig", "SecOCSpec",
+           "SignalRef", "SyncSpec"]
 
 LayoutKind = Literal["name_suffix", "id_bits", "explicit"]
 ProtectionKind = Literal["none", "e2e_profile2"]
@@ -52,15 +53,41 @@ class LayoutSpec:
 
 
 @dataclass(frozen=True)
+class SecOCSpec:
+    """A message authenticated with SecOC (`monitor.bus.secoc`: a truncated AES-CMAC over
+    the frame and a freshness counter): the DBC signals that carry the truncated freshness
+    value and the truncated MAC, and the SyncKind value of its stream in the rig's sync
+    frames (None: its place among the rig's secured messages, from 0)."""
+
+    freshness: str = "FreshnessValue"
+    authenticator: str = "Authenticator"
+    sync_kind: int | None = None
+
+
+@dataclass(frozen=True)
+class SyncSpec:
+    """The rig's SecOC freshness synchronisation message (one per node, through the
+    layout, like every rig message), its signals, and the full freshness length of every
+    secured stream (bits, a multiple of 8)."""
+
+    message: str
+    kind: str = "SyncKind"
+    freshness: str = "SyncFreshness"
+    authenticator: str = "SyncAuthenticator"
+    freshness_length: int = 64
+
+
+@dataclass(frozen=True)
 class ProtectionSpec:
     """How a message is protected: not at all, or AUTOSAR E2E profile 2 (CRC-8 over the
-    payload and a data ID, a 4-bit alive counter). `data_id` is an int, or None for our
-    bus's rule ``frame_id & 0xFF``."""
+    payload and a data ID, a 4-bit alive counter); either with SecOC or without. `data_id`
+    is an int, or None for our bus's rule ``frame_id & 0xFF``."""
 
     kind: ProtectionKind = "none"
     counter: str | None = None
     crc: str | None = None
     data_id: int | None = None
+    secoc: SecOCSpec | None = None
 
 
 @dataclass(frozen=True)
@@ -107,12 +134,18 @@ class Rig:
     diagnosis: DiagnosisSpec
     nodes: tuple[int, ...] | None = None
     source: Path | None = None
+    secoc: SyncSpec | None = None  # the sync message, when a message has SecOC
 
     @property
     def messages(self) -> tuple[str, ...]:
         """The rig's messages (as the rig names them), inputs first, no repeats."""
         refs = (*self.inputs, *self.outputs, *(() if self.truth is None else (self.truth,)))
         return tuple(dict.fromkeys(r.message for r in refs))
+
+    @property
+    def bus_messages(self) -> tuple[str, ...]:
+        """`messages` and the SecOC sync message: every message the layout resolves."""
+        return self.messages + (() if self.secoc is None else (self.secoc.message,))
 
     @property
     def output_message(self) -> str:

@@ -44,9 +44,10 @@ delay is this sink's own buffering: `RerunSink.maybe_flush` sends everything onc
 ``flush_interval_s`` (default `DEFAULT_FLUSH_INTERVAL_S` = 0.1 s) has passed, so a SIGKILL
 loses at most ``flush_interval_s`` plus the period of the ``maybe_flush`` calls (0.05 s in the
 daemon's loop) plus ~1 ms. The rare row-wise ``log`` calls (static series styles) do go through
-the batcher: `RerunSink.flush` pushes it (``flush(timeout_sec=0)``: started, not waited for),
-and its tick is set to 0.05 s explicitly, so ``RERUN_FLUSH_TICK_SECS`` in the environment
-cannot hold them back. `RerunSink.close` writes the ``.rrd`` footer (SIGTERM/SIGINT in the
+the batcher: the next `RerunSink.flush` after one pushes it (``flush(timeout_sec=0)``:
+started, not waited for; a flush with nothing batched leaves the SDK's threads asleep), and its
+tick is set to `_BATCHER_TICK_S` explicitly, so ``RERUN_FLUSH_TICK_SECS`` in the environment
+cannot hold them back longer. `RerunSink.close` writes the ``.rrd`` footer (SIGTERM/SIGINT in the
 daemon), and ``rerun rrd verify`` passes. A killed process leaves a file without footer and,
 if the kill hit a ``write``, with a torn last message: the SDK's streaming decoder reads it as
 it is (``rerun rrd verify --check-footers false``, ``rerun rrd print``, the viewer);
@@ -79,7 +80,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 import rerun as rr
@@ -110,7 +111,10 @@ DEFAULT_FLUSH_INTERVAL_S: Final = 0.1
 """Buffered samples reach the file at most this long after they were added (plus the period of
 the `maybe_flush` calls and ~1 ms of writing)."""
 
-_BATCHER_TICK_S: Final = 0.05
+_BATCHER_TICK_S: Final = 1.0
+"""The SDK's micro-batcher holds row-wise ``log`` calls at most this long; `RerunSink.flush`
+pushes them sooner. Every tick wakes its threads, which a one-CPU guest (User-Mode Linux) feels:
+with 0.05 s they took ~8 % of its CPU while the bus was idle."""
 
 _LEVELS: Final[Mapping[str, str]] = {
     "CRITICAL": "CRITICAL",
@@ -276,6 +280,8 @@ class RerunSink(RecordingOutlet):
         self._counters: dict[str, str] = {}
         self._counter_rows: list[tuple[float, dict[str, int]]] = []
         self._last_flush = time.monotonic()
+        self._rows_batched = False
+        """A row-wise ``log`` call went to the SDK's batcher since the last `flush`."""
         self.rrd_path = None if rrd_path is None else Path(rrd_path)
         self._connect_url = connect_url
         self._write_footer = bool(write_footer)
@@ -397,9 +403,7 @@ class RerunSink(RecordingOutlet):
             if path is None:
                 path = counter_path(name)
                 self._counters[name] = path
-                self._rec.log(
-                    path, series_style(name, COUNTER_COLOR, 1.5, stepped=True), static=True
-                )
+                self._log_static(path, series_style(name, COUNTER_COLOR, 1.5, stepped=True))
             ts = np.array([t for t, c in rows if name in c], dtype=np.float64)
             vs = np.array([c[name] for _, c in rows if name in c], dtype=np.float64)
             self._rec.send_columns(
@@ -473,6 +477,9 @@ class RerunSink(RecordingOutlet):
             self._flush_samples(st)
             self._flush_voltage(st)
         self._flush_counters()
+        if not self._rows_batched:
+            return  # columns went to the sinks directly; a flush would only wake the SDK's threads
+        self._rows_batched = False
         try:
             self._rec.flush(timeout_sec=0.0)  # start pushing to the sinks, don't wait
         except RuntimeError as exc:  # e.g. the gRPC viewer is unreachable
@@ -564,9 +571,14 @@ class RerunSink(RecordingOutlet):
         _, name, color, width, stepped = next(s for s in STYLES if s[0] == suffix)
         style = series_style(name, color, width, stepped)
         if suffix in RUNS:
-            self._rec.log(path, style, _EXACT_LINE, static=True)
+            self._log_static(path, style, _EXACT_LINE)
         else:
-            self._rec.log(path, style, static=True)
+            self._log_static(path, style)
+
+    def _log_static(self, path: str, *archetypes: Any) -> None:
+        """A static row-wise ``log``: through the SDK's batcher, which the next `flush` pushes."""
+        self._rec.log(path, *archetypes, static=True)
+        self._rows_batched = True
 
     def _new_node(self, node: int) -> _Node:
         """A node not announced in ``nodes``: add it and resend the blueprint."""

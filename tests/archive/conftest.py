@@ -119,7 +119,10 @@ def _stop(proc: subprocess.Popen[bytes]) -> None:
             proc.wait(timeout=20)
 
 
-@pytest.fixture(scope="session")
+# Module scope: the scheduler and workers stop when the tests that use them are done; their
+# event loops would otherwise wake the host CPU for the rest of the session, under the
+# timing-sensitive vcan tests in User-Mode Linux.
+@pytest.fixture(scope="module")
 def dask_cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[DaskCluster]:
     """`dask scheduler` on 127.0.0.1 (a free port, no dashboard) and two `dask worker`
     processes of one thread each, all from this virtual environment (so the workers have

@@ -2,7 +2,8 @@
 
 A set of logs (virtual ECUs' runs, .log/.asc/.blf in turn, four scenarios, one and two
 nodes) replayed by `motor-monitor replay DIR --out OUT` as the command runs it
-(`monitor.archive.run.run_archive`, the per-frame engine, no recordings): on 1 and on 2
+(`monitor.archive.run.run_archive` with `--engine per-frame`, whose work per log is large
+enough to show the scaling; no recordings): on 1 and on 2
 local workers (`--jobs 1`: in this process; `--jobs 2`: two spawned processes), and, with
 the archive extra, on a local Dask cluster of 1 and of 2 worker processes (one thread each,
 127.0.0.1). Each time is the whole run as a user waits for it: worker start-up, every log,
@@ -23,7 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from monitor.archive.engine import ReplaySettings
+from monitor.archive.engine import ReplaySettings, per_frame_engine
 from monitor.archive.inputs import find_logs
 from monitor.archive.run import run_archive
 from tests.archive.logs import SCENARIOS, ecu_frames, write_log
@@ -55,6 +56,7 @@ def local_dask(workers: int) -> Iterator[str]:
 def timed(root: Path, out: Path, **how: Any) -> dict[str, Any]:
     t0 = time.perf_counter()
     done = run_archive(find_logs([str(root)]), ReplaySettings(), out, show_progress=False,
+                       engine=per_frame_engine,
                        **how)
     el = time.perf_counter() - t0
     assert not done.failed, [r.reason for r in done.failed]

@@ -302,7 +302,7 @@ class BootA(_BootReadback):
         return int(np.count_nonzero(np.isnan(g[(t >= lo) & (t <= hi)])))
 
 
-def run_boot_a(vcan: RunOnVcan, mdb: MotorDatabase, out: Path, timeout: float = 420.0) -> BootA:
+def run_boot_a(vcan: RunOnVcan, mdb: MotorDatabase, out: Path, timeout: float = 900.0) -> BootA:
     """Boot A: the bad frames of `frame_kinds` go to the script as ``out/inject.txt``, one
     line ``KEY FRAME...`` (cansend syntax) a kind."""
     out.mkdir(parents=True, exist_ok=True)

@@ -40,3 +40,26 @@ def pipeline(db: MotorDatabase, cfg: MonitorConfig | None = None, *,
 def feed_all(pipe: MonitorPipeline, frames: Iterable[can.Message]) -> None:
     for msg in frames:
         pipe.feed(msg)
+
+
+def stalled(frames: list[can.Message], t0: float, t1: float) -> list[can.Message]:
+    """`frames` as a sender held up from `t0` to `t1` sends them: what was due meanwhile goes
+    out back to back at `t1`, in order."""
+    out = []
+    j = 0
+    for m in frames:
+        t = m.timestamp
+        if t0 <= t < t1:
+            t = t1 + 1e-5 * j
+            j += 1
+        out.append(can.Message(arbitration_id=m.arbitration_id, data=m.data,
+                               is_extended_id=False, timestamp=t))
+    return out
+
+
+def without_currents(frames: list[can.Message], first: int, n: int,
+                     current_id: int = 0x110) -> list[can.Message]:
+    """`frames` without current frames number first .. first + n - 1."""
+    currents = [i for i, m in enumerate(frames) if m.arbitration_id == current_id]
+    gone = set(currents[first:first + n])
+    return [m for i, m in enumerate(frames) if i not in gone]

@@ -189,9 +189,13 @@ def test_3_watchdog_kills_a_stopped_daemon_and_restarts_it(guest: GuestRun) -> N
                                    r"SIGABRT"), journal[-3000:]
     assert lines_matching(journal, r"Main process exited, code=killed, status=6/ABRT")
     assert lines_matching(journal, r"Failed with result 'watchdog'")
+    # the restart: the short auto-restart state as polled, or systemd's own line for it (the
+    # polling may miss the state on a loaded machine: seen in a full run, the old pid active,
+    # then the new one)
     seen = states(guest, "3-states.txt")
     assert any(s.get("Result") == "watchdog" and s.get("SubState") == "auto-restart"
-               for s in seen), seen
+               for s in seen) or lines_matching(
+        journal, r"Scheduled restart job, restart counter is at \d+"), (seen, journal[-3000:])
     assert seen[-1].get("ActiveState") == "active", seen[-1]
     assert int(v["watchdog_nrestarts_after"]) == int(v["watchdog_nrestarts_before"]) + 1
     assert v["watchdog_new_pid"] not in (old, "0")

@@ -185,7 +185,11 @@ class SecOC:
         return authenticate
 
     def auth_data(self, layout: SecOCLayout, frame: bytes, freshness: int) -> bytes:
-        """The CMAC input: data ID || authentic bytes (CRC byte as 0) || full freshness."""
+        """The CMAC input: data ID || authentic bytes (an E2E CRC byte as 0) || full
+        freshness."""
+        if not layout.crc_byte:
+            return (layout.data_id.to_bytes(2, "big") + frame[:layout.payload_length]
+                    + freshness.to_bytes(layout.freshness_bits // 8, "big"))
         prefix = self._prefix.get(layout.data_id)
         if prefix is None:
             prefix = self._prefix[layout.data_id] = layout.data_id.to_bytes(2, "big") + b"\0"

@@ -90,11 +90,11 @@ SYNC_AUTHENTICATOR_SIGNAL: Final = "SyncAuthenticator"
 class SecOCLayout:
     """Where SecOC puts its values in one DBC message, and what the MAC covers.
 
-    `payload_length` bytes from the start of the frame are authenticated (byte 0, the
-    E2E CRC, as 0); `fv_start`/`fv_bits` locate the sent freshness bits in the
-    little-endian payload integer; the MAC bytes are ``auth_start .. auth_start +
-    auth_bytes - 1``. `trailer` is True when the freshness byte sits right between the
-    authentic bytes and the MAC (cantools' secured-PDU layout).
+    `payload_length` bytes from the start of the frame are authenticated (with
+    `crc_byte`, byte 0 -- the E2E CRC, written after the MAC -- as 0); `fv_start`/`fv_bits`
+    locate the sent freshness bits in the little-endian payload integer; the MAC bytes are
+    ``auth_start .. auth_start + auth_bytes - 1``. `trailer` is True when the freshness byte
+    sits right between the authentic bytes and the MAC (cantools' secured-PDU layout).
     """
 
     name: str
@@ -106,6 +106,7 @@ class SecOCLayout:
     auth_start: int
     auth_bytes: int
     trailer: bool
+    crc_byte: bool = True
 
     @property
     def fv_modulus(self) -> int:
@@ -113,47 +114,65 @@ class SecOCLayout:
 
     @classmethod
     def from_message(cls, msg: Message) -> SecOCLayout:
-        """Read the layout from `msg`'s signals and attributes; `SecOCError` if unusable.
-
-        Rules: both signals little-endian and unsigned; the Authenticator byte-aligned, a
-        whole number of bytes, ending the frame; the FreshnessValue either 8 bits right
-        before it (cantools' trailer) or entirely inside the bytes before it, which are
-        then all authenticated. Either way every bit except the CRC byte and the MAC is
-        covered by the MAC. SecOCDataID must be the frame id (16 bits), the full
-        freshness length a multiple of 8 in fv_bits..64.
-        """
-        where = msg.name
+        """Read the layout of our bus's DBC from `msg`'s signals ``FreshnessValue`` and
+        ``Authenticator`` and its attributes (`from_signals` has the rules): SecOCDataID
+        must be the frame id, SecOCFreshnessValueLength the full freshness length. The E2E
+        CRC is in byte 0. `SecOCError` if unusable."""
         sigs = {s.name: s for s in msg.signals}
         fv, auth = sigs.get(FRESHNESS_SIGNAL), sigs.get(AUTHENTICATOR_SIGNAL)
         if fv is None or auth is None:
-            raise SecOCError(f"{where}: needs signals {FRESHNESS_SIGNAL} and "
+            raise SecOCError(f"{msg.name}: needs signals {FRESHNESS_SIGNAL} and "
                              f"{AUTHENTICATOR_SIGNAL} for SecOC")
+        return cls.from_signals(msg, fv, auth, data_id=msg.frame_id,
+                                freshness_bits=_freshness_length(msg, msg.name, fv.length),
+                                crc_byte=True)
+
+    @classmethod
+    def from_signals(cls, msg: Message, fv: Signal, auth: Signal, *, data_id: int,
+                     freshness_bits: int, crc_byte: bool) -> SecOCLayout:
+        """The layout of `msg` whose truncated freshness is signal `fv` and MAC `auth`, for
+        a 16-bit `data_id` and a full freshness of `freshness_bits` (a multiple of 8, no
+        shorter than `fv`); `crc_byte`: byte 0 is an E2E CRC, written after the MAC and
+        so not authenticated. `SecOCError` if unusable.
+
+        Rules: both signals little-endian and unsigned; the authenticator byte-aligned, a
+        whole number of bytes, ending the frame; the freshness either 8 bits right before
+        it (cantools' trailer) or entirely inside the bytes before it (after the CRC byte),
+        which are then all authenticated. Either way every bit except the CRC byte and the
+        MAC is covered by the MAC.
+        """
+        where = msg.name
         _check_signals(where, msg.length, (fv,), auth)
         if not 1 <= fv.length <= 16:
-            raise SecOCError(f"{where}.{FRESHNESS_SIGNAL}: must be 1..16 bits")
+            raise SecOCError(f"{where}.{fv.name}: must be 1..16 bits")
         trailer = fv.start + fv.length == auth.start and fv.start % 8 == 0
         if trailer:
             if fv.length != 8:
-                raise SecOCError(f"{where}.{FRESHNESS_SIGNAL}: right before the "
-                                 f"{AUTHENTICATOR_SIGNAL} it must be one byte")
+                raise SecOCError(f"{where}.{fv.name}: right before the {auth.name} it must "
+                                 f"be one byte")
             payload_length = fv.start // 8
         else:
             payload_length = auth.start // 8
-            if fv.start < 8 or fv.start + fv.length > auth.start:
-                raise SecOCError(f"{where}.{FRESHNESS_SIGNAL}: must lie in bytes 1.."
-                                 f"{payload_length - 1} or right before the "
-                                 f"{AUTHENTICATOR_SIGNAL}")
-        n_fresh = _freshness_length(msg, where, fv.length)
+            first = 8 if crc_byte else 0
+            if fv.start < first or fv.start + fv.length > auth.start:
+                raise SecOCError(f"{where}.{fv.name}: must lie in bytes {first // 8}.."
+                                 f"{payload_length - 1} or right before the {auth.name}")
+        if crc_byte and payload_length < 1:
+            raise SecOCError(f"{where}: no authentic bytes after the CRC byte")
+        _check_freshness_bits(where, freshness_bits, fv.length)
+        if not 0 <= data_id <= 0xFFFF:
+            raise SecOCError(f"{where}: the SecOC data ID must be 16 bits, got {data_id}")
         return cls(
             name=msg.name,
-            data_id=msg.frame_id,
+            data_id=data_id,
             payload_length=payload_length,
-            freshness_bits=n_fresh,
+            freshness_bits=freshness_bits,
             fv_start=fv.start,
             fv_bits=fv.length,
             auth_start=auth.start // 8,
             auth_bytes=auth.length // 8,
             trailer=trailer,
+            crc_byte=crc_byte,
         )
 
     def properties(self) -> AutosarSecOCProperties:
@@ -199,32 +218,44 @@ class SyncLayout:
 
     @classmethod
     def from_message(cls, msg: Message) -> SyncLayout:
-        """Read the layout from `msg`'s signals and attributes; `SecOCError` if unusable.
-
-        Rules: SyncKind, SyncFreshness (16..64 bits) and SyncAuthenticator unsigned
-        little-endian integers; the authenticator whole bytes (8..64 bits) ending the
-        frame, the other two before it (so covered by the MAC). SecOCDataID must be the
-        frame id, SecOCFreshnessValueLength a multiple of 8 in fv_bits..64.
-        """
-        where = msg.name
+        """Read the layout of our bus's DBC from `msg`'s signals SyncKind, SyncFreshness and
+        SyncAuthenticator and its attributes (`from_signals` has the rules): SecOCDataID
+        must be the frame id, SecOCFreshnessValueLength the full freshness length.
+        `SecOCError` if unusable."""
         sigs = {s.name: s for s in msg.signals}
         names = (SYNC_KIND_SIGNAL, SYNC_FRESHNESS_SIGNAL, SYNC_AUTHENTICATOR_SIGNAL)
         if any(n not in sigs for n in names):
-            raise SecOCError(f"{where}: needs signals {', '.join(names)} for SecOC sync")
+            raise SecOCError(f"{msg.name}: needs signals {', '.join(names)} for SecOC sync")
         kind, fv, auth = (sigs[n] for n in names)
+        return cls.from_signals(msg, kind, fv, auth, data_id=msg.frame_id,
+                                freshness_bits=_freshness_length(msg, msg.name, fv.length))
+
+    @classmethod
+    def from_signals(cls, msg: Message, kind: Signal, fv: Signal, auth: Signal, *,
+                     data_id: int, freshness_bits: int) -> SyncLayout:
+        """The layout of sync message `msg` whose stream index is signal `kind`, low
+        freshness bits `fv` and MAC `auth`, for a 16-bit `data_id` and a full freshness of
+        `freshness_bits`. `SecOCError` if unusable.
+
+        Rules: the three are unsigned little-endian integers; the freshness 16..64 bits;
+        the authenticator whole bytes (8..64 bits) ending the frame, the other two before
+        it (so covered by the MAC).
+        """
+        where = msg.name
         _check_signals(where, msg.length, (kind, fv), auth)
         if not 16 <= fv.length <= 64:
-            raise SecOCError(f"{where}.{SYNC_FRESHNESS_SIGNAL}: must be 16..64 bits")
+            raise SecOCError(f"{where}.{fv.name}: must be 16..64 bits")
         for s in (kind, fv):
             if s.start + s.length > auth.start:
-                raise SecOCError(f"{where}.{s.name}: must lie before the "
-                                 f"{SYNC_AUTHENTICATOR_SIGNAL}")
-        n_fresh = _freshness_length(msg, where, fv.length)
+                raise SecOCError(f"{where}.{s.name}: must lie before the {auth.name}")
+        _check_freshness_bits(where, freshness_bits, fv.length)
+        if not 0 <= data_id <= 0xFFFF:
+            raise SecOCError(f"{where}: the SecOC data ID must be 16 bits, got {data_id}")
         return cls(
             name=msg.name,
-            data_id=msg.frame_id,
+            data_id=data_id,
             payload_length=auth.start // 8,
-            freshness_bits=n_fresh,
+            freshness_bits=freshness_bits,
             kind_start=kind.start,
             kind_bits=kind.length,
             fv_start=fv.start,
@@ -263,7 +294,18 @@ def _freshness_length(msg: Message, where: str, truncated_bits: int) -> int:
                          f"{msg.frame_id} (the frame id)")
     n_fresh = attrs[FRESHNESS_LENGTH_ATTRIBUTE].value if (
         FRESHNESS_LENGTH_ATTRIBUTE in attrs) else None
-    if not isinstance(n_fresh, int) or n_fresh % 8 or not truncated_bits <= n_fresh <= 64:
+    if not isinstance(n_fresh, int) or not _valid_freshness_bits(n_fresh, truncated_bits):
         raise SecOCError(f"{where}: attribute {FRESHNESS_LENGTH_ATTRIBUTE} must be a "
                          f"multiple of 8 in {truncated_bits}..64, got {n_fresh!r}")
     return n_fresh
+
+
+def _valid_freshness_bits(n_fresh: int, truncated_bits: int) -> bool:
+    """A full freshness value is whole bytes, no shorter than what the wire carries."""
+    return n_fresh % 8 == 0 and truncated_bits <= n_fresh <= 64
+
+
+def _check_freshness_bits(where: str, n_fresh: int, truncated_bits: int) -> None:
+    if not _valid_freshness_bits(n_fresh, truncated_bits):
+        raise SecOCError(f"{where}: the full freshness length must be a multiple of 8 in "
+                         f"{truncated_bits}..64, got {n_fresh}")
