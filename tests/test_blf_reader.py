@@ -25,12 +25,14 @@ from monitor.estimation.jit import JIT_DISABLED
 
 pytestmark = pytest.mark.skipif(JIT_DISABLED, reason="the scanner runs compiled only")
 
-Frame = tuple[float, int, bool, bool, bool, bool, bool, bool, bytes]
+Frame = tuple[float, int, bool, bool, bool, bool, bool, bool, bytes, int]
 
 
-def _row(m: can.Message) -> Frame:
+def _row(m: can.Message, length: int | None = None) -> Frame:
+    """A frame's fields; `length` the chunk's own (a message's is len(data))."""
     return (m.timestamp, m.arbitration_id, m.is_extended_id, m.is_remote_frame,
-            m.is_error_frame, m.is_fd, m.bitrate_switch, m.error_state_indicator, bytes(m.data))
+            m.is_error_frame, m.is_fd, m.bitrate_switch, m.error_state_indicator, bytes(m.data),
+            len(m.data) if length is None else length)
 
 
 def _per_frame(path: Path) -> tuple[list[Frame], str | None]:
@@ -47,7 +49,7 @@ def _columnar(path: Path, chunk_frames: int = 1 << 18) -> tuple[list[Frame], str
     rows: list[Frame] = []
     try:
         for c in read_chunks(path, chunk_frames):
-            rows.extend(_row(c.message(i)) for i in range(len(c)))
+            rows.extend(_row(c.message(i), int(c.length[i])) for i in range(len(c)))
     except LogError as exc:
         return rows, str(exc)
     return rows, None
@@ -159,6 +161,8 @@ def _hand_built() -> bytes:
                             version=2, flags=1, stamp=100 * k + 7))  # v2, 10 us
         objs.append(_object(86, struct.pack("<HBBL8s", 1, 0x80, 4, 0x200, bytes(8)),
                             stamp=5 * k))  # CAN_MESSAGE2, remote
+        objs.append(_object(101, _fd64(0x400 + k, bytes(range(8)), 0x0010),
+                            stamp=5 * k + 1))  # CAN_FD_MESSAGE_64, remote (no data)
         objs.append(_object(96, bytes(40), stamp=k))  # a global marker: skipped
     # CAN_FD_MESSAGE_64 whose data field ends at its extended-data offset (zero-padded to
     # its valid bytes, python-can issue 1905), and one claiming more bytes than it holds
@@ -172,7 +176,7 @@ def _hand_built() -> bytes:
 def test_hand_built_objects_read_the_same(tmp_path: Path, compress: bool) -> None:
     path = _file(tmp_path / "x.blf", _hand_built(), compress=compress)
     want = _per_frame(path)
-    assert want[1] is None and len(want[0]) == 902, want[1]
+    assert want[1] is None and len(want[0]) == 1202, want[1]
     assert any(f[5] and len(f[8]) == 64 for f in want[0])  # FD 64-byte frames among them
     assert _columnar(path) == want
 

@@ -218,7 +218,7 @@ def _scan_objects(buf: NDArray[np.uint8], start: float, t: NDArray[np.float64],
             ext[n] = (can_id & 0x80000000) != 0
             remote[n] = (can_flags & 0x80) != 0
             err[n] = False
-            m = min(dlc, 8)
+            m = 0 if remote[n] else min(dlc, 8)  # a remote frame has no data (can.Message)
             length[n] = m
             for j in range(m):
                 data[n, j] = buf[p + 8 + j]
@@ -254,6 +254,8 @@ def _scan_objects(buf: NDArray[np.uint8], start: float, t: NDArray[np.float64],
             ext[n] = (can_id & 0x80000000) != 0
             remote[n] = (can_flags & 0x80) != 0
             err[n] = False
+            if remote[n]:
+                valid = 0
             length[n] = valid
             for j in range(valid):
                 data[n, j] = buf[p + 20 + j]
@@ -276,6 +278,9 @@ def _scan_objects(buf: NDArray[np.uint8], start: float, t: NDArray[np.float64],
             ext[n] = (can_id & 0x80000000) != 0
             remote[n] = (fd_flags & 0x0010) != 0
             err[n] = False
+            if remote[n]:
+                valid = 0
+                field = 0
             length[n] = valid
             for j in range(field):
                 data[n, j] = buf[p + 40 + j]
