@@ -163,11 +163,11 @@ class RigCodec:
                     _attach_secoc(message, route.secoc)
                 layout = route.secoc or route.sync
                 if layout is not None:
-                    seen = data_ids.setdefault(layout.data_id, f"{message.name} of node {node}")
-                    if seen != f"{message.name} of node {node}":
-                        raise CodecError(f"{source}: {message.name} of node {node} and {seen} "
-                                         f"have the same SecOC data ID 0x{layout.data_id:04X} "
-                                         "(the ID's low 16 bits)")
+                    if layout.data_id in data_ids:
+                        raise CodecError(f"{source}: {message.name} of node {node} and "
+                                         f"{data_ids[layout.data_id]} have the same SecOC data "
+                                         f"ID 0x{layout.data_id:04X} (the ID's low 16 bits)")
+                    data_ids[layout.data_id] = f"{message.name} of node {node}"
         self._secoc: SecOC | None = None
         if secoc_key is not None:
             if not self._sync_streams:
@@ -189,9 +189,10 @@ class RigCodec:
             if sec is None:
                 return route
             fv, auth = (msg.get_signal_by_name(n) for n in (sec.freshness, sec.authenticator))
-            return _Route(msg, route.spec, route.node, route.limits, secoc=SecOCLayout.from_signals(
-                msg, fv, auth, data_id=data_id, freshness_bits=sec.freshness_length,
-                crc_byte=route.spec.e2e))
+            layout = SecOCLayout.from_signals(msg, fv, auth, data_id=data_id,
+                                              freshness_bits=sec.freshness_length,
+                                              crc_byte=route.spec.e2e)
+            return _Route(msg, route.spec, route.node, route.limits, secoc=layout)
         except KeyError as exc:
             raise CodecError(f"{msg.name}: no signal {exc.args[0]} for SecOC") from None
         except SecOCError as exc:

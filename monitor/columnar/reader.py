@@ -13,8 +13,12 @@ Every reader gives exactly the frames python-can's `can.LogReader` gives for the
   exponents, more digits, anything unexpected) sends its whole chunk through python-can's
   own reader instead, so the result never differs, and a malformed file raises the same
   error.
-* ``.asc`` and ``.blf``: python-can's readers (measured: 80,000 and 210,000 frames/s on
-  one core of the development machine), their messages copied into the arrays.
+* ``.blf``: a compiled object scanner over the inflated log containers
+  (`monitor.columnar.blf`), python-can's rules and its file-header parsing; anything it
+  does not take hands the rest of the file to python-can's reader.
+* ``.asc``: python-can's reader (measured: 80,000 frames/s on one core of the development
+  machine), its messages copied into the arrays. Under NUMBA_DISABLE_JIT (the hardened
+  unit) BLF is read by python-can too.
 
 A frame's payload is ``data[i, :length[i]]``. `data` is 8 bytes wide, or 64 when the chunk
 holds a CAN FD frame longer than 8 bytes, so no payload is ever cut short; `fd`,
@@ -44,9 +48,10 @@ from monitor.bus.logfile import (
     open_reader,
 )
 from monitor.errors import one_line
-from monitor.estimation.jit import njit
+from monitor.estimation.jit import JIT_DISABLED, njit
 
-__all__ = ["LOG_SUFFIXES", "FrameChunk", "LogReadError", "chunk_from_messages", "read_chunks"]
+__all__ = ["LOG_SUFFIXES", "FrameChunk", "LogReadError", "chunk_from_messages", "empty_chunk",
+           "messages_to_chunks", "read_chunks"]
 
 DEFAULT_CHUNK_FRAMES = 1 << 18
 CLASSIC_WIDTH = 8
@@ -111,7 +116,8 @@ class FrameChunk:
                            data=bytes(self.data[i, :n]), check=False)
 
 
-def _empty(n: int, width: int = CLASSIC_WIDTH) -> FrameChunk:
+def empty_chunk(n: int, width: int = CLASSIC_WIDTH) -> FrameChunk:
+    """A chunk of `n` zeroed rows (filled in place by the scanners)."""
     return FrameChunk(np.zeros(n), np.zeros(n, np.int64), np.zeros(n, np.bool_),
                       np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.zeros(n, np.int64),
                       np.zeros((n, width), np.uint8), np.zeros(n, np.bool_),
@@ -122,7 +128,7 @@ def chunk_from_messages(msgs: Iterable[can.Message]) -> FrameChunk:
     """Columns of python-can messages (exactly what the per-frame path would feed)."""
     rows = list(msgs)
     long_fd = any(len(m.data or b"") > CLASSIC_WIDTH for m in rows)
-    c = _empty(len(rows), FD_WIDTH if long_fd else CLASSIC_WIDTH)
+    c = empty_chunk(len(rows), FD_WIDTH if long_fd else CLASSIC_WIDTH)
     assert c.bitrate_switch is not None and c.error_state_indicator is not None
     for i, m in enumerate(rows):
         c.t[i] = m.timestamp
@@ -155,20 +161,36 @@ def read_chunks(path: Path, chunk_frames: int = DEFAULT_CHUNK_FRAMES) -> Iterato
         except OSError as exc:
             raise LogError(f"{path}: cannot read log ({one_line(exc)})") from None
         return _candump_chunks(path, fh)
+    if path.suffix.lower() == ".blf" and not JIT_DISABLED:
+        from monitor.columnar.blf import blf_chunks
+
+        return blf_chunks(path, chunk_frames)
     return _reader_chunks(path, open_reader(path), chunk_frames)
+
+
+def messages_to_chunks(msgs: Iterable[can.Message], chunk_frames: int) -> Iterator[FrameChunk]:
+    """python-can messages in chunks of `chunk_frames` (the last one shorter). If reading
+    fails, the frames read before the failure still come out (as the per-frame path feeds
+    them), then the error."""
+    batch: list[can.Message] = []
+    try:
+        for msg in msgs:
+            batch.append(msg)
+            if len(batch) >= chunk_frames:
+                yield chunk_from_messages(batch)
+                batch = []
+    except Exception:
+        if batch:
+            yield chunk_from_messages(batch)
+        raise
+    if batch:
+        yield chunk_from_messages(batch)
 
 
 def _reader_chunks(path: Path, reader: can.io.generic.MessageReader,
                    chunk_frames: int) -> Iterator[FrameChunk]:
     try:
-        batch: list[can.Message] = []
-        for msg in reader:
-            batch.append(msg)
-            if len(batch) >= chunk_frames:
-                yield chunk_from_messages(batch)
-                batch = []
-        if batch:
-            yield chunk_from_messages(batch)
+        yield from messages_to_chunks(reader, chunk_frames)
     except READ_ERRORS as exc:
         raise malformed(path, exc) from None
     finally:
@@ -203,7 +225,7 @@ def _candump_chunks(path: Path, fh: io.BufferedReader) -> Iterator[FrameChunk]:
 def _parse_candump(path: Path, text: bytes) -> FrameChunk:
     buf = np.frombuffer(text, np.uint8)
     cap = text.count(b"\n") + 1
-    c = _empty(cap, FD_WIDTH if b"##" in text else CLASSIC_WIDTH)
+    c = empty_chunk(cap, FD_WIDTH if b"##" in text else CLASSIC_WIDTH)
     assert c.bitrate_switch is not None and c.error_state_indicator is not None
     n = _scan_candump(buf, c.t, c.arbitration_id, c.extended, c.remote, c.error, c.length,
                       c.data, c.is_fd, c.bitrate_switch, c.error_state_indicator)

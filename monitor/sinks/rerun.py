@@ -279,6 +279,8 @@ class RerunSink(RecordingOutlet):
         self._nodes: dict[int, _Node] = {}
         self._counters: dict[str, str] = {}
         self._counter_rows: list[tuple[float, dict[str, int]]] = []
+        self._event_rows: dict[str, list[tuple[float, str, str]]] = {}  # path: (t, text, level)
+        self._n_events = 0
         self._last_flush = time.monotonic()
         self._rows_batched = False
         """A row-wise ``log`` call went to the SDK's batcher since the last `flush`."""
@@ -357,7 +359,8 @@ class RerunSink(RecordingOutlet):
     # -- rare data --------------------------------------------------------------------------
 
     def log_event(self, node: int, t: float, text: str, level: str = "INFO") -> None:
-        """Log a text event (state transition...) for ``node``, after its buffered samples.
+        """Log a text event (state transition...) for ``node``: buffered, and sent after the
+        buffered samples at the next flush (every ``flush_interval_s`` live).
 
         A negative node is the bus itself (error frames, interface outages): the event goes
         to ``/monitor/events``, shown beside the daemon counters.
@@ -370,15 +373,23 @@ class RerunSink(RecordingOutlet):
             st = self._nodes.get(node)
             if st is None:
                 st = self._new_node(node)
-            self._flush_samples(st)
-            self._flush_voltage(st)
             path = st.path["events"]
-        lvl = _LEVELS.get(level.upper(), level)
-        self._rec.send_columns(
-            path,
-            indexes=[rr.TimeColumn(TIMELINE, timestamp=np.array([t], dtype=np.float64))],
-            columns=rr.TextLog.columns(text=[text], level=[lvl]),
-        )
+        self._event_rows.setdefault(path, []).append((t, text, _LEVELS.get(level.upper(), level)))
+        self._n_events += 1
+        if self._n_events >= self._batch_size:
+            self.flush()
+
+    def _flush_events(self) -> None:
+        """The buffered events, one chunk per entity path: a replay's thousands of
+        transitions are not thousands of one-row chunks, each forcing the samples out."""
+        rows, self._event_rows, self._n_events = self._event_rows, {}, 0
+        for path, events in rows.items():
+            self._rec.send_columns(
+                path,
+                indexes=[rr.TimeColumn(TIMELINE, timestamp=np.array([e[0] for e in events]))],
+                columns=rr.TextLog.columns(text=[e[1] for e in events],
+                                           level=[e[2] for e in events]),
+            )
 
     def log_counters(self, t: float, counters: Mapping[str, int]) -> None:
         """Buffer the daemon's health counters, scalars under ``/monitor/counters/<name>``.
@@ -476,6 +487,7 @@ class RerunSink(RecordingOutlet):
         for st in self._nodes.values():
             self._flush_samples(st)
             self._flush_voltage(st)
+        self._flush_events()
         self._flush_counters()
         if not self._rows_batched:
             return  # columns went to the sinks directly; a flush would only wake the SDK's threads
