@@ -372,9 +372,19 @@ CATCH_UP=100000
 # A recording monitor hands its recording to the .rrd file every 0.25 s, the most allowed without
 # --raw-dir: in the one-CPU guest every chunk handed to Rerun costs ~5 ms of CPU in the SDK's
 # threads, 50 chunks/s at the default 0.1 s. What a SIGKILL loses at the default is boot B's test.
+settled() {  # FILE SECONDS: wait until FILE has not grown for a second (at most SECONDS)
+  n=0; last=-1
+  while [ "$n" -lt "$2" ]; do
+    size=$(stat -c %s "$1" 2>/dev/null || echo 0)
+    [ "$size" = "$last" ] && return 0
+    last=$size; n=$((n + 1)); sleep 1
+  done
+}
 start_capture_and_monitor() {  # NODES [more monitor options]
   nodes=$1; shift
-  candump -L vcan0 > cap.log 2> candump.err &
+  # a 4 MiB socket buffer: on a loaded guest candump falls behind for a while instead of
+  # losing frames (the capture is the reference every check reads)
+  candump -r 4194304 -L vcan0 > cap.log 2> candump.err &
   DUMP=$!
   motor-monitor run --interface socketcan --channel vcan0 --nodes "$nodes" \
       --events "$OUT/ev.jsonl" "$@" 2> mon.err &
@@ -390,6 +400,7 @@ stop_monitor_and_capture() {
   kill -TERM $MON
   wait $MON
   echo "mon_rc=$?"
+  settled cap.log 30  # candump has written its backlog
   kill -INT $DUMP
   wait $DUMP
   echo "dump_rc=$?"

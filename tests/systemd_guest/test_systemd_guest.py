@@ -272,13 +272,17 @@ def test_4_sigkill_restarts_with_the_recordings_intact(guest: GuestRun) -> None:
     state = guest.state
     # Nothing of before the kill is lost or rewritten by the restarted daemon: every file is
     # still there, as long as when the kill left it; the restart opened new files. (The
-    # events are appended to, the metrics file is rewritten every 5 s by design.)
+    # events are appended to; the metrics file is rewritten every 5 s by design, its size
+    # going with the digits of its values, so it may also shrink.)
     assert set(before) <= set(killed), (before, killed)
     for name, f in killed.items():
         assert name in end, f"{name} gone after the restart"
-        if name not in ("events.jsonl", "monitor.prom"):
+        if name == "monitor.prom":
+            continue
+        if name != "events.jsonl":
             assert end[name].size == f.size, f"{name} changed after the restart"
-        assert f.size >= before[name].size if name in before else True
+        if name in before:
+            assert f.size >= before[name].size, (name, before[name], f)
     new = sorted(set(end) - set(killed))
     assert any(n.endswith(".rrd") for n in new), new
     # Every recording reads back (a torn last message cut off first, as salvage_rrd does);
