@@ -66,7 +66,7 @@ except can.CanError as exc:
 rx.shutdown(); tx.shutdown()
 EOF
 cat classic.out
-candump -L vcan1 > cap.log 2> candump.err &
+candump -r 4194304 -L vcan1 > cap.log 2> candump.err &
 DUMP=$!
 mkdir -p raw
 motor-monitor -v run --interface socketcan --channel vcan1 --rig "$RIG" --nodes 1 \

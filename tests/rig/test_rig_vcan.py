@@ -31,7 +31,7 @@ wait_for() {  # FILE PATTERN SECONDS
     n=$((n + 1)); [ "$n" -gt $(($3 * 10)) ] && return 1; sleep 0.1
   done
 }
-candump -L vcan0 > cap.log 2> candump.err &
+candump -r 4194304 -L vcan0 > cap.log 2> candump.err &
 DUMP=$!
 mkdir -p raw
 motor-monitor run --interface socketcan --channel vcan0 --rig "$RIG" --nodes 2 \

@@ -13,7 +13,9 @@
 
 # --record-flush-s 0.25: fewer chunks for Rerun's threads on the guest's one CPU (~5 ms each);
 # what a SIGKILL loses at the default 0.1 s is boot B's test.
-candump -L any,0:0,#FFFFFFFF > cap.log 2> candump.err &
+# candump with a 4 MiB socket buffer: on a loaded guest it falls behind in the ECU's catch-up
+# bursts instead of losing frames (its capture is the reference the checks read)
+candump -r 4194304 -L any,0:0,#FFFFFFFF > cap.log 2> candump.err &
 DUMP=$!
 motor-monitor -v run --interface socketcan --channel vcan0 --nodes 0 --rrd "$OUT/a.rrd" \
     --events "$OUT/ev.jsonl" --record-flush-s 0.25 2> mon.err &
@@ -81,4 +83,5 @@ kill -TERM "$MON"; wait "$MON"; echo "mon_rc=$?"
 mark term_done
 kill -TERM "$ECU"; wait "$ECU"; echo "ecu2_rc=$?"
 sleep 0.3
+caught_up "$DUMP" 30 || true  # candump has written its backlog
 kill -INT "$DUMP"; wait "$DUMP"; echo "dump_rc=$?"
