@@ -134,9 +134,10 @@ def _key_of(rig: Rig, message: str) -> str:
     return "signals.truth.message"
 
 
-def _rig_messages(rig: Rig, sample: Callable[[str], Message], fail: Fail) -> list[RigMessage]:
-    """Each rig message's reading instructions, checked against a DBC message of it."""
-    streams = _streams(rig, fail)
+def _rig_messages(rig: Rig, sample: Callable[[str], Message],
+                  streams: dict[str, tuple[int, str]], fail: Fail) -> list[RigMessage]:
+    """Each rig message's reading instructions, checked against a DBC message of it
+    (`streams`: `_streams` of the rig)."""
     out = []
     for name in rig.messages:
         m = sample(name)
@@ -281,9 +282,9 @@ def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
                 return hit[0]
         raise fail(_key_of(rig, name), f"no {name} message for nodes {nodes}")
 
-    messages = _rig_messages(rig, sample, fail)
-    sync = None if rig.secoc is None else _sync(rig, sample(rig.secoc.message),
-                                                 _streams(rig, fail), fail)
+    streams = _streams(rig, fail)
+    messages = _rig_messages(rig, sample, streams, fail)
+    sync = None if rig.secoc is None else _sync(rig, sample(rig.secoc.message), streams, fail)
     try:
         return RigCodec(db, ", ".join(p.name for p in rig.dbc), messages, resolve, nodes,
                         sync=sync, secoc_key=secoc_key)
