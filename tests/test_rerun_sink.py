@@ -27,9 +27,22 @@ from numpy.typing import NDArray
 from rerun.chunk import Chunk, RrdReader
 
 from monitor.diagnosis import HealthState
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.pipeline.events import (
+    BusEvent,
+    Diagnosis,
+    DiagnosisEvent,
+    Sample,
+    SampleColumns,
+    VoltageSample,
+)
 from monitor.sinks.base import Sink
-from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RUNS, RerunSink, run_ends
+from monitor.sinks.rerun import (
+    DEFAULT_FLUSH_INTERVAL_S,
+    RUNS,
+    RerunSink,
+    recording_parts,
+    run_ends,
+)
 from monitor.sinks.rotation import RotatingRerunSink
 
 T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
@@ -504,6 +517,47 @@ def test_maybe_flush_reaches_the_disk_without_waiting(tmp_path: Path) -> None:
     sink.close()
     np.testing.assert_array_equal(got, 0.1 * np.arange(5))
     assert latency < 0.1, latency
+
+
+def test_a_recording_split_into_parts_holds_every_row_once(tmp_path: Path) -> None:
+    """`part_bytes`: the recording goes on into ``<stem>-part0002.rrd``... once a file has
+    reached the size; every part passes ``rerun rrd verify``, all are one recording, and
+    their rows together are every sample once, in order. Stale parts of an earlier run to
+    the same path are deleted at start."""
+    path = tmp_path / "log.rrd"
+    stale = tmp_path / "log-part0009.rrd"
+    stale.write_bytes(b"an earlier run's part")
+    other = tmp_path / "log2-part0002.rrd"  # another recording's part: kept
+    other.write_bytes(b"x")
+    sink = RerunSink(rrd_path=path, nodes=(0,), recording_id="parts", batch_size=1000,
+                     part_bytes=100_000)
+    assert not stale.exists() and other.exists()
+    n = 40_000
+    k = np.arange(n, dtype=np.float64)
+    cols = SampleColumns(t=T0 + k * DT, measured=np.sin(k), estimated=np.cos(k), gamma=k,
+                         rules=np.ones(n, np.int64), state=np.zeros(n, np.int64),
+                         nis=np.ones(n), true_gamma=np.full(n, np.nan))
+    for a in range(0, n, 3000):  # uneven slices across the batch boundaries
+        sink.on_sample_columns(0, SampleColumns(*(c[a:a + 3000] for c in (
+            cols.t, cols.measured, cols.estimated, cols.gamma, cols.rules, cols.state,
+            cols.nis, cols.true_gamma))))
+    sink.close()
+    parts = list(sink.parts)
+    assert parts == recording_parts(path)
+    assert len(parts) >= 3, parts
+    assert parts[1].name == "log-part0002.rrd"
+    proc = subprocess.run([str(RERUN_EXE), "rrd", "verify", *map(str, parts)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    gammas = []
+    for p in parts:
+        (rec,) = RrdReader(p).recordings()
+        assert rec.recording_id == "parts"
+        assert "/motor/0/gamma/estimate" in _read(p)
+        gammas.append(_series(_read(p)["/motor/0/gamma/estimate"])[1])
+    np.testing.assert_array_equal(np.concatenate(gammas), k)
+    with pytest.raises(ValueError, match="part_bytes"):
+        RerunSink(connect_url="rerun+http://127.0.0.1:1/proxy", part_bytes=1)
 
 
 def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: Path) -> None:

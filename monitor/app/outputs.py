@@ -14,7 +14,12 @@ from monitor.pipeline import MonitorConfig
 from monitor.sinks.base import Sink
 from monitor.sinks.compact import Compactor
 from monitor.sinks.jsonl import JsonLinesSink
-from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
+from monitor.sinks.rerun import (
+    DEFAULT_FLUSH_INTERVAL_S,
+    REPLAY_BATCH_SIZE,
+    REPLAY_PART_BYTES,
+    RerunSink,
+)
 from monitor.sinks.rotation import RotatingRerunSink
 
 __all__ = ["MAX_UNBACKED_FLUSH_S", "count_compactions", "event_lines", "record_flush_s",
@@ -54,10 +59,12 @@ def count_compactions(recording: Sink | None, counters: MutableMapping[str, int]
             counters[name] = value
 
 
-def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig) -> Sink | None:
+def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig, *,
+               replay: bool = False) -> Sink | None:
     """Rotating files (--record-dir), one file (--rrd) and/or a live viewer (--connect), or
     None when none is asked for. Rotated files are compacted in the background
-    (`monitor.sinks.compact`)."""
+    (`monitor.sinks.compact`). A `replay` records in chunks of `REPLAY_BATCH_SIZE` rows, into
+    parts of `REPLAY_PART_BYTES`."""
     record_dir = getattr(args, "record_dir", None)
     if args.rrd and record_dir:
         raise UsageError("--rrd and --record-dir exclude each other (one file, or rotating files)")
@@ -71,6 +78,10 @@ def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig) -> Sink | None:
     common: dict[str, Any] = {"nodes": cfg.nodes or (), "f1": cfg.thresholds.f1,
                               "f2": cfg.thresholds.f2, "connect_url": args.connect,
                               "flush_interval_s": flush_interval_s}
+    if replay:
+        common["batch_size"] = REPLAY_BATCH_SIZE
+        if args.rrd and not args.connect:
+            common["part_bytes"] = REPLAY_PART_BYTES
     try:
         if record_dir:
             if not Path(record_dir).is_dir():

@@ -82,7 +82,7 @@ def _replay_one_log(args: argparse.Namespace) -> int:
 
     def open_sinks() -> list[Sink]:
         sinks: list[Sink] = [LogSink()]
-        recording = outputs.rerun_sink(args, setup.cfg)
+        recording = outputs.rerun_sink(args, setup.cfg, replay=True)
         events = outputs.event_lines(args.events, to_stdout=True)
         return sinks + [s for s in (recording, events) if s is not None]
 

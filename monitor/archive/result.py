@@ -78,6 +78,9 @@ class LogResult:
     nodes: tuple[NodeResult, ...] = ()
     events: str | None = None
     rrd: str | None = None
+    rrd_parts: int = 0
+    """How many files the recording took: `rrd`, then ``<stem>-part0002.rrd``... beside it
+    (`monitor.sinks.rerun.REPLAY_PART_BYTES`)."""
 
     @property
     def duration_s(self) -> float:
@@ -92,7 +95,7 @@ def failed_result(log: str, reason: str, *, frames: int = 0, wall_s: float = 0.0
 
 
 def log_result(log: str, run: EngineRun, *, wall_s: float, events: str | None,
-               rrd: str | None) -> LogResult:
+               rrd: str | None, rrd_parts: int = 0) -> LogResult:
     """The summary of one replayed log from what its engine reported."""
     t_first = run.t_first
     t_last = run.t_last
@@ -109,4 +112,4 @@ def log_result(log: str, run: EngineRun, *, wall_s: float, events: str | None,
                                 samples=stats.samples, worst_nis=stats.worst_nis))
     return LogResult(log=log, ok=True, frames=run.frames, wall_s=wall_s, t_first=t_first,
                      t_last=t_last, counters=dict(sorted(run.counters.items())),
-                     nodes=tuple(nodes), events=events, rrd=rrd)
+                     nodes=tuple(nodes), events=events, rrd=rrd, rrd_parts=rrd_parts)

@@ -40,6 +40,7 @@ from monitor.archive.summary import summary_rows, write_csv, write_parquet
 from monitor.errors import MonitorError, UsageError, one_line
 from monitor.pipeline import MonitorConfig
 from monitor.sinks.base import Sink
+from monitor.sinks.rerun import recording_parts
 
 __all__ = ["CONNECT_TIMEOUT_S", "FLEET_PNG", "SUMMARY_CSV", "SUMMARY_PARQUET",
            "WORKER_TIMEOUT_S", "ArchiveRun", "cluster_client", "replay_one",
@@ -71,7 +72,7 @@ def _open_outputs(events: Path | None, rrd: Path | None,
             if rrd is not None:
                 rrd.parent.mkdir(parents=True, exist_ok=True)
                 recording = outputs.rerun_sink(argparse.Namespace(rrd=str(rrd), connect=None),
-                                               cfg)
+                                               cfg, replay=True)
                 if recording is not None:
                     sinks.append(recording)
         except BaseException:
@@ -95,7 +96,7 @@ def replay_one(path: Path, settings: ReplaySettings, *, events: Path | None = No
         setup = monitor_setup(settings)
         run = engine(path, setup, _open_outputs(events, rrd, setup.cfg), progress)
     except Exception as exc:
-        for p in (events, rrd):
+        for p in (events, *(recording_parts(rrd) if rrd is not None else ())):
             if p is not None:
                 with suppress(OSError):
                     p.unlink(missing_ok=True)
@@ -104,7 +105,8 @@ def replay_one(path: Path, settings: ReplaySettings, *, events: Path | None = No
         return failed_result(str(path), reason, wall_s=time.perf_counter() - t0)
     return log_result(str(path), run, wall_s=time.perf_counter() - t0,
                       events=None if events is None else str(events),
-                      rrd=None if rrd is None else str(rrd))
+                      rrd=None if rrd is None else str(rrd),
+                      rrd_parts=0 if rrd is None else len(recording_parts(rrd)))
 
 
 def require_cluster_extra() -> None:

@@ -16,7 +16,8 @@ Columns, in order:
 * `worst_nis`: the node's largest normalised innovation squared (empty without samples);
   `samples`: its estimated samples;
 * `events`, `rrd`: the log's events (JSON lines) and recording, relative to the output
-  directory;
+  directory; `rrd_parts`: the files the recording took (`rrd`, then ``<stem>-part0002.rrd``...
+  beside it, one recording);
 * then one column per pipeline counter (`frames/received`, `rejected/bad_crc`,
   `e2e/lost_frames`, ...), in name order: every frame's outcome, for the whole log (the
   pipeline counts per bus, not per node), 0 where a log has none.
@@ -50,7 +51,7 @@ COLUMNS: tuple[tuple[str, pa.DataType], ...] = (
     *((f"seconds_{s}", pa.float64()) for s in STATES),
     ("transitions_count", pa.int64()), ("transitions", pa.list_(_TRANSITION)),
     ("worst_nis", pa.float64()), ("samples", pa.int64()),
-    ("events", pa.string()), ("rrd", pa.string()),
+    ("events", pa.string()), ("rrd", pa.string()), ("rrd_parts", pa.int64()),
 )
 """The fixed columns; the counters follow, one int64 column each, in name order."""
 
@@ -74,6 +75,7 @@ def summary_rows(results: Sequence[LogResult], out: Path) -> tuple[list[dict[str
             "frames": r.frames, "t_first": r.t_first, "t_last": r.t_last,
             "duration_s": r.duration_s, "wall_s": r.wall_s,
             "events": _relative(r.events, out), "rrd": _relative(r.rrd, out),
+            "rrd_parts": r.rrd_parts,
         }
         counts = {name: int(r.counters.get(name, 0)) for name in counters}
         if not r.nodes:

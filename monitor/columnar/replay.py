@@ -7,10 +7,12 @@ docstring for what differs: only when counter snapshots reach the sink).
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import logging
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -524,7 +526,26 @@ def replay_file(path: str | Path, db: Any, cfg: MonitorConfig | None = None,
         return _per_frame(p, db, cfg, the_sink, str(exc))
     for c in read_chunks(p, chunk_frames):
         rp.chunk(c)
+        del c
+        release_free_heap()
     return rp.result(p)
+
+
+_LIBC_TRIM: Callable[[int], int] | None = None
+with suppress(OSError, AttributeError):  # glibc only (musl, macOS: nothing to do)
+    _LIBC_TRIM = ctypes.CDLL(None).malloc_trim
+
+
+def release_free_heap() -> None:
+    """Give the pages of freed memory back to the system (glibc's ``malloc_trim``).
+
+    Every chunk allocates and frees tens of MB of arrays (the reader's columns, the decoded
+    signals, Rerun's Arrow copies). glibc's allocator keeps most of what is freed in its
+    heaps; in a long replay, fragmentation then let the resident memory creep up by ~1 MB per
+    10^6 frames though nothing was held (measured over 3*10^7 frames: with a trim after each
+    chunk it stays flat). A trim costs about a millisecond against ~0.5 s of a chunk."""
+    if _LIBC_TRIM is not None:
+        _LIBC_TRIM(0)
 
 
 def _per_frame(path: Path, db: Any, cfg: MonitorConfig, sink: Sink, why: str) -> ReplayResult:

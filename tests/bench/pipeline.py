@@ -16,8 +16,12 @@ all on the same frames (a virtual ECU's fault-outage-recovery run: current and t
 100 Hz, voltage at 20 Hz, repeated with shifted timestamps; the repeat length is a
 multiple of 16 samples so the alive counters stay consistent). Compared with the physical
 limit of a saturated 1 Mbit/s bus: a standard 8-byte frame is 111 bits plus up to 24
-stuff bits, so about 9,000 frames/s. Resident memory is sampled every 10 % of the run to
-show whether it stays flat. Last line JSON.
+stuff bits, so about 9,000 frames/s. Resident memory is sampled every 10 % of the run (the
+columnar replay: every chunk) to show whether it stays flat: the growth from the samples'
+second quarter (by then the readers' buffers, the compiled kernels and the allocators' pools
+are in place) to their last, in MB per 10^6 frames. The recordings are written
+as `motor-monitor replay --rrd` writes them (`REPLAY_BATCH_SIZE` rows a chunk). Last line
+JSON.
 """
 
 from __future__ import annotations
@@ -30,12 +34,13 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import can
+import numpy as np
 
 from monitor.bus.codec import MotorDatabase, load_database
 from monitor.columnar import read_chunks, replay_file
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.sinks.base import FanOut, Sink
-from monitor.sinks.rerun import RerunSink
+from monitor.sinks.rerun import REPLAY_BATCH_SIZE, REPLAY_PART_BYTES, RerunSink, recording_parts
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario
 
@@ -48,6 +53,17 @@ def _rss_mb() -> float:
     with open("/proc/self/statm") as f:
         pages = int(f.read().split()[1])
     return pages * 4096 / 2**20
+
+
+def _slope_mb_per_1e6(rss: list[float], frames: int) -> float:
+    """Memory growth from the second quarter of a run's evenly spaced samples to the last
+    (medians: one sample taken while a chunk's arrays were alive, or after the last one was
+    freed, does not tip it)."""
+    if len(rss) < 8:
+        return float("nan")
+    q = len(rss) // 4
+    second, last = np.median(rss[q:2 * q]), np.median(rss[-q:])
+    return float((last - second) / (frames * 0.5 / 1e6))
 
 
 def _stream(base: list[can.Message], period: float, n: int) -> Iterator[can.Message]:
@@ -90,7 +106,8 @@ class _RSS(Sink):
 def _columnar(db: MotorDatabase, log: Path, n: int, tmp: Path) -> dict[str, object]:
     probe = _RSS()
     probe.rss.append(_rss_mb())
-    rerun = RerunSink(rrd_path=tmp / "columnar.rrd", nodes=(0,))
+    rerun = RerunSink(rrd_path=tmp / "columnar.rrd", nodes=(0,), batch_size=REPLAY_BATCH_SIZE,
+                      part_bytes=REPLAY_PART_BYTES)
     t0 = time.perf_counter()
     res = replay_file(log, db, MonitorConfig(nodes=(0,)), FanOut([rerun, probe]))
     rerun.close()
@@ -100,7 +117,8 @@ def _columnar(db: MotorDatabase, log: Path, n: int, tmp: Path) -> dict[str, obje
             "estimated": res.counters.get("samples/estimated", 0),
             "transitions": sum(v for k, v in res.counters.items()
                                if k.startswith("transitions/")),
-            "rrd_mb": (tmp / "columnar.rrd").stat().st_size / 2**20}
+            "rrd_mb": sum(p.stat().st_size for p in recording_parts(tmp / "columnar.rrd"))
+            / 2**20}
 
 
 def _read(log: Path, n: int) -> dict[str, object]:
@@ -137,7 +155,7 @@ def _run(kind: str, db: MotorDatabase, base: list[can.Message], period: float, n
         return {"fps": n / el, "rss_mb": rss}
     sink = None
     if kind == "pipeline+rerun":
-        sink = RerunSink(rrd_path=tmp / "bench.rrd", nodes=(0,))
+        sink = RerunSink(rrd_path=tmp / "bench.rrd", nodes=(0,), batch_size=REPLAY_BATCH_SIZE)
     pipe = MonitorPipeline(db, MonitorConfig(nodes=(0,)), sink=sink)
     last = 0.0
     t0 = time.perf_counter()
@@ -198,13 +216,15 @@ def main() -> None:
                 other.unlink()
     dec = float(results["decode"]["fps"])  # type: ignore[arg-type]
     print(f"{'stage':22s} {'frames/s':>10s} {'x bus limit':>12s} {'x decode':>9s} "
-          f"{'RSS MB first->last (max)':>26s}")
+          f"{'RSS MB first->last (max)':>26s} {'MB/1e6 frames':>17s}")
     for kind, r in results.items():
         fps = float(r["fps"])  # type: ignore[arg-type]
         rss = r["rss_mb"]
         assert isinstance(rss, list)
+        growth = _slope_mb_per_1e6(rss, args.frames)
+        r["rss_growth_mb_per_1e6"] = growth
         print(f"{kind:22s} {fps:10.0f} {fps / BUS_LIMIT_FPS:12.2f} {fps / dec:9.2f} "
-              f"{rss[0]:9.1f} -> {rss[-1]:.1f} ({max(rss):.1f})")
+              f"{rss[0]:9.1f} -> {rss[-1]:.1f} ({max(rss):.1f}) {growth:17.2f}")
     ratios: dict[str, object] = {}
     if "columnar+rerun" in results:
         col = float(results["columnar+rerun"]["fps"])  # type: ignore[arg-type]
