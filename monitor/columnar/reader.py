@@ -16,9 +16,11 @@ Every reader gives exactly the frames python-can's `can.LogReader` gives for the
 * ``.blf``: a compiled object scanner over the inflated log containers
   (`monitor.columnar.blf`), python-can's rules and its file-header parsing; anything it
   does not take hands the rest of the file to python-can's reader.
-* ``.asc``: python-can's reader (measured: 80,000 frames/s on one core of the development
-  machine), its messages copied into the arrays. Under NUMBA_DISABLE_JIT (the hardened
-  unit) BLF is read by python-can too.
+* ``.asc``: a compiled line scanner (`monitor.columnar.asc`) after python-can has read the
+  header, python-can's rules; a block of lines it does not take goes through python-can's
+  reader.
+
+Under NUMBA_DISABLE_JIT (the hardened unit) BLF and ASC are read by python-can.
 
 A frame's payload is ``data[i, :length[i]]``. `data` is 8 bytes wide, or 64 when the chunk
 holds a CAN FD frame longer than 8 bytes, so no payload is ever cut short; `fd`,
@@ -165,6 +167,10 @@ def read_chunks(path: Path, chunk_frames: int = DEFAULT_CHUNK_FRAMES) -> Iterato
         from monitor.columnar.blf import blf_chunks
 
         return blf_chunks(path, chunk_frames)
+    if path.suffix.lower() == ".asc" and not JIT_DISABLED:
+        from monitor.columnar.asc import asc_chunks
+
+        return asc_chunks(path, chunk_frames)
     return _reader_chunks(path, open_reader(path), chunk_frames)
 
 
@@ -240,7 +246,9 @@ def _parse_candump(path: Path, text: bytes) -> FrameChunk:
                       c.bitrate_switch[:n], c.error_state_indicator[:n])
 
 
-_POW10 = np.array([10.0 ** k for k in range(23)])
+POW10 = np.array([10.0 ** k for k in range(23)])
+"""Exact powers of ten up to 10^22: a decimal of at most 2^53 over one of them is one
+correctly rounded division (Clinger's fast path), what Python's ``float`` gives."""
 _CAN_ERR_FLAG = 0x20000000
 _CAN_ERR_BUSERROR = 0x80
 
@@ -268,7 +276,7 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
                   brs: NDArray[np.bool_], esi: NDArray[np.bool_]) -> int:
     """Frames of candump -L lines into the arrays; returns the count, -1 for a line it does
     not take as plain (the caller then asks python-can). `data` is 8 or 64 bytes wide."""
-    pow10 = _POW10
+    pow10 = POW10
     width = data.shape[1]
     size = buf.shape[0]
     n = 0

@@ -1,0 +1,411 @@
+"""Vector ASC logs read into `FrameChunk`s by a compiled line scanner.
+
+python-can's `can.io.ASCReader` matches regular expressions and builds one `can.Message` per
+line (about 70,000 frames/s), which caps a columnar replay of an ASC archive far below the
+rest of the engine. This reader keeps python-can's rules: the header is read by python-can
+itself (`ASCReader._extract_header`: ``date``, ``base hex|dec``, comments, up to and including
+the first other line, which python-can drops), and `_scan_asc` walks the following lines in
+blocks of some megabytes, rule for rule as `ASCReader.__iter__` with its default relative
+time stamps (the line's time, no start time added):
+
+* a line that does not start with ``<digits>.<digits><space>`` is skipped (comments, trigger
+  blocks, ``End TriggerBlock``); so is ``Start of measurement``, a channel that is neither
+  digits nor exactly ``CANFD``, a classic line whose ID is not a word or whose direction does
+  not start with Tx/Rx (statistics, J1939 lines), and a ``CANFD`` with nothing after it;
+* a classic data frame ``<t> <ch> <id>[x] Tx|Rx d <dlc> <bytes>``: the ID in the header's
+  base (``x``: extended), ``min(8, dlc2len(dlc))`` data bytes, fewer if the line ends first,
+  anything after them ignored (``Length = ...``);
+* a CAN FD frame ``<t> CANFD <ch> Tx|Rx <id> [<name>] <brs> <esi> <dlc> <length> <bytes>``:
+  BRS and ESI where the field is exactly ``1``, ``length`` (decimal) bytes, a remote frame
+  for length 0.
+
+Anything else -- an error frame, a classic remote frame, a DLC that does not match an FD
+frame's length (python-can warns), a field python's ``int`` would read another way (signs,
+``0x``, underscores, more digits), a time stamp of more than 17 significant digits, a line
+python-can would fail on, and any byte a text file read by python-can would see otherwise
+(non-ASCII, a lone carriage return, the separators that Python's ``str.split`` counts as
+space) -- sends its whole block through python-can's own reader, so the frames and any
+error are exactly python-can's.
+"""
+
+from __future__ import annotations
+
+import io
+import locale
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import numpy as np
+from numpy.typing import NDArray
+
+from monitor.bus.logfile import READ_ERRORS, LogError, malformed, open_reader
+from monitor.columnar.reader import (
+    CLASSIC_WIDTH,
+    FD_WIDTH,
+    POW10,
+    FrameChunk,
+    empty_chunk,
+    messages_to_chunks,
+)
+from monitor.errors import one_line
+from monitor.estimation.jit import njit
+
+__all__ = ["asc_chunks"]
+
+_HEAD_BYTES = 1 << 20  # the header must end within this much of the file's start
+_READ_BYTES = 1 << 24  # text scanned per call (about 220,000 classic lines)
+_FD_LENGTHS = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64], np.int64)
+
+
+def asc_chunks(path: Path, chunk_frames: int) -> Iterator[FrameChunk]:
+    """The frames of the ASC file at `path` in chunks (`read_chunks` for ``.asc``)."""
+    try:
+        fh = path.open("rb")
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read log ({one_line(exc)})") from None
+    return _chunks(path, fh, chunk_frames)
+
+
+def _chunks(path: Path, fh: io.BufferedReader, chunk_frames: int) -> Iterator[FrameChunk]:
+    encoding = locale.getpreferredencoding(False)  # what python-can opens the file with
+    with fh:
+        header = _header(fh.read(_HEAD_BYTES))
+        if header is None:  # python-can reads the file
+            fh.close()
+            reader = open_reader(path)
+            try:
+                yield from messages_to_chunks(reader, chunk_frames)
+            except READ_ERRORS as exc:
+                raise malformed(path, exc) from None
+            finally:
+                reader.stop()
+            return
+        base_name, offset = header
+        base = 10 if base_name == "dec" else 16
+        fh.seek(offset)
+        tail = b""
+        while True:
+            block = fh.read(_READ_BYTES)
+            if not block:
+                break
+            buf = tail + block
+            cut = buf.rfind(b"\n") + 1
+            if cut == 0:
+                tail = buf
+                continue
+            tail = buf[cut:]
+            yield from _block(path, buf[:cut], base, base_name, encoding)
+        if tail:
+            yield from _block(path, tail, base, base_name, encoding)
+
+
+def _header(head: bytes) -> tuple[str, int] | None:
+    """python-can's reading of the header: (base, byte offset of the first line after it),
+    or None when this reader leaves the file to python-can (the header does not end within
+    `head`, or holds bytes that are not plain ASCII lines)."""
+    cut = head.rfind(b"\n") + 1
+    text_bytes = head[:cut]
+    if not text_bytes or _needs_python(np.frombuffer(text_bytes, np.uint8)):
+        return None
+    reader = can.io.ASCReader(io.StringIO(text_bytes.decode("ascii")))
+    extract = getattr(reader, "_extract_header", None)
+    if extract is None:  # a python-can that reads its header otherwise
+        return None
+    extract()
+    consumed = reader.file.tell()
+    if consumed >= len(text_bytes):
+        return None  # the header may go on past what was read
+    return reader.base, consumed  # ASCII, "\r\n" kept as it is: characters are bytes
+
+
+def _block(path: Path, text: bytes, base: int, base_name: str,
+           encoding: str) -> Iterator[FrameChunk]:
+    buf = np.frombuffer(text, np.uint8)
+    if not _needs_python(buf):
+        c = empty_chunk(text.count(b"\n") + 1,
+                        FD_WIDTH if b"CANFD" in text else CLASSIC_WIDTH)
+        assert c.bitrate_switch is not None and c.error_state_indicator is not None
+        n = _scan_asc(buf, base, c.t, c.arbitration_id, c.extended, c.remote, c.error,
+                      c.length, c.data, c.is_fd, c.bitrate_switch, c.error_state_indicator)
+        if n >= 0:
+            if n:
+                yield FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
+                                 c.error[:n], c.length[:n], c.data[:n], c.is_fd[:n],
+                                 c.bitrate_switch[:n], c.error_state_indicator[:n])
+            return
+    # python-can reads this block: its text as the file's text mode gives it (universal
+    # newlines), after an empty line for the header python-can looks for first
+    try:
+        lines = text.decode(encoding).replace("\r\n", "\n").replace("\r", "\n")
+        reader = can.io.ASCReader(io.StringIO("\n" + lines), base=base_name)
+        yield from messages_to_chunks(reader, max(1, len(text)))
+    except (*READ_ERRORS, UnicodeDecodeError) as exc:
+        raise malformed(path, exc) from None
+
+
+def _needs_python(buf: NDArray[np.uint8]) -> bool:
+    """Bytes a text reader would see otherwise than the scanner: non-ASCII, the separators
+    ``str.split`` counts as space (0x1c-0x1f), a carriage return not before a line feed."""
+    if bool((buf >= 0x80).any()) or bool(((buf >= 0x1C) & (buf <= 0x1F)).any()):
+        return True
+    cr = np.flatnonzero(buf == 13)
+    if not len(cr):
+        return False
+    follows = cr + 1
+    return bool((follows >= len(buf)).any() or (buf[follows[follows < len(buf)]] != 10).any())
+
+
+@njit
+def _digit(ch: int, base: int) -> int:
+    """The value of an ASCII digit in `base` (10 or 16), else -1."""
+    if 48 <= ch <= 57:
+        return ch - 48
+    if base == 16:
+        if 65 <= ch <= 70:
+            return ch - 55
+        if 97 <= ch <= 102:
+            return ch - 87
+    return -1
+
+
+@njit
+def _space(ch: int) -> bool:
+    return ch == 32 or 9 <= ch <= 13
+
+
+@njit
+def _word(ch: int) -> bool:
+    """A regular expression's ``\\w`` under ``re.ASCII``."""
+    return 48 <= ch <= 57 or 65 <= ch <= 90 or 97 <= ch <= 122 or ch == 95
+
+
+@njit
+def _lower(ch: int) -> int:
+    return ch + 32 if 65 <= ch <= 90 else ch
+
+
+@njit
+def _next_token(buf: NDArray[np.uint8], j: int, e: int) -> tuple[int, int]:
+    """The token at or after `j` (skipping space) up to `e`: (start, end); start == e if
+    none."""
+    while j < e and _space(buf[j]):
+        j += 1
+    k = j
+    while k < e and not _space(buf[k]):
+        k += 1
+    return j, k
+
+
+@njit
+def _time_stamp(buf: NDArray[np.uint8], j: int, e: int) -> tuple[float, int]:
+    """``<digits>.<digits>`` and a space at `j` (python-can's pattern): (seconds, end); end
+    -1 if the line does not match, -2 if it has more digits than one correctly rounded
+    division converts exactly (more than 17 significant, or 22 after the point)."""
+    mant = 0
+    digits = 0
+    frac = 0
+    dot = -1
+    k = j
+    while k < e:
+        ch = buf[k]
+        if ch == 46 and dot < 0:
+            dot = k
+        elif 48 <= ch <= 57:
+            if digits > 0 or ch != 48:
+                digits += 1
+            if digits <= 17:
+                mant = mant * 10 + (ch - 48)
+            if dot >= 0:
+                frac += 1
+        else:
+            break
+        k += 1
+    if dot <= j or frac == 0 or k >= e or not _space(buf[k]):
+        return 0.0, -1
+    if digits > 17 or mant > 9007199254740992 or frac > 22:
+        return 0.0, -2
+    return float(mant) / POW10[frac], k
+
+
+@njit
+def _all_digits(buf: NDArray[np.uint8], a: int, b: int) -> bool:
+    """Whether [a, b) is one or more ASCII digits (``str.isdigit`` on ASCII)."""
+    if b <= a:
+        return False
+    for q in range(a, b):  # noqa: SIM110 (numba compiles no generator expression)
+        if not 48 <= buf[q] <= 57:
+            return False
+    return True
+
+
+@njit
+def _number(buf: NDArray[np.uint8], a: int, b: int, base: int, max_digits: int) -> int:
+    """The token [a, b) as a number in `base`, -1 unless it is 1..max_digits plain digits."""
+    if b <= a or b - a > max_digits:
+        return -1
+    v = 0
+    for q in range(a, b):
+        d = _digit(buf[q], base)
+        if d < 0:
+            return -1
+        v = v * base + d
+    return v
+
+
+@njit
+def _starts_ci(buf: NDArray[np.uint8], a: int, e: int, word: bytes) -> bool:
+    """Whether [a, e) starts with the lower-case ASCII `word`, in any case."""
+    if e - a < len(word):
+        return False
+    for q in range(len(word)):  # noqa: SIM110 (numba compiles no generator expression)
+        if _lower(buf[a + q]) != word[q]:
+            return False
+    return True
+
+
+@njit
+def _can_id(buf: NDArray[np.uint8], a: int, b: int, base: int) -> tuple[int, bool]:
+    """python-can's ``_extract_can_id``: (ID, extended), ID -1 if ``int`` might read the
+    token otherwise."""
+    extended = b > a and (buf[b - 1] == 120 or buf[b - 1] == 88)  # x, X
+    if extended:
+        b -= 1
+    return _number(buf, a, b, base, 8 if base == 16 else 10), extended
+
+
+@njit
+def _data_bytes(buf: NDArray[np.uint8], j: int, e: int, count: int, base: int,
+                row: NDArray[np.uint8]) -> int:
+    """Up to `count` byte tokens from `j` into `row`: how many, -1 for one ``int`` might
+    read otherwise or that is over 255."""
+    got = 0
+    while got < count:
+        a, b = _next_token(buf, j, e)
+        if a >= e:
+            break
+        v = _number(buf, a, b, base, 2 if base == 16 else 3)
+        if v < 0 or v > 255:
+            return -1
+        row[got] = v
+        got += 1
+        j = b
+    return got
+
+
+@njit
+def _scan_asc(buf: NDArray[np.uint8], base: int, t: NDArray[np.float64],
+              ids: NDArray[np.int64], ext: NDArray[np.bool_], remote: NDArray[np.bool_],
+              err: NDArray[np.bool_], length: NDArray[np.int64], data: NDArray[np.uint8],
+              fd: NDArray[np.bool_], brs: NDArray[np.bool_], esi: NDArray[np.bool_]) -> int:
+    """Frames of ASC lines (after the header) into the arrays; returns the count, -1 for a
+    line python-can must read (see the module docstring). `data` is 8 or 64 bytes wide."""
+    width = data.shape[1]
+    size = buf.shape[0]
+    n = 0
+    i = 0
+    while i < size:
+        e = i
+        while e < size and buf[e] != 10:
+            e += 1
+        nxt = e + 1
+        while i < e and _space(buf[i]):
+            i += 1
+        while e > i and _space(buf[e - 1]):
+            e -= 1
+        line = i
+        i = nxt
+        if line == e or _digit(buf[line], 10) < 0:
+            continue  # comments, trigger blocks: no message there
+        # the time stamp: <digits>.<digits> and space, else no message on this line
+        ts, j = _time_stamp(buf, line, e)
+        if j == -1:
+            continue
+        if j == -2:
+            return -1  # a number this scanner does not convert exactly
+        a2, b2 = _next_token(buf, j, e)
+        if a2 >= e:
+            continue
+        is_fd = (b2 - a2 == 5 and buf[a2] == 67 and buf[a2 + 1] == 65 and buf[a2 + 2] == 78
+                 and buf[a2 + 3] == 70 and buf[a2 + 4] == 68)  # CANFD
+        if not is_fd:
+            if not _all_digits(buf, a2, b2):
+                continue  # neither a channel nor CANFD: "Start of measurement", events
+            a3, b3 = _next_token(buf, b2, e)
+            if a3 >= e:
+                continue
+            if _starts_ci(buf, a3, e, b"errorframe"):
+                return -1  # an error frame
+            word = True
+            for q in range(a3, b3):
+                if not _word(buf[q]):
+                    word = False
+            a4, b4 = _next_token(buf, b3, e)
+            if not word or a4 >= e or not (_starts_ci(buf, a4, e, b"tx")
+                                           or _starts_ci(buf, a4, e, b"rx")):
+                continue  # statistics, J1939: not a frame
+            a5, b5 = _next_token(buf, b4, e)
+            if a5 >= e or _lower(buf[a5]) == 114:
+                return -1  # no frame type (python-can fails), or a remote frame
+            a6, b6 = _next_token(buf, b5, e)
+            if a6 >= e:
+                return -1  # no DLC: python-can fails
+            cid, extended = _can_id(buf, a3, b3, base)
+            dlc = _number(buf, a6, b6, base, 2)
+            if cid < 0 or dlc < 0:
+                return -1
+            count = min(8, _FD_LENGTHS[dlc] if dlc <= 15 else 64)
+            got = _data_bytes(buf, b6, e, count, base, data[n])
+            if got < 0:
+                return -1
+            bitrate_switch = False
+            error_state = False
+            is_remote = False
+        else:
+            a3, b3 = _next_token(buf, b2, e)  # channel
+            if a3 >= e:
+                continue  # "<t> CANFD" alone: python-can skips it
+            a4, b4 = _next_token(buf, b3, e)  # direction
+            a5, b5 = _next_token(buf, b4, e)  # ID
+            if a5 >= e or _number(buf, a3, b3, 10, 9) < 0:
+                return -1
+            if _starts_ci(buf, a5, e, b"errorframe"):
+                return -1
+            a6, b6 = _next_token(buf, b5, e)  # symbolic name, or BRS
+            if a6 >= e:
+                return -1
+            named = not _all_digits(buf, a6, b6)
+            if named:
+                a6, b6 = _next_token(buf, b6, e)
+            a7, b7 = _next_token(buf, b6, e)  # ESI
+            a8, b8 = _next_token(buf, b7, e)  # DLC
+            a9, b9 = _next_token(buf, b8, e)  # data length
+            a10, _ = _next_token(buf, b9, e)  # data: python-can needs something there
+            if a10 >= e:
+                return -1
+            cid, extended = _can_id(buf, a5, b5, base)
+            dlc = _number(buf, a8, b8, base, 2)
+            dl = _number(buf, a9, b9, 10, 2)
+            if cid < 0 or dlc < 0 or dl < 0:
+                return -1
+            bitrate_switch = b6 - a6 == 1 and buf[a6] == 49
+            error_state = b7 - a7 == 1 and buf[a7] == 49
+            is_remote = dl == 0
+            if not is_remote and (dl > width or (_FD_LENGTHS[dlc] if dlc <= 15 else 64) != dl):
+                return -1  # python-can warns of the mismatch
+            got = _data_bytes(buf, b9, e, dl, base, data[n])
+            if got < 0:
+                return -1
+        for q in range(got, width):
+            data[n, q] = 0
+        t[n] = ts
+        ids[n] = cid
+        ext[n] = extended
+        remote[n] = is_remote
+        err[n] = False
+        length[n] = got
+        fd[n] = is_fd
+        brs[n] = bitrate_switch
+        esi[n] = error_state
+        n += 1
+    return n
