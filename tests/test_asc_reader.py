@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from monitor.columnar.asc import _header, _scan_asc
 from monitor.columnar.reader import empty_chunk
 from monitor.estimation.jit import JIT_DISABLED
-from tests.test_blf_reader import _columnar, _per_frame, _random_frames
+from tests.log_readers import columnar, per_frame, random_frames
 
 pytestmark = pytest.mark.skipif(JIT_DISABLED, reason="the scanner runs compiled only")
 
@@ -35,7 +35,7 @@ def _write(frames: list[can.Message], path: Path) -> Path:
 def _data_frames(n: int, seed: int) -> list[can.Message]:
     """Classic and FD data frames only: the lines the scanner takes itself."""
     rng = random.Random(seed)
-    return [m for m in _random_frames(n, seed)
+    return [m for m in random_frames(n, seed)
             if not (m.is_error_frame or m.is_remote_frame)
             and (m.is_fd or rng.random() < 0.9)]
 
@@ -44,12 +44,12 @@ def _data_frames(n: int, seed: int) -> list[can.Message]:
 @pytest.mark.parametrize("chunk_frames", [100, 1 << 18])
 def test_files_python_can_writes_read_the_same(tmp_path: Path, seed: int,
                                                chunk_frames: int) -> None:
-    for name, frames in (("mixed", _random_frames(2000, seed)),
+    for name, frames in (("mixed", random_frames(2000, seed)),
                          ("data", _data_frames(2000, seed))):
         path = _write(frames, tmp_path / f"{name}.asc")
-        rows, error = _columnar(path, chunk_frames)
+        rows, error = columnar(path, chunk_frames)
         assert error is None
-        assert (rows, error) == _per_frame(path)
+        assert (rows, error) == per_frame(path)
         assert len(rows) == len(frames)
 
 
@@ -108,8 +108,8 @@ def _hand(base: str) -> str:
 def test_hand_written_lines_read_the_same(tmp_path: Path, base: str, newline: str) -> None:
     path = tmp_path / "h.asc"
     path.write_bytes(_hand(base).replace("\n", newline).encode())
-    rows, error = _columnar(path)
-    assert (rows, error) == _per_frame(path)
+    rows, error = columnar(path)
+    assert (rows, error) == per_frame(path)
     assert error is None and len(rows) >= 7, rows
 
 
@@ -125,7 +125,7 @@ def test_hand_written_lines_read_the_same(tmp_path: Path, base: str, newline: st
 def test_lines_left_to_python_can_read_the_same(tmp_path: Path, line: str) -> None:
     path = tmp_path / "o.asc"
     path.write_text(_hand("hex").replace("End TriggerBlock", line + "\nEnd TriggerBlock"))
-    assert _columnar(path) == _per_frame(path)
+    assert columnar(path) == per_frame(path)
 
 
 _BASE: dict[str, bytes] = {}
@@ -160,4 +160,4 @@ def test_damaged_files_give_the_same_frames_and_error(cut: float, where: float,
     with tempfile.TemporaryDirectory() as td:
         path = Path(td) / "d.asc"
         path.write_bytes(bytes(data))
-        assert _columnar(path, 500) == _per_frame(path)
+        assert columnar(path, 500) == per_frame(path)

@@ -8,7 +8,6 @@ error line."""
 
 from __future__ import annotations
 
-import random
 import struct
 import tempfile
 import zlib
@@ -19,69 +18,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from monitor.bus.logfile import LogError, read_log
 from monitor.columnar import read_chunks
 from monitor.estimation.jit import JIT_DISABLED
+from tests.log_readers import columnar, per_frame, random_frames
 
 pytestmark = pytest.mark.skipif(JIT_DISABLED, reason="the scanner runs compiled only")
-
-Frame = tuple[float, int, bool, bool, bool, bool, bool, bool, bytes, int]
-
-
-def _row(m: can.Message, length: int | None = None) -> Frame:
-    """A frame's fields; `length` the chunk's own (a message's is len(data))."""
-    return (m.timestamp, m.arbitration_id, m.is_extended_id, m.is_remote_frame,
-            m.is_error_frame, m.is_fd, m.bitrate_switch, m.error_state_indicator, bytes(m.data),
-            len(m.data) if length is None else length)
-
-
-def _per_frame(path: Path) -> tuple[list[Frame], str | None]:
-    rows: list[Frame] = []
-    try:
-        for m in read_log(path):
-            rows.append(_row(m))
-    except LogError as exc:
-        return rows, str(exc)
-    return rows, None
-
-
-def _columnar(path: Path, chunk_frames: int = 1 << 18) -> tuple[list[Frame], str | None]:
-    rows: list[Frame] = []
-    try:
-        for c in read_chunks(path, chunk_frames):
-            rows.extend(_row(c.message(i), int(c.length[i])) for i in range(len(c)))
-    except LogError as exc:
-        return rows, str(exc)
-    return rows, None
-
-
-def _random_frames(n: int, seed: int) -> list[can.Message]:
-    rng = random.Random(seed)
-    t = 1.7e9 + rng.random()
-    out = []
-    for _ in range(n):
-        t += rng.choice((1e-6, 1e-4, 0.001, 0.0137))
-        kind = rng.random()
-        ext = rng.random() < 0.3
-        fid = rng.getrandbits(29 if ext else 11)
-        if kind < 0.05:
-            out.append(can.Message(timestamp=t, is_error_frame=True, arbitration_id=fid,
-                                   is_extended_id=ext, data=bytes(rng.getrandbits(8)
-                                                                  for _ in range(8))))
-        elif kind < 0.1:
-            out.append(can.Message(timestamp=t, arbitration_id=fid, is_extended_id=ext,
-                                   is_remote_frame=True, dlc=rng.randint(0, 8)))
-        elif kind < 0.4:
-            size = rng.choice((0, 1, 8, 12, 16, 20, 24, 32, 48, 64))
-            out.append(can.Message(timestamp=t, arbitration_id=fid, is_extended_id=ext,
-                                   is_fd=True, bitrate_switch=rng.random() < 0.5,
-                                   error_state_indicator=rng.random() < 0.2,
-                                   data=rng.randbytes(size)))
-        else:
-            out.append(can.Message(timestamp=t, arbitration_id=fid, is_extended_id=ext,
-                                   data=rng.randbytes(rng.randint(0, 8))))
-    return out
-
 
 def _write_python_can(frames: list[can.Message], path: Path, compression: int) -> Path:
     with can.BLFWriter(str(path), compression_level=compression) as writer:
@@ -94,11 +35,11 @@ def _write_python_can(frames: list[can.Message], path: Path, compression: int) -
 @pytest.mark.parametrize("chunk_frames", [777, 1 << 18])
 def test_files_python_can_writes_read_the_same(tmp_path: Path, compression: int,
                                                chunk_frames: int) -> None:
-    path = _write_python_can(_random_frames(20_000, compression), tmp_path / "x.blf",
+    path = _write_python_can(random_frames(20_000, compression), tmp_path / "x.blf",
                              compression)
-    want = _per_frame(path)
+    want = per_frame(path)
     assert want[1] is None and len(want[0]) == 20_000
-    got = _columnar(path, chunk_frames)
+    got = columnar(path, chunk_frames)
     assert got == want
     if chunk_frames == 777:  # chunks of about the size asked for, every frame once
         sizes = [len(c) for c in read_chunks(path, chunk_frames)]
@@ -175,10 +116,10 @@ def _hand_built() -> bytes:
 @pytest.mark.parametrize("compress", [False, True])
 def test_hand_built_objects_read_the_same(tmp_path: Path, compress: bool) -> None:
     path = _file(tmp_path / "x.blf", _hand_built(), compress=compress)
-    want = _per_frame(path)
+    want = per_frame(path)
     assert want[1] is None and len(want[0]) == 1202, want[1]
     assert any(f[5] and len(f[8]) == 64 for f in want[0])  # FD 64-byte frames among them
-    assert _columnar(path) == want
+    assert columnar(path) == want
 
 
 # -- damaged files ------------------------------------------------------------------------
@@ -189,7 +130,7 @@ _BASE: dict[bool, bytes] = {}
 def _base(compress: bool) -> bytes:
     if compress not in _BASE:
         with tempfile.TemporaryDirectory() as td:
-            frames = _random_frames(3000, 7)
+            frames = random_frames(3000, 7)
             p = _write_python_can(frames, Path(td) / "b.blf", 6 if compress else 0)
             _BASE[compress] = p.read_bytes()
     return _BASE[compress]
@@ -215,4 +156,4 @@ def test_damaged_files_give_the_same_frames_and_error(compress: bool, cut: float
     with tempfile.TemporaryDirectory() as td:
         path = Path(td) / "d.blf"
         path.write_bytes(bytes(data))
-        assert _columnar(path, 500) == _per_frame(path)
+        assert columnar(path, 500) == per_frame(path)

@@ -1,0 +1,69 @@
+"""Shared by the log reader tests: a frame's fields as python-can's reader (the per-frame
+path) and the columnar reader give them, and random frames of every kind."""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import can
+
+from monitor.bus.logfile import LogError, read_log
+from monitor.columnar import read_chunks
+
+Frame = tuple[float, int, bool, bool, bool, bool, bool, bool, bytes, int]
+
+
+def row(m: can.Message, length: int | None = None) -> Frame:
+    """A frame's fields; `length` the chunk's own (a message's is len(data))."""
+    return (m.timestamp, m.arbitration_id, m.is_extended_id, m.is_remote_frame,
+            m.is_error_frame, m.is_fd, m.bitrate_switch, m.error_state_indicator, bytes(m.data),
+            len(m.data) if length is None else length)
+
+
+def per_frame(path: Path) -> tuple[list[Frame], str | None]:
+    rows: list[Frame] = []
+    try:
+        for m in read_log(path):
+            rows.append(row(m))
+    except LogError as exc:
+        return rows, str(exc)
+    return rows, None
+
+
+def columnar(path: Path, chunk_frames: int = 1 << 18) -> tuple[list[Frame], str | None]:
+    rows: list[Frame] = []
+    try:
+        for c in read_chunks(path, chunk_frames):
+            rows.extend(row(c.message(i), int(c.length[i])) for i in range(len(c)))
+    except LogError as exc:
+        return rows, str(exc)
+    return rows, None
+
+
+def random_frames(n: int, seed: int) -> list[can.Message]:
+    rng = random.Random(seed)
+    t = 1.7e9 + rng.random()
+    out = []
+    for _ in range(n):
+        t += rng.choice((1e-6, 1e-4, 0.001, 0.0137))
+        kind = rng.random()
+        ext = rng.random() < 0.3
+        fid = rng.getrandbits(29 if ext else 11)
+        if kind < 0.05:
+            out.append(can.Message(timestamp=t, is_error_frame=True, arbitration_id=fid,
+                                   is_extended_id=ext, data=bytes(rng.getrandbits(8)
+                                                                  for _ in range(8))))
+        elif kind < 0.1:
+            out.append(can.Message(timestamp=t, arbitration_id=fid, is_extended_id=ext,
+                                   is_remote_frame=True, dlc=rng.randint(0, 8)))
+        elif kind < 0.4:
+            size = rng.choice((0, 1, 8, 12, 16, 20, 24, 32, 48, 64))
+            out.append(can.Message(timestamp=t, arbitration_id=fid, is_extended_id=ext,
+                                   is_fd=True, bitrate_switch=rng.random() < 0.5,
+                                   error_state_indicator=rng.random() < 0.2,
+                                   data=rng.randbytes(size)))
+        else:
+            out.append(can.Message(timestamp=t, arbitration_id=fid, is_extended_id=ext,
+                                   data=rng.randbytes(rng.randint(0, 8))))
+    return out
