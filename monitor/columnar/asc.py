@@ -46,7 +46,11 @@ from monitor.columnar.reader import (
     POW10,
     FrameChunk,
     empty_chunk,
+    is_space,
+    line_blocks,
     messages_to_chunks,
+    reader_chunks,
+    stripped_line,
 )
 from monitor.errors import one_line
 from monitor.estimation.jit import njit
@@ -73,31 +77,13 @@ def _chunks(path: Path, fh: io.BufferedReader, chunk_frames: int) -> Iterator[Fr
         header = _header(fh.read(_HEAD_BYTES))
         if header is None:  # python-can reads the file
             fh.close()
-            reader = open_reader(path)
-            try:
-                yield from messages_to_chunks(reader, chunk_frames)
-            except READ_ERRORS as exc:
-                raise malformed(path, exc) from None
-            finally:
-                reader.stop()
+            yield from reader_chunks(path, open_reader(path), chunk_frames)
             return
         base_name, offset = header
         base = 10 if base_name == "dec" else 16
         fh.seek(offset)
-        tail = b""
-        while True:
-            block = fh.read(_READ_BYTES)
-            if not block:
-                break
-            buf = tail + block
-            cut = buf.rfind(b"\n") + 1
-            if cut == 0:
-                tail = buf
-                continue
-            tail = buf[cut:]
-            yield from _block(path, buf[:cut], base, base_name, encoding)
-        if tail:
-            yield from _block(path, tail, base, base_name, encoding)
+        for text in line_blocks(fh, _READ_BYTES):
+            yield from _block(path, text, base, base_name, encoding)
 
 
 def _header(head: bytes) -> tuple[str, int] | None:
@@ -170,11 +156,6 @@ def _digit(ch: int, base: int) -> int:
 
 
 @njit
-def _space(ch: int) -> bool:
-    return ch == 32 or 9 <= ch <= 13
-
-
-@njit
 def _word(ch: int) -> bool:
     """A regular expression's ``\\w`` under ``re.ASCII``."""
     return 48 <= ch <= 57 or 65 <= ch <= 90 or 97 <= ch <= 122 or ch == 95
@@ -189,10 +170,10 @@ def _lower(ch: int) -> int:
 def _next_token(buf: NDArray[np.uint8], j: int, e: int) -> tuple[int, int]:
     """The token at or after `j` (skipping space) up to `e`: (start, end); start == e if
     none."""
-    while j < e and _space(buf[j]):
+    while j < e and is_space(buf[j]):
         j += 1
     k = j
-    while k < e and not _space(buf[k]):
+    while k < e and not is_space(buf[k]):
         k += 1
     return j, k
 
@@ -221,7 +202,7 @@ def _time_stamp(buf: NDArray[np.uint8], j: int, e: int) -> tuple[float, int]:
         else:
             break
         k += 1
-    if dot <= j or frac == 0 or k >= e or not _space(buf[k]):
+    if dot <= j or frac == 0 or k >= e or not is_space(buf[k]):
         return 0.0, -1
     if digits > 17 or mant > 9007199254740992 or frac > 22:
         return 0.0, -2
@@ -305,16 +286,7 @@ def _scan_asc(buf: NDArray[np.uint8], base: int, t: NDArray[np.float64],
     n = 0
     i = 0
     while i < size:
-        e = i
-        while e < size and buf[e] != 10:
-            e += 1
-        nxt = e + 1
-        while i < e and _space(buf[i]):
-            i += 1
-        while e > i and _space(buf[e - 1]):
-            e -= 1
-        line = i
-        i = nxt
+        line, e, i = stripped_line(buf, i)
         if line == e or _digit(buf[line], 10) < 0:
             continue  # comments, trigger blocks: no message there
         # the time stamp: <digits>.<digits> and space, else no message on this line

@@ -171,7 +171,7 @@ def read_chunks(path: Path, chunk_frames: int = DEFAULT_CHUNK_FRAMES) -> Iterato
         from monitor.columnar.asc import asc_chunks
 
         return asc_chunks(path, chunk_frames)
-    return _reader_chunks(path, open_reader(path), chunk_frames)
+    return reader_chunks(path, open_reader(path), chunk_frames)
 
 
 def messages_to_chunks(msgs: Iterable[can.Message], chunk_frames: int) -> Iterator[FrameChunk]:
@@ -193,7 +193,7 @@ def messages_to_chunks(msgs: Iterable[can.Message], chunk_frames: int) -> Iterat
         yield chunk_from_messages(batch)
 
 
-def _reader_chunks(path: Path, reader: can.io.generic.MessageReader,
+def reader_chunks(path: Path, reader: can.io.generic.MessageReader,
                    chunk_frames: int) -> Iterator[FrameChunk]:
     try:
         yield from messages_to_chunks(reader, chunk_frames)
@@ -204,24 +204,29 @@ def _reader_chunks(path: Path, reader: can.io.generic.MessageReader,
             reader.stop()
 
 
-def _candump_chunks(path: Path, fh: io.BufferedReader) -> Iterator[FrameChunk]:
+def line_blocks(fh: io.BufferedReader, size: int = _READ_BYTES) -> Iterator[bytes]:
+    """The rest of the file in blocks of about `size` bytes, each cut after a line end (the
+    last one as the file ends)."""
     tail = b""
+    while True:
+        block = fh.read(size)
+        if not block:
+            break
+        buf = tail + block
+        cut = buf.rfind(b"\n") + 1
+        if cut == 0:
+            tail = buf
+            continue
+        tail = buf[cut:]
+        yield buf[:cut]
+    if tail:
+        yield tail
+
+
+def _candump_chunks(path: Path, fh: io.BufferedReader) -> Iterator[FrameChunk]:
     try:
-        while True:
-            block = fh.read(_READ_BYTES)
-            if not block:
-                break
-            buf = tail + block
-            cut = buf.rfind(b"\n") + 1
-            if cut == 0:
-                tail = buf
-                continue
-            tail = buf[cut:]
-            chunk = _parse_candump(path, buf[:cut])
-            if len(chunk):
-                yield chunk
-        if tail:
-            chunk = _parse_candump(path, tail)
+        for text in line_blocks(fh):
+            chunk = _parse_candump(path, text)
             if len(chunk):
                 yield chunk
     finally:
@@ -265,8 +270,26 @@ def _hexval(ch: int) -> int:
 
 
 @njit
-def _is_space(ch: int) -> bool:
+def is_space(ch: int) -> bool:
+    """ASCII white space: what ``bytes.split`` splits at and ``str.strip`` strips (of ASCII,
+    but 0x1c-0x1f, which a text scanner's caller rules out)."""
     return ch == 32 or ch == 9 or ch == 10 or ch == 13 or ch == 11 or ch == 12
+
+
+@njit
+def stripped_line(buf: NDArray[np.uint8], i: int) -> tuple[int, int, int]:
+    """The line that starts at `i`, without its leading and trailing white space:
+    (start, end, start of the next line)."""
+    size = buf.shape[0]
+    e = i
+    while e < size and buf[e] != 10:
+        e += 1
+    nxt = e + 1
+    while i < e and is_space(buf[i]):
+        i += 1
+    while e > i and is_space(buf[e - 1]):
+        e -= 1
+    return i, e, nxt
 
 
 @njit
@@ -282,15 +305,7 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
     n = 0
     i = 0
     while i < size:
-        # one line: [i, e)
-        e = i
-        while e < size and buf[e] != 10:
-            e += 1
-        nxt = e + 1
-        while i < e and _is_space(buf[i]):
-            i += 1
-        while e > i and _is_space(buf[e - 1]):
-            e -= 1
+        i, e, nxt = stripped_line(buf, i)
         if i == e:
             i = nxt
             continue
@@ -319,23 +334,23 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
         if j >= e or digits > 17 or mant > 9007199254740992 or frac > 22 or j == i + 1:
             return -1
         j += 1  # ')'
-        if j >= e or not _is_space(buf[j]):
+        if j >= e or not is_space(buf[j]):
             return -1
         ts = float(mant) / pow10[frac]
         # token 2: channel
-        while j < e and _is_space(buf[j]):
+        while j < e and is_space(buf[j]):
             j += 1
-        while j < e and not _is_space(buf[j]):
+        while j < e and not is_space(buf[j]):
             j += 1
-        while j < e and _is_space(buf[j]):
+        while j < e and is_space(buf[j]):
             j += 1
         # token 3: frame, up to the next space
         k = j
-        while k < e and not _is_space(buf[k]):
+        while k < e and not is_space(buf[k]):
             k += 1
         # rest: nothing, or one direction token r/t (any case)
         r = k
-        while r < e and _is_space(buf[r]):
+        while r < e and is_space(buf[r]):
             r += 1
         if r < e:
             if r + 1 != e or not (buf[r] == 82 or buf[r] == 114 or buf[r] == 84
