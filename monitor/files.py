@@ -1,19 +1,139 @@
-"""Files shared by every stage that writes them: durable state files (thresholds, SecOC
-freshness) and series of rotated files with retention (recordings, raw bus logs)."""
+"""Files shared by every stage: the one way a file a user hands over is read
+(`read_user_file`, `read_user_text`: a regular file, opened without blocking, read up to a
+limit that fits its kind), durable state files (thresholds, SecOC freshness) and series of
+rotated files with retention (recordings, raw bus logs)."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import re
+import stat
 import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["FileSeries", "atomic_write_text"]
+from monitor.errors import MonitorError
+
+__all__ = ["KIB", "MIB", "FileSeries", "UserFileError", "atomic_write_text", "file_kind",
+           "read_user_file", "read_user_text", "shown_path"]
+
+KIB = 1024
+MIB = 1024 * KIB
 
 _log = logging.getLogger(__name__)
+
+
+class UserFileError(MonitorError, ValueError):
+    """A file the user named that cannot be read as what it should be (one line)."""
+
+
+def shown_path(path: str | os.PathLike[str], limit: int = 120) -> str:
+    """`path` as an error message shows it: at most `limit` characters, its start and end."""
+    text = os.fspath(path)
+    text = text if isinstance(text, str) else os.fsdecode(text)
+    if len(text) <= limit:
+        return text
+    keep = (limit - 3) // 2
+    return f"{text[:keep]}...{text[-keep:]}"
+
+
+def file_kind(mode: int) -> str:
+    """What a non-regular file is, in words ("a directory", "a FIFO (named pipe)", ...)."""
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISCHR(mode):
+        return "a character device"
+    if stat.S_ISBLK(mode):
+        return "a block device"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a regular file"
+
+
+def _os_problem(exc: OSError) -> str:
+    if exc.errno == errno.ENOENT:
+        return "no such file"
+    if exc.errno == errno.ELOOP:
+        return "a loop of symbolic links"
+    if exc.errno == errno.ENAMETOOLONG:
+        return "the path is too long for the file system"
+    if exc.errno == errno.ENOTDIR:
+        return "a part of the path is not a directory"
+    return f"cannot read ({exc.strerror or exc})"
+
+
+def _size_words(n: int) -> str:
+    return f"{n / MIB:g} MiB" if n >= MIB else f"{n / KIB:g} KiB" if n >= KIB else f"{n} bytes"
+
+
+def read_user_file(path: str | os.PathLike[str], *, what: str, limit: int) -> bytes:
+    """The bytes of the regular file a user named as `what` (e.g. "rig file",
+    "--thresholds"), at most `limit` bytes.
+
+    Every file a user hands over is read this way, so that none can block or exhaust the
+    monitor: the path is checked before it is opened (a directory, FIFO, device or socket is
+    refused, so a FIFO never blocks the open), opened with O_NONBLOCK and checked again on
+    the descriptor (the path may have changed in between), and a file over `limit` is
+    refused before it is read. Raises `UserFileError`, one line naming `what`, the path and
+    the problem.
+    """
+    shown = shown_path(path)
+
+    def fail(problem: str) -> UserFileError:
+        return UserFileError(f"{what} {shown}: {problem}")
+
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise fail(_os_problem(exc)) from None
+    except ValueError as exc:  # an embedded NUL byte
+        raise fail(f"not a usable path ({exc})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise fail(f"is {file_kind(st.st_mode)}, not a regular file")
+    if st.st_size > limit:
+        raise fail(f"is {_size_words(st.st_size)}, more than the {_size_words(limit)} "
+                   f"such a file may have")
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOCTTY", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise fail(_os_problem(exc)) from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise fail(f"is {file_kind(st.st_mode)}, not a regular file")
+        chunks: list[bytes] = []
+        size = 0
+        while size <= limit and (chunk := os.read(fd, limit + 1 - size)):
+            chunks.append(chunk)
+            size += len(chunk)
+    except OSError as exc:
+        raise fail(_os_problem(exc)) from None
+    finally:
+        os.close(fd)
+    if size > limit:  # grew since the check
+        raise fail(f"is more than the {_size_words(limit)} such a file may have")
+    return b"".join(chunks)
+
+
+def read_user_text(path: str | os.PathLike[str], *, what: str, limit: int) -> str:
+    """`read_user_file` decoded as UTF-8 text (a BOM is dropped); binary content is one
+    `UserFileError` line saying where it stops being text."""
+    data = read_user_file(path, what=what, limit=limit)
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise UserFileError(f"{what} {shown_path(path)}: not UTF-8 text (byte "
+                            f"0x{data[exc.start]:02x} at offset {exc.start})") from None
+    if "\x00" in text:
+        raise UserFileError(f"{what} {shown_path(path)}: not text (a NUL byte at offset "
+                            f"{text.index(chr(0))})")
+    return text
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str, *, mode: int | None = None,
