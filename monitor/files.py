@@ -1,24 +1,30 @@
 """Files shared by every stage: the one way a file a user hands over is read
-(`read_user_file`, `read_user_text`: a regular file, opened without blocking, read up to a
-limit that fits its kind), durable state files (thresholds, SecOC freshness) and series of
-rotated files with retention (recordings, raw bus logs)."""
+(`read_user_file`, `read_user_text`, `read_user_toml`: a regular file, opened without
+blocking, read up to a limit that fits its kind), durable state files (thresholds, SecOC
+freshness) and series of rotated files with retention (recordings, raw bus logs)."""
 
 from __future__ import annotations
 
 import contextlib
 import errno
 import logging
+import math
+import numbers
 import os
 import re
 import stat
 import tempfile
 import time
+import tomllib
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
-from monitor.errors import MonitorError
+from monitor.errors import MonitorError, one_line
 
-__all__ = ["KIB", "MIB", "FileSeries", "UserFileError", "atomic_write_text", "file_kind",
-           "read_user_file", "read_user_text", "shown_path"]
+__all__ = ["KIB", "MIB", "FileSeries", "UserFileError", "atomic_replace", "atomic_write_text",
+           "file_kind", "read_user_file", "read_user_text", "read_user_toml", "shown_path",
+           "user_file_problem"]
 
 KIB = 1024
 MIB = 1024 * KIB
@@ -27,7 +33,16 @@ _log = logging.getLogger(__name__)
 
 
 class UserFileError(MonitorError, ValueError):
-    """A file the user named that cannot be read as what it should be (one line)."""
+    """A file the user named that cannot be read as what it should be (one line).
+
+    `errno` is the operating system's error number when the file could not be found or
+    opened (e.g. `errno.ENOENT`: a caller for which a missing file is no error tells it
+    apart this way), else None.
+    """
+
+    def __init__(self, message: str, errno: int | None = None) -> None:
+        super().__init__(message)
+        self.errno = errno
 
 
 def shown_path(path: str | os.PathLike[str], limit: int = 120) -> str:
@@ -67,11 +82,93 @@ def _os_problem(exc: OSError) -> str:
     return f"cannot read ({exc.strerror or exc})"
 
 
-def _size_words(n: int) -> str:
-    return f"{n / MIB:g} MiB" if n >= MIB else f"{n / KIB:g} KiB" if n >= KIB else f"{n} bytes"
+def _kind_problem(mode: int) -> str:
+    return f"is {file_kind(mode)}, not a regular file"
 
 
-def read_user_file(path: str | os.PathLike[str], *, what: str, limit: int) -> bytes:
+def _size_words(n: int, exact: bool = False) -> str:
+    if exact or n < KIB:
+        return f"{n} bytes"
+    return f"{n / MIB:.3g} MiB" if n >= MIB else f"{n / KIB:.3g} KiB"
+
+
+class _Refused(Exception):
+    """Why a user's file is not read, in words (`problem`), and the OS error number if any."""
+
+    def __init__(self, problem: str, errno: int | None = None) -> None:
+        super().__init__(problem)
+        self.problem = problem
+        self.errno = errno
+
+    @classmethod
+    def of(cls, exc: OSError) -> _Refused:
+        return cls(_os_problem(exc), exc.errno)
+
+
+def _regular_status(path: str | os.PathLike[str]) -> os.stat_result:
+    """The status of `path` (symbolic links followed) if it is a regular file, else
+    `_Refused`; opens nothing."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise _Refused.of(exc) from None
+    except ValueError as exc:  # an embedded NUL byte
+        raise _Refused(f"not a usable path ({exc})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise _Refused(_kind_problem(st.st_mode))
+    return st
+
+
+def _read_regular(path: str | os.PathLike[str], limit: int,
+                  check: Callable[[os.stat_result], None] | None) -> bytes:
+    def too_big(size: int | None) -> _Refused:
+        # in bytes where rounding would say "is 4 KiB, more than the 4 KiB"
+        exact = size is not None and _size_words(size) == _size_words(limit)
+        return _Refused(("is more" if size is None else f"is {_size_words(size, exact)}, more")
+                        + f" than the {_size_words(limit, exact)} such a file may have")
+
+    found = _regular_status(path).st_size
+    if found > limit:
+        raise too_big(found)
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOCTTY", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise _Refused.of(exc) from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _Refused(_kind_problem(st.st_mode))
+        if check is not None:
+            check(st)
+        chunks: list[bytes] = []
+        size = 0
+        while size <= limit and (chunk := os.read(fd, limit + 1 - size)):
+            chunks.append(chunk)
+            size += len(chunk)
+    except OSError as exc:
+        raise _Refused.of(exc) from None
+    finally:
+        os.close(fd)
+    if size > limit:  # grew since the check
+        raise too_big(None)
+    return b"".join(chunks)
+
+
+def user_file_problem(path: str | os.PathLike[str]) -> str | None:
+    """Why `path` cannot be read as a user's file ("no such file", "is a FIFO (named pipe),
+    not a regular file", ...), or None if it is a regular file. Opens nothing, so it
+    neither blocks nor reads: for checking a file a configuration names before the file is
+    read (`read_user_file` checks again then)."""
+    try:
+        _regular_status(path)
+    except _Refused as exc:
+        return exc.problem
+    return None
+
+
+def read_user_file(path: str | os.PathLike[str], *, what: str, limit: int,
+                   check: Callable[[os.stat_result], None] | None = None) -> bytes:
     """The bytes of the regular file a user named as `what` (e.g. "rig file",
     "--thresholds"), at most `limit` bytes.
 
@@ -79,46 +176,16 @@ def read_user_file(path: str | os.PathLike[str], *, what: str, limit: int) -> by
     monitor: the path is checked before it is opened (a directory, FIFO, device or socket is
     refused, so a FIFO never blocks the open), opened with O_NONBLOCK and checked again on
     the descriptor (the path may have changed in between), and a file over `limit` is
-    refused before it is read. Raises `UserFileError`, one line naming `what`, the path and
-    the problem.
+    refused before it is read. `check`, if given, is called with the status of the opened
+    file before any byte is read and raises to refuse it (e.g. a secret readable by
+    others); its exception passes unchanged. Otherwise raises `UserFileError`, one line
+    naming `what`, the path and the problem (its `errno` set when the file could not be
+    found or opened).
     """
-    shown = shown_path(path)
-
-    def fail(problem: str) -> UserFileError:
-        return UserFileError(f"{what} {shown}: {problem}")
-
     try:
-        st = os.stat(path)
-    except OSError as exc:
-        raise fail(_os_problem(exc)) from None
-    except ValueError as exc:  # an embedded NUL byte
-        raise fail(f"not a usable path ({exc})") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise fail(f"is {file_kind(st.st_mode)}, not a regular file")
-    if st.st_size > limit:
-        raise fail(f"is {_size_words(st.st_size)}, more than the {_size_words(limit)} "
-                   f"such a file may have")
-    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOCTTY", 0)
-    try:
-        fd = os.open(path, flags)
-    except OSError as exc:
-        raise fail(_os_problem(exc)) from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise fail(f"is {file_kind(st.st_mode)}, not a regular file")
-        chunks: list[bytes] = []
-        size = 0
-        while size <= limit and (chunk := os.read(fd, limit + 1 - size)):
-            chunks.append(chunk)
-            size += len(chunk)
-    except OSError as exc:
-        raise fail(_os_problem(exc)) from None
-    finally:
-        os.close(fd)
-    if size > limit:  # grew since the check
-        raise fail(f"is more than the {_size_words(limit)} such a file may have")
-    return b"".join(chunks)
+        return _read_regular(path, limit, check)
+    except _Refused as exc:
+        raise UserFileError(f"{what} {shown_path(path)}: {exc.problem}", exc.errno) from None
 
 
 def read_user_text(path: str | os.PathLike[str], *, what: str, limit: int) -> str:
@@ -134,6 +201,33 @@ def read_user_text(path: str | os.PathLike[str], *, what: str, limit: int) -> st
         raise UserFileError(f"{what} {shown_path(path)}: not text (a NUL byte at offset "
                             f"{text.index(chr(0))})")
     return text
+
+
+def read_user_toml(path: str | os.PathLike[str], *, what: str, limit: int) -> dict[str, Any]:
+    """`read_user_text` parsed as TOML. Besides a syntax error, a document tomllib cannot
+    take (an integer of thousands of digits, tables nested thousands deep) is the same one
+    `UserFileError` line "<what> <path>: not valid TOML: ..." and no traceback."""
+    text = read_user_text(path, what=what, limit=limit)
+    try:
+        return tomllib.loads(text)
+    except RecursionError:
+        problem = "nested too deeply"
+    except ValueError as exc:  # TOMLDecodeError, or int()'s limit on digits
+        problem = one_line(exc)
+    raise UserFileError(f"{what} {shown_path(path)}: not valid TOML: {problem}")
+
+
+def finite_number(value: object) -> float | None:
+    """`value` as a float if it is a finite number (an int or a float, not a bool), else
+    None. What a number in a user's TOML file must be: tomllib gives integers of any size
+    and `inf`/`nan`, and `math.isfinite` of an integer of hundreds of digits raises."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return None
+    try:
+        out = float(value)
+    except OverflowError:
+        return None
+    return out if math.isfinite(out) else None
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str, *, mode: int | None = None,
@@ -155,6 +249,49 @@ def atomic_write_text(path: str | os.PathLike[str], text: str, *, mode: int | No
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
+        os.replace(tmp, p)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    with contextlib.suppress(OSError):  # make the rename durable (best effort)
+        dfd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+
+
+@contextlib.contextmanager
+def atomic_replace(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """A temporary path beside `path` (same directory, same suffix, so a writer that goes
+    by the suffix picks the right format) for a writer that wants a file name, not text:
+    when the block ends, that file is fsynced and renamed over `path`, as
+    `atomic_write_text` does; if the block raises, it is deleted and `path` stays as it
+    was. The new file keeps the permissions of the one it replaces, else gets those the
+    umask gives a new file. Raises OSError (naming the temporary file: callers name `path`
+    in their message).
+    """
+    p = Path(path)
+    directory = p.parent if str(p.parent) else Path(".")
+    try:
+        mode = stat.S_IMODE(os.stat(p).st_mode)
+    except OSError:
+        mask = os.umask(0o077)  # reading the umask means setting it (to the strict side)
+        os.umask(mask)
+        mode = 0o666 & ~mask
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{p.suffix}", dir=directory)
+    try:
+        try:
+            os.fchmod(fd, mode)  # mkstemp's is 0600
+        finally:
+            os.close(fd)
+        yield Path(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, p)
     except BaseException:
         with contextlib.suppress(OSError):

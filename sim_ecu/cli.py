@@ -28,10 +28,11 @@ from pathlib import Path
 from monitor.app.argtypes import OneLineParser
 from monitor.app.canbus import open_bus
 from monitor.app.freshness import FreshnessSaver
+from monitor.app.paths import Output, check_outputs, monitor_inputs
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import N_NODES, MotorDatabase
 from monitor.bus.secoc import load_key
-from monitor.errors import MonitorError, UsageError, one_line
+from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.rig import Rig, build_decoder, builtin_rig, load_rig
 from sim_ecu.ecu import DEFAULT_MAX_CATCH_UP, ECUStats, VirtualECU, load_motor_parameters
@@ -204,6 +205,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             rig = load_rig(args.rig) if args.rig else builtin_rig()
             if args.dbc:
                 rig = replace(rig, dbc=(Path(args.dbc),))
+            if args.secoc_state is not None:  # written every second: never one of the inputs
+                check_outputs([*monitor_inputs(rig, args), ("--scenario", args.scenario)],
+                              [Output("--secoc-state", Path(args.secoc_state), None)])
             if args.rate is None:
                 args.rate = rig.rate
             decoder = build_decoder(rig, secoc_key=key)
@@ -221,7 +225,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 saver = FreshnessSaver(db.secoc, args.secoc_state, STATE_SAVE_PERIOD_S)
             bus = open_bus(args.interface, args.channel, args.bitrate, quiet=not args.verbose)
         except MonitorError as exc:
-            print(f"{PROG}: error: {one_line(exc, limit=10_000)}", file=sys.stderr)
+            print(f"{PROG}: error: {one_line(exc, limit=ERROR_LINE_LIMIT)}", file=sys.stderr)
             return EXIT_USAGE
         try:
             try:
@@ -244,7 +248,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  input_rate=args.voltage_rate,
                                  max_catch_up=args.max_catch_up)
             except MonitorError as exc:
-                print(f"{PROG}: error: {exc}", file=sys.stderr)
+                print(f"{PROG}: error: {one_line(exc, limit=ERROR_LINE_LIMIT)}", file=sys.stderr)
                 return EXIT_USAGE
             length = "until stopped" if duration == math.inf else (
                 f"{scenario.duration if duration is None else duration:g} s"
@@ -259,7 +263,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                        None if saver is None else saver.save)
             except Exception as exc:
                 log.debug("run failed", exc_info=True)
-                print(f"{PROG}: error: run failed: {one_line(exc, limit=10_000)}", file=sys.stderr)
+                print(f"{PROG}: error: run failed: {one_line(exc, limit=ERROR_LINE_LIMIT)}",
+                      file=sys.stderr)
                 if saver is not None:
                     saver.final()  # best effort; the run's failure is the error reported
                 return 1

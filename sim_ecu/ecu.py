@@ -37,7 +37,6 @@ import logging
 import math
 import threading
 import time
-import tomllib
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -51,8 +50,9 @@ from monitor.app.canbus import send_frame
 from monitor.bus.codec import N_NODES, SECOC_KINDS, CodecError, Kind, MotorDatabase
 from monitor.errors import MonitorError
 from monitor.estimation.model import DCMotorParameters, ModelError, dc_motor
+from monitor.files import finite_number
 from sim_ecu.plant import PlantSimulator, steady_state
-from sim_ecu.scenario import BUILTIN_SCENARIOS, Scenario
+from sim_ecu.scenario import BUILTIN_SCENARIOS, Scenario, ScenarioError, scenario_document
 
 __all__ = [
     "ECU_KINDS",
@@ -134,9 +134,10 @@ def motor_parameters(table: Mapping[str, Any], where: str = "[motor]") -> DCMoto
         )
     values: dict[str, float] = {}
     for key, v in table.items():
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        number = finite_number(v)
+        if number is None:
             raise ECUError(f"{where}: '{key}' must be a finite number, got {v!r}")
-        values[key] = float(v)
+        values[key] = number
     params = DCMotorParameters(**values)
     try:
         dc_motor(params)
@@ -156,11 +157,9 @@ def load_motor_parameters(name_or_path: str | Path) -> DCMotorParameters | None:
         return None
     path = Path(key)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ECUError(f"{path}: cannot read scenario file ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ECUError(f"{path}: not valid TOML ({exc})") from None
+        data = scenario_document(path)
+    except ScenarioError as exc:
+        raise ECUError(str(exc)) from None
     if "motor" not in data:
         return None
     return motor_parameters(data["motor"], f"{path} [motor]")

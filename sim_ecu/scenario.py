@@ -37,21 +37,28 @@ from __future__ import annotations
 
 import itertools
 import math
-import tomllib
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from monitor.errors import MonitorError
+from monitor.files import MIB, UserFileError, finite_number, read_user_toml, shown_path
 
 __all__ = [
     "BUILTIN_SCENARIOS",
+    "SCENARIO_FILE_LIMIT",
     "FaultSegment",
     "Scenario",
     "ScenarioError",
     "load_scenario",
+    "scenario_document",
 ]
+
+SCENARIO_FILE_LIMIT = 16 * MIB
+"""The largest scenario file read: room for a voltage profile of hundreds of thousands of
+steps."""
 
 
 class ScenarioError(MonitorError, ValueError):
@@ -121,10 +128,10 @@ def _number(table: Mapping[str, Any], key: str, where: str, default: float | Non
         if default is None:
             raise ScenarioError(f"{where}: missing '{key}'")
         return default
-    v = table[key]
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise ScenarioError(f"{where}: '{key}' must be a finite number, got {v!r}")
-    return float(v)
+    v = finite_number(table[key])
+    if v is None:
+        raise ScenarioError(f"{where}: '{key}' must be a finite number, got {table[key]!r}")
+    return v
 
 
 def _prbs_steps(table: object, duration: float, where: str) -> list[list[float]]:
@@ -170,8 +177,7 @@ def scenario_from_dict(data: Mapping[str, Any], default_name: str = "scenario") 
         if (
             not isinstance(s, list)
             or len(s) != 2
-            or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in s)
-            or not all(math.isfinite(x) for x in s)
+            or not all(finite_number(x) is not None for x in s)
         ):
             raise ScenarioError(f"{name}: voltage step {i} must be [t, volts] numbers, got {s!r}")
         steps.append((float(s[0]), float(s[1])))
@@ -287,16 +293,22 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     if key in BUILTIN_SCENARIOS:
         return BUILTIN_SCENARIOS[key]
     path = Path(key)
-    if path.suffix != ".toml" and not path.exists():
+    if path.suffix != ".toml" and not os.path.lexists(path):
         raise ScenarioError(
-            f"unknown scenario {key!r}: use one of {', '.join(BUILTIN_SCENARIOS)} or a .toml file"
+            f"unknown scenario {shown_path(key, 60)!r}: use one of "
+            f"{', '.join(BUILTIN_SCENARIOS)} or a .toml file"
         )
+    doc = scenario_document(path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read scenario file ({exc.strerror})") from exc
+        return scenario_from_dict(doc, default_name=path.stem)
+    except ScenarioError as exc:
+        raise ScenarioError(f"scenario file {shown_path(path)}: {exc}") from None
+
+
+def scenario_document(path: Path) -> dict[str, Any]:
+    """The parsed TOML of a scenario file, read as every file a user names is
+    (`monitor.files.read_user_toml`); `ScenarioError`, one line, if it cannot be."""
     try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{path}: not valid TOML ({exc})") from exc
-    return scenario_from_dict(data, default_name=path.stem)
+        return read_user_toml(path, what="scenario file", limit=SCENARIO_FILE_LIMIT)
+    except UserFileError as exc:
+        raise ScenarioError(str(exc)) from None

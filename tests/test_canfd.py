@@ -253,8 +253,10 @@ def test_candump_fd_lines_parse_as_python_can_reads_them(tmp_path: Path) -> None
 @pytest.mark.parametrize("engine", ["columnar", "per-frame"])
 def test_replay_command_takes_an_fd_log(tmp_path: Path, engine: str) -> None:
     path = _write(_fd_frames(scenario="fault-outage-recovery"), tmp_path / "fd.log")
+    # node 1's frames: --nodes 1 (the rig's node 2 would have no sample, which is no success)
     rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(path), "--rig", str(FD_RIG),
-                          "--engine", engine], capture_output=True, text=True, timeout=300)
+                          "--nodes", "1", "--engine", engine], capture_output=True, text=True,
+                         timeout=300)
     assert rep.returncode == 0, rep.stderr
     events = [json.loads(x) for x in rep.stdout.splitlines()]
     assert [e["state"] for e in events if e["cause"] == "estimate"][:3] == \

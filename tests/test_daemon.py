@@ -86,7 +86,7 @@ def _bad(tmp_path: Path, name: str, text: str) -> str:
         (["demo", "--scenario", "nosuch"], "unknown scenario"),
         (["demo", "--scenario", "{bad_scenario}"], "gamma values must lie in [0, 1]"),
         (["reproduce", "--period", "0"], "must be positive"),
-        (["calibrate", "{missing}"], "cannot read"),
+        (["calibrate", "{missing}"], "gamma^ file"),
         (["frobnicate"], "invalid choice"),
     ],
 )

@@ -334,9 +334,9 @@ def test_save_load_hand_set_thresholds(tmp_path: Path) -> None:
 
 
 BAD_FILES = {
-    "missing_file": (None, "file not found"),
+    "missing_file": (None, "no such file"),
     "not_toml": ("quantity = gamma\nf1 = \n", "not valid TOML"),
-    "not_utf8": (b'quantity = "\xff"\n', "not valid TOML"),
+    "not_utf8": (b'quantity = "\xff"\n', "not UTF-8 text"),
     "missing_f1": ('quantity = "gamma"\nf2 = 0.7\n', "missing key 'f1'"),
     "missing_f2": ('quantity = "gamma"\nf1 = 0.2\n', "missing key 'f2'"),
     "missing_quantity": ("f1 = 0.2\nf2 = 0.7\n", "missing key 'quantity'"),
@@ -367,7 +367,7 @@ def test_load_errors_are_one_line(tmp_path: Path, case: str) -> None:
 
 
 def test_load_directory_is_one_line_error(tmp_path: Path) -> None:
-    with pytest.raises(DiagnosisError, match="cannot read") as info:
+    with pytest.raises(DiagnosisError, match="is a directory") as info:
         load_thresholds(tmp_path)
     assert "\n" not in str(info.value)
 

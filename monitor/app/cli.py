@@ -17,7 +17,7 @@ from importlib.metadata import entry_points
 
 from monitor.app import calibrate, identify, replay, run, status
 from monitor.app.options import OneLineParser
-from monitor.errors import MonitorError
+from monitor.errors import ERROR_LINE_LIMIT, MonitorError, one_line
 
 __all__ = ["build_parser", "main"]
 
@@ -51,12 +51,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         return int(args.func(args))
-    except MonitorError as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        print(f"motor-monitor: error: {msg}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        print(f"motor-monitor: error: {exc}", file=sys.stderr)
+    except (MonitorError, OSError) as exc:
+        print(f"motor-monitor: error: {one_line(exc, limit=ERROR_LINE_LIMIT)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130

@@ -10,6 +10,10 @@ samples). The fit and its report come from `monitor.identify.identify`; RIG_OUT 
 input rig with the learned model (DC-motor parameters or state-space matrices), noise
 (process_noise / Q and R) and rate; the report is written beside it as JSON (and PNG when
 matplotlib is installed) and summarised on standard output.
+
+The three files are checked before the captures are read (`monitor.app.paths`): none is an
+input, and a file identify did not write is replaced only with --force. Each is written
+atomically, the rig only once it loads.
 """
 
 from __future__ import annotations
@@ -20,20 +24,32 @@ import logging
 import math
 import tomllib
 from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import tomli_w
 
 from monitor.app import options
+from monitor.app.paths import (
+    RIG_HEADER,
+    Output,
+    atomic_output,
+    check_outputs,
+    monitor_inputs,
+    write_text,
+)
 from monitor.app.replay import read_log
 from monitor.bus.codec import Decoded, Rejected
-from monitor.errors import UsageError
+from monitor.errors import MonitorError, UsageError
 from monitor.estimation.model import DCMotorParameters
-from monitor.identify import KINDS, Identification, identify
-from monitor.rig import Rig
+from monitor.files import shown_path
+from monitor.identify import KINDS, Identification, IdentifyError, identify, validate
+from monitor.pipeline import counters as C
+from monitor.pipeline.counters import nothing_decoded
+from monitor.rig import Rig, RigError, build_decoder
+from monitor.rig.load import rate_problem
 
 __all__ = ["NodeCapture", "add_command", "collect", "rig_document"]
 
@@ -50,6 +66,7 @@ class NodeCapture:
     y: list[tuple[float, ...]] = field(default_factory=list)
     inputs: list[float] | None = None
     seen: list[bool] = field(default_factory=list)
+    where: list[tuple[int, int]] = field(default_factory=list)  # (file index, frame number)
 
 
 def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
@@ -58,9 +75,9 @@ def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
     m = len(rig.inputs)
     nodes: dict[int, NodeCapture] = defaultdict(NodeCapture)
     counts: dict[str, int] = defaultdict(int)
-    for path in paths:
+    for index, path in enumerate(paths):
         decoder = options.database(args, rig)
-        for msg in read_log(path):
+        for number, msg in enumerate(read_log(path), 1):
             counts["frames"] += 1
             if msg.is_error_frame:
                 counts["error_frames"] += 1
@@ -69,11 +86,12 @@ def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
             if isinstance(d, Rejected):
                 counts[f"rejected/{d.reason}"] += 1
                 continue
-            _row(nodes[d.node], d, m, counts)
+            _row(nodes[d.node], d, m, counts, (index, number))
     return dict(nodes), dict(counts)
 
 
-def _row(nc: NodeCapture, d: Decoded, m: int, counts: dict[str, int]) -> None:
+def _row(nc: NodeCapture, d: Decoded, m: int, counts: dict[str, int],
+         where: tuple[int, int] = (0, 0)) -> None:
     if nc.inputs is None:
         nc.inputs, nc.seen = [0.0] * m, [False] * m
     for i, v in d.inputs:
@@ -84,9 +102,18 @@ def _row(nc: NodeCapture, d: Decoded, m: int, counts: dict[str, int]) -> None:
             nc.t.append(d.timestamp)
             nc.u.append(list(nc.inputs))
             nc.y.append(d.outputs)
+            nc.where.append(where)
             counts["samples"] += 1
         else:
             counts["before_inputs"] += 1
+
+
+def _as_counters(counts: dict[str, int]) -> dict[str, int]:
+    """`collect`'s counts under the pipeline's counter names (`nothing_decoded` reads
+    them): the same outcomes, as replay counts them."""
+    names = {"frames": C.FRAMES_RECEIVED, "error_frames": C.BUS_ERROR_FRAMES,
+             "samples": C.SAMPLES_ESTIMATED, "before_inputs": C.SAMPLES_NO_VOLTAGE}
+    return {names.get(k, k): v for k, v in counts.items()}
 
 
 def longest_segment(t: np.ndarray, T: float) -> slice:
@@ -95,6 +122,91 @@ def longest_segment(t: np.ndarray, T: float) -> slice:
     edges = np.concatenate([[0], gaps, [t.size]])
     k = int(np.argmax(np.diff(edges)))
     return slice(int(edges[k]), int(edges[k + 1]))
+
+
+class Series(NamedTuple):
+    """The regularly sampled stretch of one node's rows that `identify` fits."""
+
+    T: float  # the capture's sample period (median output spacing, to the microsecond)
+    u: np.ndarray
+    y: np.ndarray
+    segment: slice  # of the finite rows
+    dropped: int  # rows with a non-finite input or output, left out
+
+
+def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, int]
+               ) -> Series:
+    """The longest gap-free stretch of node `node`'s rows, or one IdentifyError line that
+    says why there is none: timestamps that go backwards or repeat (named by file and
+    frame), a sample rate the monitor cannot run at, or gaps -- lost or rejected frames,
+    non-finite values (left out and counted) -- that leave no stretch long enough."""
+    t = np.asarray(nc.t, dtype=float)
+    step = np.diff(t)
+    if step.size and not np.all(step > 0):
+        k = int(np.argmax(~(step > 0))) + 1
+        index, number = nc.where[k]
+        how = "go backwards" if step[k - 1] < 0 else "repeat"
+        raise IdentifyError(
+            f"{paths[index].name}: the timestamps of node {node}'s output samples {how} at "
+            f"frame {number} ({t[k]:.6f} s after {t[k - 1]:.6f} s): identify needs the "
+            "samples in time order; give the captures in the order they were recorded, or "
+            "record again with a working clock")
+    u = np.asarray(nc.u, dtype=float)
+    y = np.asarray(nc.y, dtype=float)
+    finite = np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1)
+    dropped = int(np.count_nonzero(~finite))
+    t, u, y = t[finite], u[finite], y[finite]
+    if t.size < 2:
+        raise IdentifyError(
+            f"{', '.join(p.name for p in paths)}: {t.size} usable output sample(s) of node "
+            f"{node}{f' ({dropped} not finite)' if dropped else ''}: record at least "
+            f"{validate.MIN_SAMPLES} samples, better 60 s, with the input varying")
+    # candump logs keep microseconds: the median spacing, to the microsecond
+    T = round(float(np.median(np.diff(t))), 6)
+    problem = rate_problem(1.0 / T) if T > 0 else "must be finite (samples less than a " \
+        "microsecond apart)"
+    if problem is not None:
+        raise IdentifyError(f"node {node}'s output samples come at {1.0 / max(T, 1e-9):g} Hz, "
+                            f"but the monitor's rate {problem}")
+    seg = longest_segment(t, T)
+    n = seg.stop - seg.start
+    if n < validate.MIN_SAMPLES <= t.size + dropped:
+        # the capture is long enough: its gaps are what leaves too little
+        why = [f"{dropped} sample(s) with a non-finite value (left out)"] if dropped else []
+        rejected = {k.split("/", 1)[1]: v for k, v in counts.items() if k.startswith("rejected/")}
+        if rejected:
+            nan = "; a NaN or inf is out of range" if "out_of_range" in rejected else ""
+            why.append("frames rejected by the decoder (" + ", ".join(
+                f"{v} {k}" for k, v in sorted(rejected.items())) + f"{nan})")
+        lost = int(np.count_nonzero(np.diff(t) > GAP_PERIODS * T))
+        why.append(f"{lost} gap(s) in the timestamps")
+        raise IdentifyError(
+            f"{', '.join(p.name for p in paths)}: node {node}'s longest stretch without a gap "
+            f"is {n} samples ({n * T:.3g} s) of the {t.size + dropped} decoded: "
+            f"{'; '.join(why)}; identify "
+            f"needs {validate.MIN_SAMPLES} regular samples in a row: record without gaps or "
+            "cut the capture to a gap-free stretch")
+    return Series(T, u[seg], y[seg], seg, dropped)
+
+
+def model_kind(rig: Rig, requested: str) -> str:
+    """The kind to fit: --model, except that a dc_motor model takes a voltage in and a
+    current out (the rig check's rule, asked of the rig with kind dc_motor): on a rig whose
+    signals are other quantities (a current in, a speed out: issue 16) auto is the black
+    box, and --model dc_motor is refused. A dc_motor fit of such a capture is physically
+    meaningless even where its numbers fit, and the rig written from it would not load."""
+    if requested == "state_space" or rig.model.kind == "dc_motor" or \
+            (len(rig.inputs), len(rig.outputs)) != (1, 1):
+        return requested  # a dc_motor rig passed that rule; core refuses other shapes
+    try:
+        build_decoder(replace(rig, model=replace(rig.model, kind="dc_motor")))
+    except RigError as exc:
+        if requested == "dc_motor":
+            raise UsageError(f"--model dc_motor: {str(exc).split(': ', 1)[-1]}; use "
+                             "--model state_space") from None
+        log.info("auto: the rig's signals are not a voltage and a current, so the black box")
+        return "state_space"
+    return requested
 
 
 def _matrix(a: np.ndarray) -> list[list[float]]:
@@ -153,48 +265,46 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     rig = options.rig(args)
     paths = [Path(p) for p in args.captures]
     out = Path(args.out)
-    if not out.resolve().parent.is_dir():
-        raise UsageError(f"--out: directory {out.resolve().parent} does not exist")
+    report_path, png = _report_paths(out)
+    check_outputs([*(("CAPTURE", p) for p in paths), *monitor_inputs(rig, args)],
+                  [Output("--out", out, "rig"), Output("--out", report_path, "identify-report"),
+                   Output("--out", png, "png")], force=args.force)
     nodes, counts = collect(args, rig, paths)
+    samples = {n: len(c.t) for n, c in nodes.items()}
     if args.node is not None:
         nodes = {n: c for n, c in nodes.items() if n == args.node}
-    usable = {n: c for n, c in nodes.items() if len(c.t) > 1}
+    usable = {n: c for n, c in nodes.items() if c.t}  # one sample: `fit_series` says so
     if not usable:
         where = f"node {args.node}" if args.node is not None else "any node"
-        raise UsageError(f"{', '.join(p.name for p in paths)}: no output samples of {where} "
-                         f"decoded with this rig ({dict(counts)}); is --rig the rig the "
-                         "capture was recorded on?")
+        line = nothing_decoded(_as_counters(counts), samples,
+                               None if args.node is None else (args.node,))
+        raise UsageError(f"{', '.join(p.name for p in paths)}: " + (
+            line or f"no output samples of {where} decoded with this rig ({dict(counts)}); "
+            "is --rig the rig the capture was recorded on?"))
     if len(usable) > 1 and args.node is None:
         raise UsageError(f"the capture holds nodes {', '.join(map(str, sorted(usable)))}: "
                          "choose one with --node (each node gets its own rig file)")
     node, nc = next(iter(usable.items()))
-    t = np.asarray(nc.t)
-    # candump logs keep microseconds: the median spacing, to the microsecond
-    T = round(float(np.median(np.diff(t))), 6)
-    seg = longest_segment(t, T)
-    u = np.asarray(nc.u)[seg]
-    y = np.asarray(nc.y)[seg]
+    T, u, y, seg, dropped = fit_series(nc, node, paths, counts)
     template = DCMotorParameters(**rig.model.motor) if rig.model.kind == "dc_motor" \
         else DCMotorParameters()
-    ident = identify(u, y, T, kind=args.model, order=args.order, template=template,
+    ident = identify(u, y, T, kind=model_kind(rig, args.model), order=args.order,
+                     template=template,
                      input_names=[r.signal for r in rig.inputs],
                      output_names=[r.signal for r in rig.outputs])
     ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
                                "frames": counts, "period_s": T,
-                               "segment": [seg.start, seg.stop], "samples": int(u.shape[0])}
+                               "segment": [seg.start, seg.stop], "samples": int(u.shape[0]),
+                               "non_finite_dropped": dropped}
     doc = rig_document(rig, ident, out)
-    out.write_text(f"# identified by motor-monitor identify from "
-                   f"{', '.join(p.name for p in paths)} (node {node})\n"
-                   + tomli_w.dumps(doc))
-    # the written rig must load (every key checked) before we say it is done
-    from monitor.rig import load_rig
-
-    load_rig(out)
-    report_path = out.with_suffix(".identify.json")
-    report_path.write_text(ident.to_json() + "\n")
-    png = out.with_suffix(".identify.png")
+    with atomic_output("--out", out) as tmp:
+        tmp.write_text(f"{RIG_HEADER} from {', '.join(p.name for p in paths)} (node {node})\n"
+                       + tomli_w.dumps(doc), encoding="utf-8")
+        _check_rig(tmp, out)
+    write_text("--out", report_path, ident.to_json() + "\n")
     try:
-        ident.to_png(png)
+        with atomic_output("--out", png) as tmp:
+            ident.to_png(tmp)
         wrote_png = True
     except UsageError as exc:  # matplotlib is an optional extra
         log.warning("no PNG: %s", exc)
@@ -202,6 +312,28 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     print(_summary(ident, node, T, u.shape[0]))
     print(f"wrote {out}, {report_path}" + (f", {png}" if wrote_png else ""))
     return 0
+
+
+def _report_paths(out: Path) -> tuple[Path, Path]:
+    """The report's JSON and PNG beside RIG_OUT."""
+    try:
+        return out.with_suffix(".identify.json"), out.with_suffix(".identify.png")
+    except ValueError:  # no file name ("." or ""): check_outputs refuses the directory
+        return out / ".identify.json", out / ".identify.png"
+
+
+def _check_rig(written: Path, out: Path) -> None:
+    """The rig file written at `written` (beside `out`, the file it is about to replace)
+    must load, every key checked, before it replaces `out`."""
+    from monitor.rig import load_rig
+
+    try:
+        load_rig(written)
+    except MonitorError as exc:  # named as the user will find it
+        text = str(exc)
+        for name in (str(written), shown_path(written)):
+            text = text.replace(name, str(out))
+        raise MonitorError(text) from None
 
 
 def _summary(ident: Identification, node: int, T: float, n: int) -> str:
@@ -234,5 +366,9 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     c.add_argument("--order", type=int, default=None,
                    help="states of a black-box model (default: chosen from the data)")
     c.add_argument("--out", required=True, metavar="RIG_OUT",
-                   help="the rig file to write (report beside it: .identify.json/.png)")
+                   help="the rig file to write (report beside it: .identify.json/.png); "
+                   "never one of the inputs")
+    c.add_argument("--force", action="store_true",
+                   help="replace RIG_OUT and its report files even if motor-monitor did not "
+                   "write them (without it, only files identify wrote are replaced)")
     c.set_defaults(func=_cmd_identify, dbc=None, key=None)

@@ -95,9 +95,10 @@ def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig, *,
         raise MonitorError(f"cannot start the Rerun recording: {exc}") from None
 
 
-def event_lines(path: str | None, *, to_stdout: bool) -> Sink | None:
-    """JSON lines of the diagnosis events, appended to `path`, else to standard output if
-    `to_stdout`, else none."""
+def event_lines(path: str | None, *, to_stdout: bool, append: bool = True) -> Sink | None:
+    """JSON lines of the diagnosis events to `path` (appended to it, or with `append`
+    False replacing it), else to standard output if `to_stdout`, else none. The caller has
+    checked `path` (`monitor.app.paths.check_outputs`)."""
     if path:
-        return JsonLinesSink(open(path, "a", encoding="utf-8"), owned=True)
+        return JsonLinesSink(open(path, "a" if append else "w", encoding="utf-8"), owned=True)
     return JsonLinesSink(sys.stdout) if to_stdout else None

@@ -7,6 +7,10 @@ the archive replay of `monitor.archive` (each log's events and, with --rrd, reco
 --out, a summary table and a fleet overview; --jobs N local processes or --cluster ADDRESS,
 a Dask cluster). Exit status: 0 every log replayed, 1 some log could not be (its row in the
 summary says why), 2 a mistake in the command line or the configuration.
+
+Every output (--events, --rrd, each file under --out) is checked before the first frame is
+read (`monitor.app.paths`): none is a log or a configuration file the replay reads, and a
+file motor-monitor did not write is replaced only with --force.
 """
 
 from __future__ import annotations
@@ -17,19 +21,25 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import can
 
 from monitor.app import options, outputs
-from monitor.bus.logfile import LOG_SUFFIXES, LogError, read_log
-from monitor.errors import UsageError
+from monitor.app.paths import Output, check_directory, check_outputs, monitor_inputs
+from monitor.bus.logfile import LOG_SUFFIXES, LogDamaged, LogError, read_log
+from monitor.errors import ERROR_LINE_LIMIT, UsageError, one_line
 from monitor.pipeline import MonitorPipeline
 from monitor.pipeline import counters as C
 from monitor.sinks.base import Sink
 from monitor.sinks.log import LogSink
+from monitor.sinks.rerun import recording_parts
+
+if TYPE_CHECKING:
+    from monitor.archive.inputs import LogInput
+    from monitor.rig import Rig
 
 __all__ = ["LOG_SUFFIXES", "LogError", "add_command", "feed_log", "read_log", "replay_frames",
            "run_replay"]
@@ -79,14 +89,31 @@ def _replay_one_log(args: argparse.Namespace) -> int:
     if args.jobs is not None or args.cluster is not None:
         raise UsageError("--jobs and --cluster replay logs into --out DIR: give --out DIR")
     setup = monitor_setup(ReplaySettings.from_args(args))
+    log_path = Path(args.paths[0])
+    outs: list[Output] = []
+    if args.events:
+        outs.append(Output("--events", Path(args.events), "events"))
+    if args.rrd:
+        outs += [Output("--rrd", p, "rrd") for p in _recording_files(Path(args.rrd))]
+    check_outputs([("PATH", log_path), *monitor_inputs(setup.rig, args)], outs,
+                  force=args.force)
 
     def open_sinks() -> list[Sink]:
         sinks: list[Sink] = [LogSink()]
         recording = outputs.rerun_sink(args, setup.cfg, replay=True)
-        events = outputs.event_lines(args.events, to_stdout=True)
+        events = outputs.event_lines(args.events, to_stdout=True, append=False)
         return sinks + [s for s in (recording, events) if s is not None]
 
-    run = ENGINES[args.engine](Path(args.paths[0]), setup, open_sinks)
+    try:
+        run = ENGINES[args.engine](log_path, setup, open_sinks)
+    except LogDamaged as exc:  # empty, or damaged before its first frame: exit 1, not 2
+        print(f"motor-monitor: error: {one_line(exc, limit=ERROR_LINE_LIMIT)}", file=sys.stderr)
+        return 1
+    # damaged after its first frame (what was read is written), or nothing decoded
+    if run.failure is not None:
+        print(f"motor-monitor: error: {one_line(run.failure, limit=ERROR_LINE_LIMIT)}",
+              file=sys.stderr)
+        return 1
     n, el = run.frames, run.feed_s
     c = C.Counters(run.counters)
     print(f"motor-monitor: replayed {n} frames in {el:.2f} s ({n / max(el, 1e-9):.0f} frames/s): "
@@ -118,12 +145,12 @@ def _replay_archive(args: argparse.Namespace) -> int:
     if args.cluster is not None:
         require_cluster_extra()
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out: {out} is not a directory")
+    check_directory("--out", out, create=True)
     settings = ReplaySettings.from_args(args)
     setup = monitor_setup(settings)  # a bad rig, DBC, threshold or key file: one line now
     setup.decoder()
     logs = find_logs(args.paths)
+    _check_archive_outputs(args, setup.rig, logs, out)
     t0 = time.perf_counter()
     done = run_archive(logs, settings, out, rrd=args.rrd is True, jobs=args.jobs or 1,
                        cluster=args.cluster, engine=ENGINES[args.engine])
@@ -135,6 +162,33 @@ def _replay_archive(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _recording_files(rrd: Path) -> list[Path]:
+    """The files a replay's recording to `rrd` writes or deletes: `rrd` and the parts an
+    earlier recording split off beside it (`RerunSink` deletes them at start)."""
+    return [rrd, *(p for p in recording_parts(rrd) if p != rrd)]
+
+
+def _check_archive_outputs(args: argparse.Namespace, rig: Rig, logs: Sequence[LogInput],
+                           out: Path) -> None:
+    """Every file the archive replay writes under `out` (each log's events and recording,
+    the summary, the fleet PNG), checked against every log and configuration file it reads
+    (`check_outputs`)."""
+    from monitor.archive.run import FLEET_PNG, SUMMARY_CSV, SUMMARY_PARQUET
+
+    found = [log for log in logs if log.problem is None]
+    outs: list[Output] = []
+    for log in found:
+        outs.append(Output("--out", log.events_path(out), "events", makes_directories=True))
+        if args.rrd is True:
+            outs += [Output("--out", p, "rrd", makes_directories=True)
+                     for p in _recording_files(log.rrd_path(out))]
+    outs += [Output("--out", out / SUMMARY_PARQUET, "summary-parquet", makes_directories=True),
+             Output("--out", out / SUMMARY_CSV, "summary-csv", makes_directories=True),
+             Output("--out", out / FLEET_PNG, "png", makes_directories=True)]
+    check_outputs([*(("PATH", log.path) for log in found), *monitor_inputs(rig, args)], outs,
+                  force=args.force)
+
+
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     p = sub.add_parser("replay", conflict_handler="resolve",
                        help="run candump .log, .asc or .blf files (or directories, or patterns "
@@ -143,7 +197,7 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    help="a log file; several, directories (their .log, .asc and .blf files, "
                    "recursively) or glob patterns replay the archive into --out DIR")
     p.add_argument("--events", default=None,
-                   help="one log: JSON lines to this file (default: stdout)")
+                   help="one log: JSON lines to this file, replaced (default: stdout)")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="each log's events (and recording) under DIR, named after the log's "
                    "path, and the summary (summary.parquet, summary.csv, fleet.png)")
@@ -161,4 +215,8 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     p.add_argument("--rrd", nargs="?", const=True, default=None, metavar="FILE",
                    help="one log: record to this .rrd file; with --out: --rrd alone records "
                    "each log to DIR/<log>.rrd")
+    p.add_argument("--force", action="store_true",
+                   help="replace --events, --rrd and the files under --out even if "
+                   "motor-monitor did not write them (without it, only files it wrote are "
+                   "replaced; an output is never one of the inputs)")
     p.set_defaults(func=run_replay)

@@ -9,7 +9,8 @@ STOPPING (`monitor.app.notify`).
 
 The wiring: bus -> `MonitorPipeline` -> `FanOut` of sinks (the log, the bus publisher, the
 Rerun recording, JSON lines). This module owns the sinks' life (periodic flush, close); the
-pipeline only hands them events.
+pipeline only hands them events. Every output is checked before the bus opens
+(`_check_outputs`).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from monitor.app import options, outputs
 from monitor.app.canbus import BusError, open_bus, receive_batch, send_frame
 from monitor.app.freshness import FreshnessSaver
 from monitor.app.notify import Notifier
+from monitor.app.paths import Output, check_directory, check_outputs, monitor_inputs
 from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.faults import grow_receive_buffer, socket_drops
@@ -38,6 +40,8 @@ from monitor.bus.stats import BusStats
 from monitor.errors import UsageError
 from monitor.pipeline import Counters, MonitorPipeline
 from monitor.pipeline import counters as C
+from monitor.pipeline.counters import DecodeWatch
+from monitor.rig import Rig
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.journal import JournalSink, journal_available
 from monitor.sinks.log import LogSink
@@ -118,8 +122,31 @@ def _raw_log(args: argparse.Namespace) -> RotatingBusLog | None:
         raise UsageError(f"--raw-dir: cannot start the raw bus log: {exc}") from None
 
 
+def _check_outputs(args: argparse.Namespace, rig: Rig) -> None:
+    """Every file and directory the run writes, before anything is opened: none is a
+    configuration file it reads (`monitor.app.paths`), and a file motor-monitor did not
+    write is written only with --force (--events is appended to: a restarted daemon goes
+    on with its own file). The SecOC state is read before it is written: its reader
+    refuses a file that is not one."""
+    inputs = monitor_inputs(rig, args)
+    outs: list[Output] = []
+    if args.events:
+        outs.append(Output("--events", Path(args.events), "events", append=True))
+    if args.rrd:
+        outs.append(Output("--rrd", Path(args.rrd), "rrd"))
+    if args.metrics:
+        outs.append(Output("--metrics", Path(args.metrics), "metrics"))
+    if args.secoc_state:
+        outs.append(Output("--secoc-state", Path(args.secoc_state), None))
+    check_outputs(inputs, outs, force=args.force)
+    for option, directory in (("--record-dir", args.record_dir), ("--raw-dir", args.raw_dir)):
+        if directory:
+            check_directory(option, directory, inputs, rotated=True)
+
+
 def run_live(args: argparse.Namespace) -> int:
     rig = options.rig(args)
+    _check_outputs(args, rig)
     db = options.database(args, rig)
     fresh = _freshness(db, args.secoc_state)
     cfg = options.monitor_config(args, rig)
@@ -139,12 +166,13 @@ def run_live(args: argparse.Namespace) -> int:
         counters = Counters()
         bus_stats = BusStats(bitrate=float(args.bitrate or args.nominal_bitrate),
                              data_bitrate=args.data_bitrate)
+        watch = DecodeWatch(cfg.nodes, cfg.silence_timeout_s, time.monotonic())
         sinks: list[Sink] = [LogSink()]
         if journal_available():
             sinks.append(JournalSink())
         if args.metrics:
             try:
-                sinks.append(MetricsSink(args.metrics, bus=bus_stats))
+                sinks.append(MetricsSink(args.metrics, bus=bus_stats, watch=watch))
             except ValueError as exc:
                 live.drop()
                 raise UsageError(f"--metrics: {exc}") from None
@@ -154,7 +182,7 @@ def run_live(args: argparse.Namespace) -> int:
         sink = FanOut(sinks)
         pipe = MonitorPipeline(db, cfg, sink=sink, counters=counters)
         try:
-            _loop(args, pipe, sink, live, fresh, stop, raw, bus_stats, recording)
+            _loop(args, pipe, sink, live, fresh, stop, raw, bus_stats, recording, watch)
         finally:
             if raw is not None:
                 raw.stop()
@@ -175,7 +203,8 @@ def run_live(args: argparse.Namespace) -> int:
 
 def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _LiveBus,
           fresh: FreshnessSaver | None, stop: StopOnSignals,
-          raw: RotatingBusLog | None, bus_stats: BusStats, recording: Sink | None) -> None:
+          raw: RotatingBusLog | None, bus_stats: BusStats, recording: Sink | None,
+          watch: DecodeWatch) -> None:
     where = f"{args.interface or '<config>'}:{args.channel or '<config>'}"
     log.warning("monitoring %s, nodes %s", where,
                 "all" if pipe.cfg.nodes is None else pipe.cfg.nodes)
@@ -211,6 +240,11 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                     # frame read, so the daemon's own lag never looks like a silent node.
                     last_clock = now if drained else max(newest, last_clock)
                     pipe.tick(last_clock)
+                    # nothing decoded since the silence timeout: said once (and a metric)
+                    said = watch.check(mono, pipe.counters,
+                                       {n: nm.samples for n, nm in pipe.nodes.items()})
+                    if said is not None:
+                        log.warning("nothing decoded: %s", said)
                     sink.maybe_flush(mono)
                     outputs.count_compactions(recording, pipe.counters)
                     if raw is not None:
@@ -352,6 +386,10 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     r.add_argument("--nominal-bitrate", type=int, default=500_000,
                    help="the bus's bit rate for the bus-load figure when --bitrate is not "
                    "given (default 500000; vcan has none)")
+    r.add_argument("--force", action="store_true",
+                   help="write --events (appending), --rrd and --metrics even where a file "
+                   "motor-monitor did not write is (without it, only its own files are "
+                   "written over; an output is never one of the inputs)")
     r.add_argument("--data-bitrate", type=options.positive_float, default=None,
                    metavar="BITS_PER_S",
                    help="a CAN FD bus's data-phase bit rate, for the bus-load figure: FD frames "

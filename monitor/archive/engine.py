@@ -3,9 +3,17 @@ that another engine (a columnar one) can take the per-frame pipeline's place.
 
 An engine is a callable `(path, setup, open_sinks, progress) -> EngineRun`:
 
-* it reads the log at `path` and raises `LogError` (one line naming the file) if it cannot;
-  it calls `open_sinks()` only once the log has opened, so a log that cannot be opened
-  creates or overwrites no output, and it closes what `open_sinks` returned, always;
+* it reads the log at `path` and raises `LogError` (one line naming the file) if it cannot
+  open it, or if it is empty or damaged before its first frame (`LogDamaged`); it calls
+  `open_sinks()` only once the log has opened, so a log that cannot be opened creates or
+  overwrites no output, and it closes what `open_sinks` returned, always;
+* a log damaged or cut short after its first frame is not an exception: the frames before
+  the damage go through the monitor as any others (their events and recording are kept),
+  and the run's `failure` says what happened (`LogDamaged`'s line: where the damage
+  starts, the frames read before it);
+* nothing decoded is no success either: when a configured node (or, without --nodes,
+  every node) got no estimated sample, `failure` is the line of
+  `monitor.pipeline.counters.nothing_decoded` (the counts by outcome, the likely cause);
 * it hands the sinks the pipeline's events (health transitions to the JSON lines, samples
   to the Rerun recording; an engine may feed a recording in whole columns instead);
 * it calls `progress(n)` now and then with the frames read since its previous call;
@@ -32,7 +40,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cache, lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Protocol, TypeVar
 
 import can
 import numpy as np
@@ -41,8 +49,10 @@ from numpy.typing import NDArray
 from monitor.app import options
 from monitor.app.replay import feed_log, read_log
 from monitor.bus.codec import MotorDatabase
+from monitor.bus.logfile import LogDamaged
 from monitor.bus.rigcodec import RigCodec
 from monitor.pipeline import MonitorConfig, MonitorPipeline
+from monitor.pipeline.counters import nothing_decoded
 from monitor.pipeline.events import DiagnosisEvent, Sample, SampleColumns
 from monitor.rig import Rig
 from monitor.sinks.base import FanOut, Sink
@@ -139,6 +149,10 @@ class EngineRun:
     feed_s: float = 0.0
     """Seconds spent on the frames (reading, decoding, estimating, the sinks), without
     setting up the monitor."""
+    failure: str | None = None
+    """Why the log is not a success though it was read: damage after its first frame
+    (what was read before it is in the rest of the run), or nothing decoded; one line
+    naming the log. None: replayed."""
 
 
 class PerFileEngine(Protocol):
@@ -182,6 +196,38 @@ class RunRecorder(Sink):
         """Voltages are not part of the summary."""
 
 
+_T = TypeVar("_T")
+
+
+class _Damage:
+    """Ends a log's frames at damage found after its first frame, keeping the error: the
+    frames before it are the run's (damage before the first frame is raised on, as a log
+    that cannot be opened)."""
+
+    def __init__(self) -> None:
+        self.error: LogDamaged | None = None
+
+    def guard(self, items: Iterable[_T]) -> Iterator[_T]:
+        started = False
+        try:
+            for item in items:
+                started = True
+                yield item
+        except LogDamaged as exc:
+            if not started:
+                raise
+            self.error = exc
+
+
+def _failure(path: Path, damage: _Damage, counters: Mapping[str, int],
+             nodes: Mapping[int, NodeStats], cfg: MonitorConfig) -> str | None:
+    """The run's `EngineRun.failure`: the damage, else nothing decoded, else None."""
+    if damage.error is not None:
+        return str(damage.error)
+    line = nothing_decoded(counters, {n: s.samples for n, s in nodes.items()}, cfg.nodes)
+    return None if line is None else f"{path}: {line}"
+
+
 class _Span:
     """Passes frames through, noting the first and last timestamps and reporting progress."""
 
@@ -213,19 +259,22 @@ def per_frame_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], l
     db = setup.decoder()
     frames = read_log(path)  # LogError here, before any output is opened
     recorder = RunRecorder()
+    damage = _Damage()
     sink = FanOut([recorder, *open_sinks()])
     try:
         pipe = MonitorPipeline(db, setup.cfg, sink=sink)
         span = _Span(progress)
         t0 = time.perf_counter()
-        n = feed_log(pipe, span.over(frames))
+        n = feed_log(pipe, span.over(damage.guard(frames)))
     finally:
         sink.close()
     feed_s = time.perf_counter() - t0  # with the sinks' last flush, as a run would wait
     for node in pipe.nodes:
         recorder.nodes.setdefault(node, NodeStats())
-    return EngineRun(frames=n, counters=dict(pipe.counters), transitions=recorder.transitions,
-                     nodes=recorder.nodes, t_first=span.first, t_last=span.last, feed_s=feed_s)
+    counters = dict(pipe.counters)
+    return EngineRun(frames=n, counters=counters, transitions=recorder.transitions,
+                     nodes=recorder.nodes, t_first=span.first, t_last=span.last, feed_s=feed_s,
+                     failure=_failure(path, damage, counters, recorder.nodes, setup.cfg))
 
 
 def columnar_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], list[Sink]],
@@ -243,12 +292,13 @@ def columnar_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], li
         return per_frame_engine(path, setup, open_sinks, progress)
     chunks = read_chunks(path)  # LogReadError here, before any output is opened
     recorder = RunRecorder()
+    damage = _Damage()
     sink = FanOut([recorder, *open_sinks()])
     first: list[float] = []
     last: list[float] = []
 
     def spanned() -> Iterator[FrameChunk]:
-        for c in chunks:
+        for c in damage.guard(chunks):
             if len(c):
                 if not first:
                     first.append(float(c.t[0]))
@@ -265,10 +315,12 @@ def columnar_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], li
     feed_s = time.perf_counter() - t0
     for node in result.nodes:
         recorder.nodes.setdefault(node, NodeStats())
-    return EngineRun(frames=result.frames, counters=dict(result.counters),
+    counters = dict(result.counters)
+    return EngineRun(frames=result.frames, counters=counters,
                      transitions=recorder.transitions, nodes=recorder.nodes,
                      t_first=first[0] if first else None, t_last=last[0] if last else None,
-                     feed_s=feed_s)
+                     feed_s=feed_s,
+                     failure=_failure(path, damage, counters, recorder.nodes, setup.cfg))
 
 
 @cache

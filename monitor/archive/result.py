@@ -65,7 +65,9 @@ class NodeResult:
 
 @dataclass(frozen=True)
 class LogResult:
-    """One log of the run: replayed (`ok`) or not, with the reason."""
+    """One log of the run: replayed (`ok`) or not, with the reason. A log that failed after
+    its first frame (damaged, cut short, or nothing decoded) keeps what was read: its
+    frames, counters, nodes and outputs are those of the part before the damage."""
 
     log: str
     ok: bool
@@ -96,7 +98,8 @@ def failed_result(log: str, reason: str, *, frames: int = 0, wall_s: float = 0.0
 
 def log_result(log: str, run: EngineRun, *, wall_s: float, events: str | None,
                rrd: str | None, rrd_parts: int = 0) -> LogResult:
-    """The summary of one replayed log from what its engine reported."""
+    """The summary of one replayed log from what its engine reported (failed, with the
+    engine's reason, when the run has a `failure`)."""
     t_first = run.t_first
     t_last = run.t_last
     nodes: list[NodeResult] = []
@@ -110,6 +113,7 @@ def log_result(log: str, run: EngineRun, *, wall_s: float, events: str | None,
                 seconds[state] = seconds.get(state, 0.0) + (end - start)
         nodes.append(NodeResult(node=node, seconds_in_state=seconds, transitions=transitions,
                                 samples=stats.samples, worst_nis=stats.worst_nis))
-    return LogResult(log=log, ok=True, frames=run.frames, wall_s=wall_s, t_first=t_first,
+    return LogResult(log=log, ok=run.failure is None, reason=run.failure or "",
+                     frames=run.frames, wall_s=wall_s, t_first=t_first,
                      t_last=t_last, counters=dict(sorted(run.counters.items())),
                      nodes=tuple(nodes), events=events, rrd=rrd, rrd_parts=rrd_parts)

@@ -89,8 +89,10 @@ def replay_one(path: Path, settings: ReplaySettings, *, events: Path | None = No
                progress: FrameProgress | None = None) -> LogResult:
     """One log through `engine`: its events as JSON lines to `events`, its recording to
     `rrd` (each if given). Never raises for the log: a log that cannot be read (missing,
-    unsupported, corrupt), or a setup that fails on this worker, gives a failed result
-    with the reason (and no outputs of this log left behind)."""
+    unsupported, empty, damaged before its first frame), or a setup that fails on this
+    worker, gives a failed result with the reason (and no outputs of this log left
+    behind); a log damaged after its first frame, or of which nothing was decoded, gives a
+    failed result with the reason and what was read (its outputs kept)."""
     t0 = time.perf_counter()
     try:
         setup = monitor_setup(settings)

@@ -4,8 +4,10 @@ without nodes, or that could not be read), written as Parquet (pyarrow) and CSV.
 Columns, in order:
 
 * `log`: the log's path as found; `node`: the node (empty for a log without nodes or one
-  that failed); `status`: `ok` or `failed`; `reason`: why a failed log could not be
-  replayed (missing, unsupported, corrupt, ...);
+  that could not be read); `status`: `ok` or `failed`; `reason`: why a failed log could not be
+  replayed (missing, unsupported, corrupt, ...) or is no success though it was read
+  (damaged or cut short after its first frame: where, and the frames read before it, whose
+  figures the row holds; nothing decoded: the counts by outcome and the likely cause);
 * `frames`: frames read; `t_first`, `t_last`, `duration_s`: the log's first and last
   timestamps (bus time, s); `wall_s`: seconds its replay took;
 * `seconds_<state>`: seconds the node spent in each health state (`fault_free`, `fault`,

@@ -41,9 +41,13 @@ value even if a range check then rejects it.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import logging
 import math
-from collections.abc import Mapping, Sequence
+import os
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from importlib import resources
@@ -80,6 +84,7 @@ from monitor.bus.secoc import (
     Verdict,
 )
 from monitor.errors import one_line
+from monitor.files import MIB, UserFileError, read_user_file, shown_path
 
 if TYPE_CHECKING:
     import can
@@ -104,6 +109,7 @@ __all__ = [
 ]
 
 DEFAULT_DBC_NAME: Final = "motor.dbc"
+_log = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------- results
@@ -470,17 +476,110 @@ def load_database(
     return MotorDatabase(load_dbcs([p]), str(p), secoc_key, secoc_window=secoc_window)
 
 
+DBC_FILE_LIMIT: Final = 64 * MIB
+"""The largest DBC file read: vehicle DBCs of thousands of messages take a few MiB."""
+
+
 def load_dbcs(paths: Sequence[Path]) -> Database:
     """One cantools database (strict: overlapping signals are errors) from one or more DBC
-    files; any problem is one `CodecError` line naming the file."""
+    files; any problem is one `CodecError` line naming the file, two messages on one frame
+    ID (or of one name) and a file listed twice too (cantools only warns)."""
     db = Database(strict=True)
+    loading = _DbcLoad(paths)
     for p in paths:
         try:
-            db.add_dbc_file(str(p))
-        except FileNotFoundError:
-            raise CodecError(f"{p}: file not found") from None
-        except OSError as exc:
-            raise CodecError(f"{p}: cannot read: {exc.strerror or exc}") from None
+            data = read_user_file(p, what="DBC file", limit=DBC_FILE_LIMIT)
+        except UserFileError as exc:
+            raise CodecError(str(exc)) from None
+        # decoded as cantools' add_dbc_file reads a file: cp1252 (what DBC editors write),
+        # undecodable bytes replaced, universal newlines
+        text = data.decode("cp1252", errors="replace").replace("\r\n", "\n").replace("\r", "\n")
+        try:
+            with loading.adding(p, db):
+                db.add_dbc_string(text)
         except Exception as exc:  # cantools/textparser raise many types for a bad DBC
-            raise CodecError(f"{p}: not a valid DBC: {one_line(exc)}") from None
+            raise CodecError(f"DBC file {shown_path(p)}: not a valid DBC: {one_line(exc)}"
+                             ) from None
+    loading.check(db)
     return db
+
+
+class _DbcLoad:
+    """What `load_dbcs` learns while cantools adds its files: which file each message
+    came from, and cantools' log and warnings, kept instead of printed (the user's
+    terminal gets one line per mistake). `check` then refuses what cantools only warns
+    about: two messages on one frame ID (or of one name), and a file listed twice."""
+
+    def __init__(self, paths: Sequence[Path]) -> None:
+        self.files: list[tuple[Path, int]] = []  # (file, messages in the database after it)
+        self.heard: list[tuple[Path, str]] = []
+        seen: dict[Path, Path] = {}  # the file (links resolved) -> as it was first named
+        for p in paths:
+            key = Path(os.path.realpath(p))  # Path.resolve raises on a link loop
+            if key in seen:
+                first = seen[key]
+                twice = "" if str(first) == str(p) else f" (as {shown_path(first)} too)"
+                raise CodecError(f"{shown_path(p)}: listed twice{twice}")
+            seen[key] = p
+
+    @contextlib.contextmanager
+    def adding(self, path: Path, db: Database) -> Iterator[None]:
+        """Keep what cantools logs and warns while it adds `path` to `db`."""
+        keep = _Keep()
+        logger = logging.getLogger("cantools")
+        propagate, logger.propagate = logger.propagate, False
+        logger.addHandler(keep)
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                yield
+        finally:
+            logger.removeHandler(keep)
+            logger.propagate = propagate
+        self.heard += [(path, text) for text in keep.texts]
+        self.heard += [(path, str(w.message)) for w in caught]
+        self.files.append((path, len(db.messages)))
+
+    def _file_of(self, index: int) -> Path:
+        return next(p for p, end in self.files if index < end)
+
+    def _clash(self, db: Database, first: int, second: int, what: str, *,
+               ids: bool = False) -> CodecError:
+        """Messages `first` and `second` (indices in `db.messages`) have `what` alike;
+        `ids`: name their frame IDs (which `what` does not)."""
+        one, two = db.messages[first], db.messages[second]
+        if len(self.files) == 1:
+            a, b = (f"{m.name} (0x{m.frame_id:X})" if ids else m.name for m in (one, two))
+            return CodecError(f"{shown_path(self.files[0][0])}: messages {a} and {b} have "
+                              f"{what}")
+        a, b = (f"{m.name} ({f'0x{m.frame_id:X} ' if ids else ''}in "
+                f"{shown_path(self._file_of(i))})" for m, i in ((one, first), (two, second)))
+        return CodecError(f"messages {a} and {b} have {what}")
+
+    def check(self, db: Database) -> None:
+        """`CodecError` for two messages with one frame ID or one name (cantools keeps the
+        last and warns); what else cantools said is logged at INFO (a DBC that loads
+        needs no second line)."""
+        by_id: dict[tuple[int, bool], int] = {}
+        by_name: dict[str, int] = {}
+        for i, m in enumerate(db.messages):
+            j = by_id.setdefault((m.frame_id, m.is_extended_frame), i)
+            if j != i:
+                bits = "29" if m.is_extended_frame else "11"
+                raise self._clash(db, j, i, f"the same {bits}-bit frame ID 0x{m.frame_id:X}")
+            k = by_name.setdefault(m.name, i)
+            if k != i:
+                raise self._clash(db, k, i, "the same name", ids=True)
+        for path, text in self.heard:
+            _log.info("%s: cantools: %s", shown_path(path), one_line(text))
+
+
+class _Keep(logging.Handler):
+    """A logging handler that keeps the messages (cantools' records while a DBC loads)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.texts: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.texts.append(record.getMessage())

@@ -25,32 +25,39 @@ frame's length (python-can warns), a field python's ``int`` would read another w
 python-can would fail on, and any byte a text file read by python-can would see otherwise
 (non-ASCII, a lone carriage return, the separators that Python's ``str.split`` counts as
 space) -- sends its whole block through python-can's own reader, so the frames and any
-error are exactly python-can's.
+error are exactly python-can's. Damage (a line python-can cannot read or that is no text, a
+last line without its line end, no End TriggerBlock) is said as the per-frame path says it
+(`monitor.bus.logfile`), at the same line.
 """
 
 from __future__ import annotations
 
 import io
-import locale
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TextIO, cast
 
 import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.bus.logfile import READ_ERRORS, LogError, malformed, open_reader
+from monitor.bus.logfile import LogError, asc_unfinished, damaged, log_encoding
 from monitor.columnar.reader import (
     CLASSIC_WIDTH,
     FD_WIDTH,
     POW10,
     FrameChunk,
+    count_lines,
+    cut_line_error,
     empty_chunk,
     is_space,
     line_blocks,
-    messages_to_chunks,
+    needs_python,
+    python_can_block,
     reader_chunks,
+    split_cut_line,
     stripped_line,
+    text_block,
 )
 from monitor.errors import one_line
 from monitor.estimation.jit import njit
@@ -72,18 +79,32 @@ def asc_chunks(path: Path, chunk_frames: int) -> Iterator[FrameChunk]:
 
 
 def _chunks(path: Path, fh: io.BufferedReader, chunk_frames: int) -> Iterator[FrameChunk]:
-    encoding = locale.getpreferredencoding(False)  # what python-can opens the file with
+    encoding = log_encoding()  # what python-can opens the file with
     with fh:
-        header = _header(fh.read(_HEAD_BYTES))
+        head = fh.read(_HEAD_BYTES)
+        header = _header(head)
         if header is None:  # python-can reads the file
             fh.close()
-            yield from reader_chunks(path, open_reader(path), chunk_frames)
+            yield from reader_chunks(path, chunk_frames)
             return
         base_name, offset = header
         base = 10 if base_name == "dec" else 16
+        line = count_lines(head[:offset])  # lines before the block
+        frames = 0
         fh.seek(offset)
-        for text in line_blocks(fh, _READ_BYTES):
-            yield from _block(path, text, base, base_name, encoding)
+        for block in line_blocks(fh, _READ_BYTES):
+            text, cut = split_cut_line(block)
+            if text:
+                for chunk in _block(path, text, base, base_name, encoding, line, frames):
+                    frames += len(chunk)
+                    yield chunk
+                line += count_lines(text)
+            if cut:
+                raise cut_line_error(path, frames, line + 1)
+    end = asc_unfinished(path)
+    if end is not None:
+        raise damaged(path, "truncated", frames=frames, where=f"byte {end}",
+                      detail="no End TriggerBlock")
 
 
 def _header(head: bytes) -> tuple[str, int] | None:
@@ -92,7 +113,7 @@ def _header(head: bytes) -> tuple[str, int] | None:
     `head`, or holds bytes that are not plain ASCII lines)."""
     cut = head.rfind(b"\n") + 1
     text_bytes = head[:cut]
-    if not text_bytes or _needs_python(np.frombuffer(text_bytes, np.uint8)):
+    if not text_bytes or needs_python(np.frombuffer(text_bytes, np.uint8)):
         return None
     reader = can.io.ASCReader(io.StringIO(text_bytes.decode("ascii")))
     extract = getattr(reader, "_extract_header", None)
@@ -105,10 +126,11 @@ def _header(head: bytes) -> tuple[str, int] | None:
     return reader.base, consumed  # ASCII, "\r\n" kept as it is: characters are bytes
 
 
-def _block(path: Path, text: bytes, base: int, base_name: str,
-           encoding: str) -> Iterator[FrameChunk]:
+def _block(path: Path, text: bytes, base: int, base_name: str, encoding: str, line: int,
+           frames: int) -> Iterator[FrameChunk]:
+    """The frames of whole lines `text`, after `line` lines and `frames` frames."""
     buf = np.frombuffer(text, np.uint8)
-    if not _needs_python(buf):
+    if not needs_python(buf):
         c = empty_chunk(text.count(b"\n") + 1,
                         FD_WIDTH if b"CANFD" in text else CLASSIC_WIDTH)
         assert c.bitrate_switch is not None and c.error_state_indicator is not None
@@ -122,24 +144,9 @@ def _block(path: Path, text: bytes, base: int, base_name: str,
             return
     # python-can reads this block: its text as the file's text mode gives it (universal
     # newlines), after an empty line for the header python-can looks for first
-    try:
-        lines = text.decode(encoding).replace("\r\n", "\n").replace("\r", "\n")
-        reader = can.io.ASCReader(io.StringIO("\n" + lines), base=base_name)
-        yield from messages_to_chunks(reader, max(1, len(text)))
-    except (*READ_ERRORS, UnicodeDecodeError) as exc:
-        raise malformed(path, exc) from None
-
-
-def _needs_python(buf: NDArray[np.uint8]) -> bool:
-    """Bytes a text reader would see otherwise than the scanner: non-ASCII, the separators
-    ``str.split`` counts as space (0x1c-0x1f), a carriage return not before a line feed."""
-    if bool((buf >= 0x80).any()) or bool(((buf >= 0x1C) & (buf <= 0x1F)).any()):
-        return True
-    cr = np.flatnonzero(buf == 13)
-    if not len(cr):
-        return False
-    follows = cr + 1
-    return bool((follows >= len(buf)).any() or (buf[follows[follows < len(buf)]] != 10).any())
+    lines = text_block(text, encoding, line, prefix="\n")
+    reader = can.io.ASCReader(cast(TextIO, lines), base=base_name)
+    yield from python_can_block(path, reader, lines, frames)
 
 
 @njit

@@ -19,26 +19,30 @@ writing frames straight into the arrays. Rule for rule as `BLFReader._parse_data
   must be, a timestamp past 2^53 units, a payload over 64 bytes -- hands the rest of the
   file to python-can's own reader (from the first frame not yet delivered), so the frames
   and any error are exactly python-can's.
+
+A file cut short is found as the per-frame path finds it (`monitor.bus.logfile.blf_damage`,
+from the file's objects and the unfinished object the scanner is left with): the frames
+before the cut come out, then `LogDamaged`.
 """
 
 from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 
 import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.bus.logfile import READ_ERRORS, malformed, open_reader
+from monitor.bus.logfile import READ_ERRORS, blf_damage, damaged, malformed, open_reader
 from monitor.columnar.reader import (
     CLASSIC_WIDTH,
     FD_WIDTH,
     FrameChunk,
     empty_chunk,
-    messages_to_chunks,
+    reader_chunks,
 )
 from monitor.estimation.jit import njit
 
@@ -57,38 +61,45 @@ class _Fallback(Exception):
 
 
 def blf_chunks(path: Path, chunk_frames: int) -> Iterator[FrameChunk]:
-    """The frames of the BLF file at `path` in chunks (`read_chunks` for ``.blf``)."""
+    """The frames of the BLF file at `path` in chunks (`read_chunks` for ``.blf``). Opens
+    the file now: a missing file or a damaged header raises here, before any output."""
     reader = open_reader(path)
     assert isinstance(reader, can.io.BLFReader)
+    return _chunks(path, reader, chunk_frames)
+
+
+def _chunks(path: Path, reader: can.io.BLFReader, chunk_frames: int) -> Iterator[FrameChunk]:
     delivered = 0
+    tail: bytes | None = None  # None: the scanner left the rest of the file to python-can
     try:
+        scan = _scan_file(reader, chunk_frames)
         try:
-            for chunk in _scan_file(reader, chunk_frames):
+            while True:
+                try:
+                    chunk = next(scan)
+                except StopIteration as done:
+                    tail = done.value
+                    break
                 delivered += len(chunk)
                 yield chunk
-            return
         except _Fallback:
             pass
         finally:
             reader.stop()
-        yield from _python_can_from(path, delivered, chunk_frames)
     except READ_ERRORS as exc:
-        raise malformed(path, exc) from None
+        raise malformed(path, exc, frames=delivered) from None
+    if tail is None:  # python-can's frames after those delivered, and its damage
+        yield from reader_chunks(path, chunk_frames, skip=delivered)
+        return
+    found = blf_damage(path, tail)
+    if found is not None:
+        raise damaged(path, "truncated", frames=delivered, where=found[0], detail=found[1])
 
 
-def _python_can_from(path: Path, skip: int, chunk_frames: int) -> Iterator[FrameChunk]:
-    """python-can's frames of `path` after the first `skip`."""
-    reader = open_reader(path)
-    try:
-        frames = iter(reader)
-        for _ in range(skip):
-            next(frames)
-        yield from messages_to_chunks(frames, chunk_frames)
-    finally:
-        reader.stop()
-
-
-def _scan_file(reader: can.io.BLFReader, chunk_frames: int) -> Iterator[FrameChunk]:
+def _scan_file(reader: can.io.BLFReader,
+               chunk_frames: int) -> Generator[FrameChunk, None, bytes]:
+    """The frames of the file's log containers; returns what is left of them at the end
+    (an object the file does not finish, or padding)."""
     fh = reader.file
     start = float(reader.start_timestamp)
     pending: list[bytes] = []
@@ -126,9 +137,10 @@ def _scan_file(reader: can.io.BLFReader, chunk_frames: int) -> Iterator[FrameChu
             pending, size = [], 0
             if len(chunk):
                 yield chunk
-    chunk, _ = _scan_block(tail + b"".join(pending), start)
+    chunk, tail = _scan_block(tail + b"".join(pending), start)
     if len(chunk):
         yield chunk
+    return tail
 
 
 def _scan_block(block: bytes, start: float) -> tuple[FrameChunk, bytes]:

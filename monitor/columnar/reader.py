@@ -22,6 +22,12 @@ Every reader gives exactly the frames python-can's `can.LogReader` gives for the
 
 Under NUMBA_DISABLE_JIT (the hardened unit) BLF and ASC are read by python-can.
 
+Damage is found as `monitor.bus.logfile` finds it for the per-frame path, with the same
+line: the frames before it come out, then `LogDamaged` (a line python-can cannot read, or
+that is no text in the locale's encoding, at its line number; a last line without its line
+end; an ASC without its End TriggerBlock; a BLF cut short). Lines are numbered as a file
+read in text mode numbers them (universal newlines).
+
 A frame's payload is ``data[i, :length[i]]``. `data` is 8 bytes wide, or 64 when the chunk
 holds a CAN FD frame longer than 8 bytes, so no payload is ever cut short; `fd`,
 `bitrate_switch` and `error_state_indicator` carry the CAN FD flags (candump ``##<flags>``,
@@ -33,9 +39,9 @@ from __future__ import annotations
 
 import io
 from collections.abc import Iterable, Iterator
-from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TextIO, cast
 
 import can
 import numpy as np
@@ -45,15 +51,20 @@ from monitor.bus.logfile import (
     LOG_SUFFIXES,
     READ_ERRORS,
     LogError,
+    NumberedLines,
     check_log_path,
+    damaged,
+    log_encoding,
     malformed,
-    open_reader,
+    read_log,
+    text_lines,
 )
 from monitor.errors import one_line
 from monitor.estimation.jit import JIT_DISABLED, njit
 
-__all__ = ["LOG_SUFFIXES", "FrameChunk", "LogReadError", "chunk_from_messages", "empty_chunk",
-           "messages_to_chunks", "read_chunks"]
+__all__ = ["LOG_SUFFIXES", "FrameChunk", "LogReadError", "chunk_from_messages", "count_lines",
+           "empty_chunk", "messages_to_chunks", "needs_python", "python_can_block",
+           "read_chunks", "split_cut_line"]
 
 DEFAULT_CHUNK_FRAMES = 1 << 18
 CLASSIC_WIDTH = 8
@@ -171,7 +182,7 @@ def read_chunks(path: Path, chunk_frames: int = DEFAULT_CHUNK_FRAMES) -> Iterato
         from monitor.columnar.asc import asc_chunks
 
         return asc_chunks(path, chunk_frames)
-    return reader_chunks(path, open_reader(path), chunk_frames)
+    return reader_chunks(path, chunk_frames)
 
 
 def messages_to_chunks(msgs: Iterable[can.Message], chunk_frames: int) -> Iterator[FrameChunk]:
@@ -193,15 +204,74 @@ def messages_to_chunks(msgs: Iterable[can.Message], chunk_frames: int) -> Iterat
         yield chunk_from_messages(batch)
 
 
-def reader_chunks(path: Path, reader: can.io.generic.MessageReader,
-                   chunk_frames: int) -> Iterator[FrameChunk]:
+def reader_chunks(path: Path, chunk_frames: int, skip: int = 0) -> Iterator[FrameChunk]:
+    """python-can's frames of `path` (`read_log`: damage found alike) after the first
+    `skip`, in chunks. Opens the file now: a bad path raises here."""
+    return messages_to_chunks(read_log(path, skip), chunk_frames)
+
+
+def count_lines(text: bytes) -> int:
+    """The lines ended in `text` as a file read in text mode counts them (universal
+    newlines: ``\n``, ``\r\n`` and a lone ``\r``)."""
+    return text.count(b"\n") + text.count(b"\r") - text.count(b"\r\n")
+
+
+_BLANK = b" \t\r\n\v\f"
+
+
+def split_cut_line(text: bytes) -> tuple[bytes, bool]:
+    """`text` (the end of a file) without a last line that has no line end, and whether
+    there was one that is not blank: its writer stopped in the middle of it."""
+    end = max(text.rfind(b"\n"), text.rfind(b"\r")) + 1
+    if end == len(text):
+        return text, False
+    return text[:end], bool(text[end:].strip(_BLANK))
+
+
+def cut_line_error(path: Path, frames: int, line: int) -> LogError:
+    """The error for a last line (number `line`) that has no line end."""
+    return damaged(path, "truncated", frames=frames, where=f"line {line}",
+                   detail="the last line has no line end")
+
+
+def needs_python(buf: NDArray[np.uint8]) -> bool:
+    """Bytes a text reader would see otherwise than the compiled scanners: non-ASCII, the
+    separators ``str.split`` counts as space (0x1c-0x1f), a carriage return not before a
+    line feed (a line end to a file read in text mode)."""
+    if bool((buf >= 0x80).any()) or bool(((buf >= 0x1C) & (buf <= 0x1F)).any()):
+        return True
+    cr = np.flatnonzero(buf == 13)
+    if not len(cr):
+        return False
+    follows = cr + 1
+    return bool((follows >= len(buf)).any() or (buf[follows[follows < len(buf)]] != 10).any())
+
+
+def python_can_block(path: Path, reader: can.io.generic.MessageReader, lines: NumberedLines,
+                     frames: int) -> Iterator[FrameChunk]:
+    """python-can's frames of one block of a text log (`reader` reading `lines`) as one
+    chunk, then the damage that stopped it, if any. `frames`: the file's frames before the
+    block."""
+    msgs: list[can.Message] = []
+    failure: LogError | None = None
     try:
-        yield from messages_to_chunks(reader, chunk_frames)
+        msgs.extend(reader)
     except READ_ERRORS as exc:
-        raise malformed(path, exc) from None
-    finally:
-        with suppress(Exception):
-            reader.stop()
+        failure = malformed(path, exc, frames=frames + len(msgs), where=f"line {lines.line}")
+    if failure is None:
+        failure = lines.error(path, frames + len(msgs))
+    if msgs:
+        yield chunk_from_messages(msgs)
+    if failure is not None:
+        raise failure
+
+
+def text_block(text: bytes, encoding: str, first: int, prefix: str = "") -> NumberedLines:
+    """The lines of a block of a text log as python-can would read them from the file
+    (decoded, universal newlines), numbered from `first`, after `prefix`."""
+    return NumberedLines(io.StringIO(prefix + text_lines(text.decode(encoding,
+                                                                     "surrogateescape"))),
+                         encoding, first)
 
 
 def line_blocks(fh: io.BufferedReader, size: int = _READ_BYTES) -> Iterator[bytes]:
@@ -224,31 +294,42 @@ def line_blocks(fh: io.BufferedReader, size: int = _READ_BYTES) -> Iterator[byte
 
 
 def _candump_chunks(path: Path, fh: io.BufferedReader) -> Iterator[FrameChunk]:
+    encoding = log_encoding()
+    line = 0  # lines before the block
+    frames = 0
     try:
-        for text in line_blocks(fh):
-            chunk = _parse_candump(path, text)
-            if len(chunk):
-                yield chunk
+        for block in line_blocks(fh):
+            text, cut = split_cut_line(block)
+            if text:
+                for chunk in _parse_candump(path, text, encoding, line, frames):
+                    frames += len(chunk)
+                    yield chunk
+                line += count_lines(text)
+            if cut:
+                raise cut_line_error(path, frames, line + 1)
     finally:
         fh.close()
 
 
-def _parse_candump(path: Path, text: bytes) -> FrameChunk:
+def _parse_candump(path: Path, text: bytes, encoding: str, line: int,
+                   frames: int) -> Iterator[FrameChunk]:
+    """The frames of whole lines `text`, after `line` lines and `frames` frames."""
     buf = np.frombuffer(text, np.uint8)
-    cap = text.count(b"\n") + 1
-    c = empty_chunk(cap, FD_WIDTH if b"##" in text else CLASSIC_WIDTH)
-    assert c.bitrate_switch is not None and c.error_state_indicator is not None
-    n = _scan_candump(buf, c.t, c.arbitration_id, c.extended, c.remote, c.error, c.length,
-                      c.data, c.is_fd, c.bitrate_switch, c.error_state_indicator)
-    if n < 0:  # a line the scanner does not take: python-can reads this chunk
-        try:
-            reader = can.io.canutils.CanutilsLogReader(io.StringIO(text.decode()))
-            return chunk_from_messages(reader)
-        except (*READ_ERRORS, UnicodeDecodeError) as exc:
-            raise malformed(path, exc) from None
-    return FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
-                      c.error[:n], c.length[:n], c.data[:n], c.is_fd[:n],
-                      c.bitrate_switch[:n], c.error_state_indicator[:n])
+    if not needs_python(buf):
+        c = empty_chunk(text.count(b"\n") + 1, FD_WIDTH if b"##" in text else CLASSIC_WIDTH)
+        assert c.bitrate_switch is not None and c.error_state_indicator is not None
+        n = _scan_candump(buf, c.t, c.arbitration_id, c.extended, c.remote, c.error, c.length,
+                          c.data, c.is_fd, c.bitrate_switch, c.error_state_indicator)
+        if n >= 0:
+            if n:
+                yield FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
+                                 c.error[:n], c.length[:n], c.data[:n], c.is_fd[:n],
+                                 c.bitrate_switch[:n], c.error_state_indicator[:n])
+            return
+    # a line the scanner does not take: python-can reads this block
+    lines = text_block(text, encoding, line + 1)
+    reader = can.io.canutils.CanutilsLogReader(cast(TextIO, lines))
+    yield from python_can_block(path, reader, lines, frames)
 
 
 POW10 = np.array([10.0 ** k for k in range(23)])

@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 import math
 import os
-import tomllib
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -13,10 +12,15 @@ from pathlib import Path
 import numpy as np
 
 from monitor.errors import MonitorError, one_line
-from monitor.files import atomic_write_text
+from monitor.files import KIB, UserFileError, atomic_write_text, read_user_toml, shown_path
 
-__all__ = ["DEFAULT_THRESHOLDS", "DiagnosisError", "Thresholds", "load_thresholds",
-           "save_thresholds"]
+__all__ = ["DEFAULT_THRESHOLDS", "THRESHOLDS_HEADER", "DiagnosisError", "Thresholds",
+           "load_thresholds", "save_thresholds"]
+
+
+THRESHOLDS_FILE_LIMIT = 64 * KIB
+"""The largest thresholds file read: a few keys and the cluster centres fit in a few
+hundred bytes."""
 
 
 class DiagnosisError(MonitorError, ValueError):
@@ -26,7 +30,11 @@ class DiagnosisError(MonitorError, ValueError):
 def _finite_number(name: str, value: object) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
         raise DiagnosisError(f"{name} must be a number, got {type(value).__name__}")
-    out = float(value)
+    try:
+        out = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise DiagnosisError(f"{name} must be finite, got an integer too large for a "
+                             "number") from None
     if not math.isfinite(out):
         raise DiagnosisError(f"{name} must be finite, got {out!r}")
     return out
@@ -109,19 +117,25 @@ def _toml_float(value: float) -> str:
     return text
 
 
+THRESHOLDS_HEADER = "# motor-monitor diagnosis thresholds"
+"""How a thresholds file `save_thresholds` wrote begins: `calibrate` replaces a file that
+begins so without --force (`monitor.app.paths`)."""
+
+
 def save_thresholds(
     path: str | os.PathLike[str], thresholds: Thresholds, *, source: str = ""
 ) -> None:
     """Write `thresholds` as a small TOML file (atomically: temporary file, then rename).
 
     Keys: quantity, f1, f2, centres, source (free text, e.g. the run it was calibrated on)
-    and created (UTC offset date-time). Read back with `load_thresholds`.
+    and created (UTC offset date-time). Read back with `load_thresholds`. A file that
+    cannot be written is one `DiagnosisError` line naming `path`.
     """
     path = Path(path)
     created = datetime.now(UTC).isoformat(timespec="seconds")
     centres = ", ".join(_toml_float(c) for c in thresholds.centres)
     text = (
-        "# motor-monitor diagnosis thresholds, eq (76) of Liu et al. 2020\n"
+        f"{THRESHOLDS_HEADER}, eq (76) of Liu et al. 2020\n"
         "# fault-free: value < f1; fault: f1 <= value <= f2; outage: value > f2\n"
         f"quantity = {_toml_string(thresholds.quantity)}\n"
         f"f1 = {_toml_float(thresholds.f1)}\n"
@@ -130,7 +144,11 @@ def save_thresholds(
         f"source = {_toml_string(source)}\n"
         f"created = {created}\n"
     )
-    atomic_write_text(path, text)
+    try:
+        atomic_write_text(path, text)
+    except OSError as exc:  # its message would name the temporary file
+        raise DiagnosisError(f"thresholds file {shown_path(path)}: cannot write "
+                             f"({exc.strerror or type(exc).__name__})") from None
 
 
 def load_thresholds(path: str | os.PathLike[str], *, quantity: str = "gamma") -> Thresholds:
@@ -141,22 +159,15 @@ def load_thresholds(path: str | os.PathLike[str], *, quantity: str = "gamma") ->
     non-finite value, f1 >= f2, wrong quantity) raises DiagnosisError with one line naming
     the file and the problem.
     """
-    name = os.fspath(path)
+    what = "thresholds file"
 
     def fail(problem: str) -> DiagnosisError:
-        return DiagnosisError(one_line(f"thresholds file {name}: {problem}", limit=10_000))
+        return DiagnosisError(one_line(f"{what} {shown_path(path)}: {problem}", limit=500))
 
     try:
-        with open(name, "rb") as fh:
-            doc = tomllib.load(fh)
-    except FileNotFoundError:
-        raise fail("file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise fail(f"not valid TOML: {exc}") from None
-    except UnicodeDecodeError as exc:
-        raise fail(f"not valid TOML (not UTF-8: {exc.reason})") from None
-    except OSError as exc:
-        raise fail(f"cannot read: {exc.strerror or exc}") from None
+        doc = read_user_toml(path, what=what, limit=THRESHOLDS_FILE_LIMIT)
+    except UserFileError as exc:
+        raise DiagnosisError(str(exc)) from None
     for key in ("quantity", "f1", "f2"):
         if key not in doc:
             raise fail(f"missing key '{key}'")
@@ -164,7 +175,8 @@ def load_thresholds(path: str | os.PathLike[str], *, quantity: str = "gamma") ->
     if not isinstance(found, str):
         raise fail(f"quantity must be a string, got {type(found).__name__}")
     if found != quantity:
-        raise fail(f"thresholds are for quantity '{found}', expected '{quantity}'")
+        shown = found if len(found) <= 40 else found[:37] + "..."
+        raise fail(f"thresholds are for quantity '{shown}', expected '{quantity}'")
     centres = doc.get("centres", [])
     if not isinstance(centres, list):
         raise fail(f"centres must be an array, got {type(centres).__name__}")

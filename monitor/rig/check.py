@@ -1,27 +1,41 @@
 """A rig checked against its DBC files and its model: messages and signals exist, units
-convert, protection signals sit where AUTOSAR E2E profile 2 and SecOC put them, the model's shapes
-agree with the signals and its faults are observable. Builds what the monitor runs with:
-the frame decoder and the discrete model."""
+parse, convert and suit the model, protection signals sit where AUTOSAR E2E profile 2 and
+SecOC put them, the model's shapes agree with the signals and its faults are observable.
+Every rig is checked alike, our own bus's too. Builds what the monitor runs with: the frame
+decoder (`MotorDatabase` only for a rig that says exactly what it implements, a `RigCodec`
+reading every key for any other) and the discrete model."""
 
 from __future__ import annotations
 
 import copy
 import functools
+import logging
 import re
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Final
 
 from cantools.database.can import Database, Message, Signal
 
-from monitor.bus.codec import MotorDatabase, load_database
+from monitor.bus.codec import MotorDatabase
 from monitor.bus.errors import CodecError, SecOCError
-from monitor.bus.rigcodec import RigCodec, RigMessage, RigSecOC, RigSync, load_rig_dbcs
+from monitor.bus.rigcodec import (
+    Resolver,
+    RigCodec,
+    RigMessage,
+    RigSecOC,
+    RigSync,
+    load_rig_dbcs,
+)
 from monitor.bus.secoc import SecOCLayout, SyncLayout
-from monitor.errors import MonitorError
+from monitor.errors import MonitorError, one_line
 from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, ModelError, dc_motor
-from monitor.rig.spec import Rig, SignalRef
+from monitor.rig.spec import ProtectionSpec, Rig, SignalRef
 
-__all__ = ["build_decoder", "build_model", "check_rig", "unit_factor"]
+__all__ = ["build_decoder", "build_model", "builtin_difference", "check_rig", "is_builtin_bus",
+           "unit_factor"]
+
+log = logging.getLogger(__name__)
 
 Fail = Callable[[str, str], MonitorError]
 _SUFFIX = re.compile(r"^(?P<name>.+)_N(?P<node>\d{1,3})$")
@@ -30,33 +44,167 @@ MAX_NODES = 256
 
 @functools.cache
 def _units():  # type: ignore[no-untyped-def]
-    import pint  # a 0.4 s import: only for rigs whose units differ from their DBC's
+    import pint  # 0.6 s with its registry: not for the built-in rig (plain V and A)
 
     return pint.UnitRegistry()
 
 
+_PLAIN: Final = frozenset({"V", "A"})
+"""Units taken as known without pint: the built-in rig's, so that it starts without it."""
+_NO_UNIT: Final = frozenset({"", "-"})
+"""What a DBC writes for a signal without a unit ("-" is the editors' convention)."""
+
+
+def _written(unit: str | None) -> str | None:
+    """A unit as the DBC or the rig writes it; None where it gives none."""
+    if unit is None or unit.strip() in _NO_UNIT:
+        return None
+    return unit.strip()
+
+
+def _unknown(unit: str) -> str | None:
+    """Why pint cannot read `unit` (None: it can)."""
+    if unit in _PLAIN:
+        return None
+    try:
+        _units().parse_units(unit)
+    except Exception as exc:  # pint: UndefinedUnitError, or a syntax its parser rejects
+        return f"pint: {one_line(exc) or type(exc).__name__}"
+    return None
+
+
 def unit_factor(dbc_unit: str | None, model_unit: str | None) -> float:
-    """The factor from a DBC signal's unit to the unit the model wants (pint)."""
-    if not model_unit or not dbc_unit or dbc_unit == model_unit:
+    """The factor from a DBC signal's unit to the unit the model wants (pint); 1 where
+    either is missing or they are the same. `ValueError` (one line) if the two do not
+    convert or the conversion has an offset (degC to K is not a scale)."""
+    dbc, model = _written(dbc_unit), _written(model_unit)
+    if dbc is None or model is None or dbc == model:
         return 1.0
     ureg = _units()
     try:
-        q = ureg.Quantity(1.0, dbc_unit).to(model_unit)
-        zero = ureg.Quantity(0.0, dbc_unit).to(model_unit)
+        q = ureg.Quantity(1.0, dbc).to(model)
+        zero = ureg.Quantity(0.0, dbc).to(model)
     except Exception as exc:  # pint: undefined unit, dimensionality error
-        raise ValueError(f"cannot convert {dbc_unit!r} to {model_unit!r}: {exc}") from None
+        raise ValueError(f"cannot convert {dbc!r} to {model!r}: {one_line(exc)}") from None
     if abs(float(zero.magnitude)) > 1e-12:
-        raise ValueError(f"{dbc_unit!r} to {model_unit!r} has an offset (not a scale)")
+        raise ValueError(f"{dbc!r} to {model!r} has an offset (not a scale)")
     return float(q.magnitude)
 
 
+@dataclass(frozen=True)
+class _Want:
+    """The unit a model takes a signal in, where the model fixes it."""
+
+    unit: str  # pint's spelling
+    what: str  # the rule, as an error says it
+
+
+_DC_INPUT: Final = _Want("V", "a dc_motor model's input is a voltage in V (its parameters "
+                              "are SI)")
+_DC_OUTPUT: Final = _Want("A", "a dc_motor model's output is a current in A (its "
+                               "parameters are SI)")
+_TRUTH: Final = _Want("dimensionless", "the truth is gamma, a plain fraction 0..1 shown "
+                                       "beside gamma^ as it comes")
+
+_told: set[tuple[str, str]] = set()
+"""(rig, what) already logged: each rig is checked at load and again for each decoder."""
+
+
+def _tell_once(rig: Rig, what: str) -> None:
+    shown = str(rig.source) if rig.source is not None else "<built-in rig>"
+    if (shown, what) not in _told:
+        _told.add((shown, what))
+        log.info("rig file %s: %s", shown, what)
+
+
+def _signal_factor(rig: Rig, m: Message, sig: Signal, ref: SignalRef, key: str,
+                   want: _Want | None, fail: Fail) -> float:
+    """The factor from `sig`'s DBC unit to the model's, every unit checked: the rig's and
+    the DBC's parse, convert into each other, and suit the model (`want`). Where the DBC
+    gives no unit the rig's is taken (logged once); where the rig gives none, the DBC's."""
+    mine, dbc = _written(ref.unit), _written(sig.unit)
+    where = f"{m.name}.{sig.name}"
+    if mine is not None and (problem := _unknown(mine)) is not None:
+        raise fail(f"{key}.unit", f"{mine!r} is not a unit ({problem})")
+    if dbc is not None and (problem := _unknown(dbc)) is not None:
+        raise fail(f"{key}.unit" if mine else f"{key}.signal",
+                   f"{where} has the unit {dbc!r} in the DBC, which is not a unit ({problem}); "
+                   f"the rig's is {repr(mine) if mine else 'not given'}")
+    factor = 1.0
+    if mine is not None and dbc is not None:
+        try:
+            factor = unit_factor(dbc, mine)
+        except ValueError as exc:
+            raise fail(f"{key}.unit", f"{exc} ({where}: {dbc!r} in the DBC, {mine!r} in the "
+                       "rig)") from None
+    elif mine is not None:
+        _tell_once(rig, f"{key}: {where} has no unit in the DBC; taken as the rig's {mine!r}")
+    model = mine or dbc
+    if want is None:
+        return factor
+    if model is None:
+        if want is not _TRUTH:
+            _tell_once(rig, f"{key}: {where} has no unit in the DBC or the rig; "
+                            f"taken as {want.unit}")
+        return factor
+    taken = "" if mine else " (the DBC's)"
+    try:
+        scale = 1.0 if model == want.unit else unit_factor(model, want.unit)
+    except ValueError:
+        raise fail(f"{key}.unit", f"{want.what}, not {model!r}{taken}") from None
+    if abs(scale - 1.0) > 1e-12:
+        fix = "" if want is _TRUTH else f': give unit = "{want.unit}"' + (
+            f" (the DBC's {dbc!r} are converted)" if dbc and dbc != want.unit else "")
+        raise fail(f"{key}.unit", f"{want.what}, not {model!r}{taken}{fix}")
+    return factor
+
+
+def builtin_difference(rig: Rig) -> str | None:
+    """The first key where `rig` describes its bus otherwise than the built-in rig, which
+    is exactly what `MotorDatabase` implements (None: nowhere). Compared: the DBC count,
+    the layout, the signals, the truth, the protection and SecOC; units are compared by
+    `build_decoder`, by their conversion, since that needs the DBC. (The nodes, the model,
+    the rate and the diagnosis are the pipeline's, served alike by either decoder.)"""
+    from monitor.rig.load import builtin_rig  # load imports this module
+
+    ours = builtin_rig()
+    if len(rig.dbc) != len(ours.dbc):
+        return "bus.dbc"
+    if rig.layout != ours.layout:
+        return "bus.layout"
+    for group in ("inputs", "outputs"):
+        mine, theirs = getattr(rig, group), getattr(ours, group)
+        if len(mine) != len(theirs):
+            return f"signals.{group}"
+        for i, (a, b) in enumerate(zip(mine, theirs, strict=True)):
+            for field in ("message", "signal"):
+                if getattr(a, field) != getattr(b, field):
+                    return f"signals.{group}[{i}].{field}"
+    if rig.truth is None or ours.truth is None:
+        if rig.truth is not ours.truth:
+            return "signals.truth"
+    else:
+        for field in ("message", "signal"):
+            if getattr(rig.truth, field) != getattr(ours.truth, field):
+                return f"signals.truth.{field}"
+
+    def stated(p: Rig) -> dict[str, ProtectionSpec]:  # kind = "none" is the default
+        return {k: v for k, v in p.protection.items() if v != ProtectionSpec()}
+
+    mine_p, ours_p = stated(rig), stated(ours)
+    for name in sorted(set(mine_p) | set(ours_p)):
+        if mine_p.get(name) != ours_p.get(name):
+            return f"protection.{name}"
+    if rig.secoc != ours.secoc:
+        return "secoc"
+    return None
+
+
 def is_builtin_bus(rig: Rig) -> bool:
-    """Our own bus: served by `MotorDatabase` (SecOC, MonitorDiagnosis frames)."""
-    return (rig.layout.kind == "name_suffix"
-            and [(r.message, r.signal) for r in rig.inputs] == [("MotorVoltage", "VoltageCommand")]
-            and [(r.message, r.signal) for r in rig.outputs] == [("MotorCurrent",
-                                                                    "ArmatureCurrent")]
-            and len(rig.dbc) == 1)
+    """Whether `rig` describes our own bus as the built-in rig does (`builtin_difference`;
+    `build_decoder` then also needs the units to convert with factor 1 to serve it with
+    `MotorDatabase`: SecOC, MonitorDiagnosis frames)."""
+    return builtin_difference(rig) is None
 
 
 def _resolver(rig: Rig, db: Database, fail: Fail) -> tuple[Callable[[str, int],
@@ -143,34 +291,36 @@ def _rig_messages(rig: Rig, sample: Callable[[str], Message],
         m = sample(name)
         sigs = {s.name: s for s in m.signals}
 
-        def factor(ref: SignalRef, key: str, m: Message = m,
+        def factor(ref: SignalRef, key: str, want: _Want | None, m: Message = m,
                    sigs: dict[str, Signal] = sigs) -> float:
             if ref.signal not in sigs:
                 raise fail(f"{key}.signal", f"{m.name} has no signal {ref.signal} (it has "
                            f"{', '.join(sorted(sigs))})")
-            try:
-                return unit_factor(sigs[ref.signal].unit, ref.unit)
-            except ValueError as exc:
-                raise fail(f"{key}.unit", str(exc)) from None
+            return _signal_factor(rig, m, sigs[ref.signal], ref, key, want, fail)
 
-        inputs = tuple((i, r.signal, factor(r, f"signals.inputs[{i}]"))
+        dc = rig.model.kind == "dc_motor"
+        inputs = tuple((i, r.signal, factor(r, f"signals.inputs[{i}]", _DC_INPUT if dc else None))
                        for i, r in enumerate(rig.inputs) if r.message == name)
-        outputs = tuple((r.signal, factor(r, f"signals.outputs[{i}]"))
+        outputs = tuple((r.signal, factor(r, f"signals.outputs[{i}]",
+                                          _DC_OUTPUT if dc else None))
                         for i, r in enumerate(rig.outputs) if r.message == name)
         truth = None
         if rig.truth is not None and rig.truth.message == name:
-            factor(rig.truth, "signals.truth")
+            factor(rig.truth, "signals.truth", _TRUTH)  # 1: the codecs pass the truth as is
             truth = rig.truth.signal
         prot = rig.protection.get(name)
         e2e = prot is not None and prot.kind == "e2e_profile2"
         if e2e:
             assert prot is not None and prot.counter is not None and prot.crc is not None
-            crc, cnt = sigs.get(prot.crc), sigs.get(prot.counter)
-            if crc is None or (crc.start, crc.length, crc.byte_order) != (0, 8, "little_endian"):
+            for field, signal in (("crc", prot.crc), ("counter", prot.counter)):
+                if signal not in sigs:
+                    raise fail(f"protection.{name}.{field}", f"{m.name} has no signal {signal} "
+                               f"(it has {', '.join(sorted(sigs))})")
+            crc, cnt = sigs[prot.crc], sigs[prot.counter]
+            if (crc.start, crc.length, crc.byte_order) != (0, 8, "little_endian"):
                 raise fail(f"protection.{name}.crc", f"{m.name}: E2E profile 2 needs the CRC "
                            "(8 bits) in byte 0")
-            if cnt is None or (cnt.start, cnt.length, cnt.byte_order) != (8, 4,
-                                                                          "little_endian"):
+            if (cnt.start, cnt.length, cnt.byte_order) != (8, 4, "little_endian"):
                 raise fail(f"protection.{name}.counter", f"{m.name}: E2E profile 2 needs the "
                            "alive counter in the low nibble of byte 1")
         out.append(RigMessage(name, inputs, outputs, truth, e2e,
@@ -252,24 +402,42 @@ def _sync(rig: Rig, m: Message, streams: dict[str, tuple[int, str]], fail: Fail)
     return RigSync(s.message, s.kind, s.freshness, s.authenticator, s.freshness_length)
 
 
-def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
-                  fail: Fail | None = None) -> MotorDatabase | RigCodec:
-    """The frame decoder of the rig: `MotorDatabase` for our own bus, else a `RigCodec`."""
-    fail = fail or _default_fail(rig)
-    if is_builtin_bus(rig):
-        try:
-            return load_database(rig.dbc[0], secoc_key=secoc_key)
-        except CodecError as exc:
-            if rig.source is None:  # our rig with --dbc: the error names the file already
-                raise
-            raise fail("bus.dbc", str(exc)) from None
-    if secoc_key is not None and rig.secoc is None:
-        raise fail("secoc", "a SecOC key (--key) was given, but no message of the rig has "
-                   "SecOC (protection.<message>.secoc)")
+@dataclass(frozen=True)
+class _Bus:
+    """A rig's bus checked against its DBC: what `RigCodec` is built from."""
+
+    messages: list[RigMessage]
+    resolve: Resolver
+    nodes: list[int]
+    sync: RigSync | None
+
+    def scaled(self) -> str | None:
+        """The first signal whose values the decoder scales to the model's unit (its key),
+        None if every factor is 1: what `MotorDatabase`, which never scales, can serve."""
+        for m in self.messages:
+            for i, _, f in m.inputs:
+                if f != 1.0:
+                    return f"signals.inputs[{i}].unit (the DBC's values scaled)"
+            for j, (_, f) in enumerate(m.outputs):  # every output is in this one message
+                if f != 1.0:
+                    return f"signals.outputs[{j}].unit (the DBC's values scaled)"
+        return None
+
+
+def _load(rig: Rig, fail: Fail) -> Database:
+    """The rig's DBC files as one database (a mistake: one line on bus.dbc)."""
     try:
-        db = load_rig_dbcs(rig.dbc)
+        return load_rig_dbcs(rig.dbc)
     except CodecError as exc:
+        if rig.source is None:  # the built-in rig with --dbc: the error names the file
+            raise
         raise fail("bus.dbc", str(exc)) from None
+
+
+def _check_bus(rig: Rig, db: Database, fail: Fail) -> _Bus:
+    """Every rig's checks against its DBC, our own bus's too: messages and signals exist
+    for the nodes, units parse, convert and suit the model, protection and SecOC signals
+    sit where they must."""
     resolve, found = _resolver(rig, db, fail)
     nodes = list(rig.nodes) if rig.nodes is not None else found
     if not nodes:
@@ -285,9 +453,54 @@ def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
     streams = _streams(rig, fail)
     messages = _rig_messages(rig, sample, streams, fail)
     sync = None if rig.secoc is None else _sync(rig, sample(rig.secoc.message), streams, fail)
+    return _Bus(messages, resolve, nodes, sync)
+
+
+_OURS: Final = {"MonitorDiagnosis": "the monitor sends no MonitorDiagnosis frames",
+                "SecOCSync": "our bus's SecOC is not verified"}
+
+
+def _our_bus_extras(db: Database) -> dict[str, str]:
+    """What `MotorDatabase` serves on this DBC and `RigCodec` does not (message name without
+    the node -> what is lost), found by the names our DBC gives those messages (nothing
+    for any other DBC)."""
+    names = {hit["name"] for m in db.messages if (hit := _SUFFIX.match(m.name)) is not None}
+    return {name: lost for name, lost in _OURS.items() if name in names}
+
+
+def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
+                  fail: Fail | None = None) -> MotorDatabase | RigCodec:
+    """The frame decoder of the rig, after every rig's checks: `MotorDatabase` where the
+    rig says exactly what it implements (our own bus as the built-in rig describes it, no
+    unit scaled: `builtin_difference`), else a `RigCodec` reading every key of the rig."""
+    fail = fail or _default_fail(rig)
+    differs = builtin_difference(rig)
+    db = _load(rig, fail)
+    if differs is None:
+        try:
+            ours = MotorDatabase(db, str(rig.dbc[0]), secoc_key)
+        except CodecError as exc:
+            if rig.source is None:  # the built-in rig with --dbc: the error names the file
+                raise
+            raise fail("bus.dbc", str(exc)) from None
+        differs = _check_bus(rig, db, fail).scaled()
+        if differs is None:
+            return ours
+        db = _load(rig, fail)  # a copy without the AUTOSAR properties MotorDatabase attached
+    bus = _check_bus(rig, db, fail)
+    extras = _our_bus_extras(db)
+    if secoc_key is not None and rig.secoc is None:
+        ours_too = ("; our bus's own SecOC needs the bus described as the built-in rig "
+                    f"(rigs/motor.toml) does, and this rig differs at {differs}"
+                    if "SecOCSync" in extras else "")
+        raise fail("secoc", "a SecOC key (--key) was given, but no message of the rig has "
+                   f"SecOC (protection.<message>.secoc){ours_too}")
+    if extras:
+        _tell_once(rig, f"not our bus as the built-in rig describes it ({differs}): read by "
+                        f"the rig codec, so {'; '.join(extras.values())}")
     try:
-        return RigCodec(db, ", ".join(p.name for p in rig.dbc), messages, resolve, nodes,
-                        sync=sync, secoc_key=secoc_key)
+        return RigCodec(db, ", ".join(p.name for p in rig.dbc), bus.messages, bus.resolve,
+                        bus.nodes, sync=bus.sync, secoc_key=secoc_key)
     except CodecError as exc:
         raise fail("bus", str(exc)) from None
 
@@ -310,8 +523,8 @@ def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
             output_names=tuple(r.signal for r in rig.outputs),
             **{k: [list(r) for r in v] for k, v in spec.matrices.items()},
         ).continuous
-    except ModelError as exc:
-        raise fail("model", str(exc)) from None
+    except ModelError as exc:  # exc.key "rate": the model is fine, not at this rate
+        raise fail(f"model.{exc.key}" if exc.key else "model", str(exc)) from None
 
 
 def check_rig(rig: Rig, fail: Fail) -> Rig:
@@ -322,7 +535,7 @@ def check_rig(rig: Rig, fail: Fail) -> Rig:
     try:
         model.discretize(1.0 / rig.rate)
     except ModelError as exc:
-        raise fail("model", str(exc)) from None
+        raise fail(f"model.{exc.key}" if exc.key else "model", str(exc)) from None
     if model.B.shape[1] != len(rig.inputs) or model.C.shape[0] != len(rig.outputs):
         raise fail("model", f"the model has {model.B.shape[1]} input(s) and "
                    f"{model.C.shape[0]} output(s); the rig's signals name "

@@ -10,12 +10,12 @@ the example rigs/motor.toml, which is the built-in default.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
-from monitor.errors import MonitorError, one_line
+from monitor.errors import MonitorError
+from monitor.files import MIB, UserFileError, read_user_toml, shown_path, user_file_problem
 from monitor.rig.spec import (
     DiagnosisSpec,
     LayoutSpec,
@@ -27,12 +27,16 @@ from monitor.rig.spec import (
     SyncSpec,
 )
 
-__all__ = ["RigError", "builtin_rig", "load_rig", "parse_rig"]
+__all__ = ["MAX_RATE_HZ", "MIN_RATE_HZ", "RigError", "builtin_rig", "load_rig", "parse_rig",
+           "rate_problem"]
 
 T = TypeVar("T")
 
 _MOTOR_KEYS = ("J", "b", "Ke", "Ki", "Ra", "La")
 _MATRICES = ("E", "A", "B", "C", "D", "Q", "R")
+RIG_FILE_LIMIT = 16 * MIB
+"""The largest rig file read: room for the matrices of a model of a few hundred states
+(a 200-state A is about 1 MB of TOML), far below what would exhaust the monitor."""
 
 
 class RigError(MonitorError, ValueError):
@@ -99,16 +103,9 @@ def load_rig(path: str | Path) -> Rig:
     """Read and check a rig file (DBC paths are relative to it)."""
     p = Path(path)
     try:
-        with p.open("rb") as fh:
-            doc = tomllib.load(fh)
-    except FileNotFoundError:
-        raise RigError(f"rig file {p}: file not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise RigError(f"rig file {p}: not valid TOML: {one_line(exc)}") from None
-    except UnicodeDecodeError as exc:
-        raise RigError(f"rig file {p}: not valid TOML (not UTF-8: {exc.reason})") from None
-    except OSError as exc:
-        raise RigError(f"rig file {p}: cannot read: {exc.strerror or exc}") from None
+        doc = read_user_toml(p, what="rig file", limit=RIG_FILE_LIMIT)
+    except UserFileError as exc:
+        raise RigError(str(exc)) from None
     return parse_rig(doc, source=p)
 
 
@@ -148,9 +145,9 @@ def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None) -> Rig:
         raise fail("bus.dbc", "must be a file name or an array of file names")
     dbc = tuple((base / d) for d in dbc_list)
     for i, d in enumerate(dbc):
-        if not d.is_file():
+        if (problem := user_file_problem(d)) is not None:
             raise fail(f"bus.dbc[{i}]" if isinstance(dbc_value, list) else "bus.dbc",
-                       f"no such file: {d}")
+                       f"{shown_path(d)}: {problem}")
     layout = _layout(bus, fail)
     nodes = _nodes(bus.take("nodes", (str, list), "all"), fail)
     bus.done()
@@ -322,12 +319,37 @@ def _matrix(t: _Table, name: str) -> tuple[tuple[float, ...], ...] | None:
     return tuple(out)
 
 
+# The output rates the monitor can use (model.rate, and --rate on the command line).
+MIN_RATE_HZ = 0.2
+"""A period of at most 5 s: the pipeline restarts a node's estimator after 5 s without a
+sample (`MonitorConfig.max_gap_s`), so at a slower rate every sample would start afresh
+and nothing would ever be estimated."""
+MAX_RATE_HZ = 100_000.0
+"""No CAN bus carries more samples a second (classic CAN at 1 Mbit/s about 20 000
+frames/s, CAN FD below 100 000), and the estimator keys its steps by the microsecond."""
+
+
+def rate_problem(rate: float) -> str | None:
+    """What is wrong with an output rate in Hz for the monitor, None if nothing."""
+    if not (math.isfinite(rate) and rate > 0):
+        return f"must be a positive number of Hz, got {rate!r}"
+    if rate < MIN_RATE_HZ:
+        return (f"must be at least {MIN_RATE_HZ:g} Hz, got {rate:g}: a sample period above "
+                f"{1 / MIN_RATE_HZ:g} s is a gap after which the monitor restarts the "
+                "estimator, so no sample would ever be estimated")
+    if rate > MAX_RATE_HZ:
+        return (f"must be at most {MAX_RATE_HZ:g} Hz, got {rate:g}: no CAN bus carries more "
+                "samples a second (about 20000 frames/s at 1 Mbit/s, CAN FD below 100000)")
+    return None
+
+
 def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
            ) -> tuple[ModelSpec, float]:
     kind = t.take("kind", str)
     rate = t.number("rate", positive=True)
-    if rate > 100_000:
-        raise fail("model.rate", f"must be at most 100000 Hz, got {rate:g}")
+    problem = rate_problem(rate)
+    if problem is not None:
+        raise fail("model.rate", problem)
     if kind == "dc_motor":
         if (m, p) != (1, 1):
             raise fail("model.kind", f"dc_motor has one input and one output; the rig "

@@ -27,7 +27,10 @@ class SignalRef:
     `message` is the message's name as the DBC writes it for node 0 (layout id_bits), as
     the template for every node (layout name_suffix: ``<message>_N<node>``), or the key
     of the per-node table (layout explicit). `unit` is the model's unit; the decoder converts
-    the DBC's physical value to it where the DBC's unit differs.
+    the DBC's physical value to it where the DBC's unit differs. Where the DBC gives no unit
+    the rig's is the signal's; where the rig gives none, the DBC's is the model's. A
+    `dc_motor` model takes its input in V and its output in A (its parameters are SI); the
+    truth is a plain fraction, never scaled.
     """
 
     message: str

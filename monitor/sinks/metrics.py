@@ -11,7 +11,10 @@ exposition is prometheus_client's; the names:
     motor_monitor_node_health_state{node}          0 fault_free .. 4 model_mismatch
     motor_monitor_node_gamma{node}                 latest gamma^
     motor_monitor_node_nis{node}                   windowed NIS (p when the model fits)
-    motor_monitor_node_samples_total{node}
+    motor_monitor_node_samples_total{node}         from 0, for every node asked for (--nodes)
+    motor_monitor_nothing_decoded                  1 while no sample was decoded (of a node
+                                                   asked for, or of any node) since the
+                                                   silence timeout after start; else 0
     motor_monitor_estimation_latency_seconds       histogram: frame timestamp to estimate
     motor_monitor_events_total{name}               every pipeline counter (frames/received,
                                                    rejected/<reason>, bus/errors/<condition>,
@@ -21,6 +24,14 @@ exposition is prometheus_client's; the names:
     motor_monitor_id_frames_total{id}, motor_monitor_id_period_seconds{id},
     motor_monitor_id_jitter_seconds{id}            per arbitration ID
     motor_monitor_up, motor_monitor_last_write_timestamp_seconds
+
+Alerting on a monitor that runs but diagnoses nothing (a wrong rig, node layout, DBC or
+key; a bus that carries no frame of the rig): ``motor_monitor_nothing_decoded == 1`` (the
+daemon's own judgement, `monitor.pipeline.counters.DecodeWatch`, whose one journal line
+gives the counts by outcome and the likely cause), or from the counters alone
+``increase(motor_monitor_node_samples_total[10m]) == 0``. Both series are there from the
+first write (``frames/received`` and ``samples/estimated`` of `motor_monitor_events_total`
+too, at 0), so a rule never has to tell a missing series from a stopped one.
 """
 
 from __future__ import annotations
@@ -36,6 +47,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from monitor.bus.stats import BusStats
+from monitor.pipeline import counters as C
+from monitor.pipeline.counters import DecodeWatch
 from monitor.pipeline.events import Sample
 from monitor.sinks.base import Sink
 
@@ -51,8 +64,9 @@ class _Figures(Collector):
     """The latest figures, as metric families at collect time (counters mirrored, not
     re-counted: the pipeline's counters are the one source)."""
 
-    def __init__(self, bus: BusStats | None) -> None:
+    def __init__(self, bus: BusStats | None, watch: DecodeWatch | None) -> None:
         self.bus = bus
+        self.watch = watch
         self.counters: Mapping[str, int] = {}
         self.nodes: dict[int, Sample] = {}
         self.samples: dict[int, int] = {}
@@ -68,9 +82,16 @@ class _Figures(Collector):
         yield written
         ev = CounterMetricFamily(f"{PREFIX}_events", "the pipeline's counters: every frame's "
                                  "outcome, bus errors, publication", labels=["name"])
-        for name, value in sorted(self.counters.items()):
+        counts = {C.FRAMES_RECEIVED: 0, C.SAMPLES_ESTIMATED: 0, **self.counters}
+        for name, value in sorted(counts.items()):
             ev.add_metric([name], float(value))
         yield ev
+        if self.watch is not None:
+            silent = GaugeMetricFamily(f"{PREFIX}_nothing_decoded", "1 while no sample was "
+                                       "decoded since the silence timeout after start (of a "
+                                       "node asked for, or of any node)")
+            silent.add_metric([], 1.0 if self.watch.active else 0.0)
+            yield silent
         state = GaugeMetricFamily(f"{PREFIX}_node_health_state", "0 fault_free, 1 fault, "
                                   "2 outage, 3 no_data, 4 model_mismatch", labels=["node"])
         gamma = GaugeMetricFamily(f"{PREFIX}_node_gamma", "estimated loss of effectiveness",
@@ -83,6 +104,8 @@ class _Figures(Collector):
             state.add_metric([str(n)], float(int(s.state)))
             gamma.add_metric([str(n)], s.gamma)
             nis.add_metric([str(n)], self.nis.get(n, math.nan))
+        asked = self.watch.nodes if self.watch is not None and self.watch.nodes else ()
+        for n in sorted({*self.nodes, *asked}):
             samples.add_metric([str(n)], float(self.samples.get(n, 0)))
         yield from (state, gamma, nis, samples)
         bus = self.bus
@@ -112,10 +135,12 @@ class _Figures(Collector):
 class MetricsSink(Sink):
     """Writes the monitor's figures to `path` (a ``.prom`` file in node_exporter's textfile
     directory) every `period_s`, and at close. `live` measures estimation latency (frame
-    timestamp to estimate, wall clock): off for replays."""
+    timestamp to estimate, wall clock): off for replays. `watch`, the daemon's
+    `DecodeWatch`, gives `motor_monitor_nothing_decoded` and the nodes asked for."""
 
     def __init__(self, path: str | Path, *, bus: BusStats | None = None,
-                 period_s: float = 5.0, live: bool = True, nis_window_s: float = 2.0) -> None:
+                 period_s: float = 5.0, live: bool = True, nis_window_s: float = 2.0,
+                 watch: DecodeWatch | None = None) -> None:
         self.path = Path(path)
         if self.path.suffix != ".prom":
             raise ValueError(f"{self.path}: node_exporter's textfile collector reads *.prom")
@@ -124,7 +149,7 @@ class MetricsSink(Sink):
         self.period_s = period_s
         self.live = live
         self.registry = CollectorRegistry(auto_describe=False)
-        self.figures = _Figures(bus)
+        self.figures = _Figures(bus, watch)
         self.registry.register(self.figures)
         self.latency = Histogram(f"{PREFIX}_estimation_latency_seconds", "from a frame's "
                                  "timestamp to its estimate (wall clock)",

@@ -43,12 +43,21 @@ def test_serial_run_summarises_every_log_and_reports_the_damaged_ones(
     assert len(by_log) == GOOD_LOGS + 2
     broken = by_log.pop(str(archive.corrupt[0]))
     truncated = by_log.pop(str(archive.corrupt[1]))
-    for bad, reason in ((broken, "cannot read log"), (truncated, "malformed log")):
-        assert len(bad) == 1 and bad[0]["status"] == "failed" and bad[0]["node"] is None
-        assert reason in str(bad[0]["reason"]), bad
-        assert bad[0]["events"] is None
-    # a log that failed half-way leaves no events or recording behind
-    assert not list(out.rglob("truncated*")) and not list(out.rglob("broken*"))
+    # a log that cannot be opened: one row, no events or recording behind
+    assert len(broken) == 1 and broken[0]["status"] == "failed" and broken[0]["node"] is None
+    assert "cannot read log" in str(broken[0]["reason"]), broken
+    assert broken[0]["events"] is None and not list(out.rglob("broken*"))
+    # a log damaged half-way: failed, with where and the frames read before the damage,
+    # whose figures and events are kept
+    [half] = truncated
+    reason = str(half["reason"])
+    assert half["status"] == "failed" and half["node"] == 0, half
+    assert "malformed log at line " in reason and " frames read before it" in reason, reason
+    read_before = int(reason.rsplit("; ", 1)[1].split()[0])
+    assert half["frames"] == half["frames/received"] == read_before > 1000, half
+    assert int(str(half["samples"])) > 100
+    assert half["events"] == "rigD/day2/truncated.log.events.jsonl"
+    assert (out / str(half["events"])).read_text().count("\n") >= 1
 
     for i, path in enumerate(archive.good):
         name, scenarios = archive_layout(i)
@@ -76,8 +85,9 @@ def test_serial_run_summarises_every_log_and_reports_the_damaged_ones(
 
     # outputs named after the logs' paths: equal basenames in other directories kept apart
     events = events_of(out)
-    assert sorted(events) == sorted(archive_layout(i)[0] + ".events.jsonl"
-                                    for i in range(GOOD_LOGS))
+    assert sorted(events) == sorted([*(archive_layout(i)[0] + ".events.jsonl"
+                                       for i in range(GOOD_LOGS)),
+                                     "rigD/day2/truncated.log.events.jsonl"])
     assert (out / "fleet.png").read_bytes()[:8] == PNG_MAGIC
 
 

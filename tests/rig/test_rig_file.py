@@ -69,7 +69,7 @@ MISTAKES = [
     ("bad layout", SERVO_TEXT.replace('layout = "id_bits"', 'layout = "bits"'),
      "bus.layout: must be name_suffix, id_bits or explicit"),
     ("missing DBC", SERVO_TEXT.replace('dbc = "servo.dbc"', 'dbc = "nope.dbc"'),
-     "bus.dbc: no such file"),
+     "nope.dbc: no such file"),
     ("not TOML", "[bus\n", "not valid TOML"),
     ("negative rate", SERVO_TEXT.replace("rate = 1000.0", "rate = -1.0"),
      "model.rate: must be > 0"),

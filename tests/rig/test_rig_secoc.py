@@ -165,7 +165,9 @@ def test_freshness_counters_survive_a_restart(tmp_path: Path) -> None:
 
 def test_replay_with_the_key_from_the_command_line(tmp_path: Path) -> None:
     """sim-ecu's frames in a candump log, re-diagnosed by `motor-monitor replay --rig --key`
-    in its own process: every frame verified, the events those of the in-process monitor."""
+    in its own process: every frame verified, the events those of the in-process monitor.
+    The log holds node 1 only: `--nodes 1` (the rig's node 2 would have no sample, which
+    is no success)."""
     frames = _twin_frames()
     log = tmp_path / "bus.log"
     with can.Logger(str(log)) as writer:
@@ -176,20 +178,23 @@ def test_replay_with_the_key_from_the_command_line(tmp_path: Path) -> None:
     key.chmod(0o600)
     events = tmp_path / "events.jsonl"
     res = subprocess.run([str(BIN / "motor-monitor"), "replay", "--rig", str(RIG), "--key",
-                          str(key), "--events", str(events), str(log)],
+                          str(key), "--nodes", "1", "--events", str(events), str(log)],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     lines = [json.loads(x) for x in events.read_text().splitlines()]
     _, expected = _monitor(KEY, frames)
     got = [(e["state"], round(e["t"], 6)) for e in lines if e.get("cause") == "estimate"]
     assert got == [(e.state, round(e.t, 6)) for e in expected if e.cause == "estimate"]
-    # the wrong key: every data frame refused, said in the summary line
+    # the wrong key: every data frame refused, so nothing decoded: a failure, in one line
+    # with the counts by outcome and the cause
     key.write_text(OTHER_KEY.hex() + "\n")
     res = subprocess.run([str(BIN / "motor-monitor"), "replay", "--rig", str(RIG), "--key",
-                          str(key), "--events", str(events), str(log)],
+                          str(key), "--nodes", "1", "--events", str(events), str(log)],
                          capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
-    assert "bad_mac" in res.stderr or "unsynced" in res.stderr, res.stderr
+    assert res.returncode == 1, res.stderr
+    [line] = [ln for ln in res.stderr.splitlines() if "error:" in ln]
+    assert " 0 samples: " in line and "check --key" in line, res.stderr
+    assert "bad_mac" in line or "unsynced" in line, res.stderr
 
 
 def test_sim_ecu_signs_a_rigs_frames_and_keeps_its_counters(tmp_path: Path) -> None:

@@ -9,12 +9,14 @@ freshness state file (`monitor.bus.secoc.state`) go through.
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 from pathlib import Path
 from typing import Final
 
 from monitor.bus.errors import SecOCError
+from monitor.files import UserFileError, read_user_file
 
 __all__ = ["KEY_LENGTHS", "check_key", "load_key", "parse_key", "read_guarded"]
 
@@ -69,35 +71,26 @@ def load_key(path: str | os.PathLike[str], *, allow_insecure: bool = False) -> b
 
 def read_guarded(path: Path, what: str, *, refused_mode: int, refused_as: str, advice: str,
                  limit: int) -> bytes | None:
-    """The content of the regular file `path`, at most `limit` + 1 bytes; None if it does
-    not exist.
+    """The content of the regular file `path`, at most `limit` bytes; None if it does not
+    exist.
 
-    `SecOCError` (one line, naming `path` and `what`) if it cannot be read, is not a
-    regular file, or has any permission bit of `refused_mode` (a file its group or others
-    are `refused_as`, "accessible" or "writable": the message ends with `advice`). The
-    checks are made on the file opened, not on whatever the path names by then.
+    Read with `monitor.files.read_user_file`, so a FIFO or device never blocks and a large
+    file is refused before it is read. `SecOCError` (one line, naming `what` and `path`) if
+    it cannot be read, is not a regular file, is larger than `limit` or has any permission
+    bit of `refused_mode` (a file its group or others are `refused_as`, "accessible" or
+    "writable": the message ends with `advice`). The mode is checked on the file opened,
+    not on whatever the path names by then, and before any byte is read.
     """
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
-    except FileNotFoundError:
-        return None
-    except OSError as exc:
-        raise SecOCError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise SecOCError(f"{path}: {what} is not a regular file")
+
+    def check(st: os.stat_result) -> None:
         mode = stat.S_IMODE(st.st_mode)
         if mode & refused_mode:
             raise SecOCError(f"{path}: {what} is {refused_as} by group or others (mode "
                              f"{mode:04o}); {advice}")
-        chunks: list[bytes] = []
-        size = 0
-        while size <= limit and (chunk := os.read(fd, limit + 1 - size)):
-            chunks.append(chunk)
-            size += len(chunk)
-    except OSError as exc:
-        raise SecOCError(f"{path}: cannot read {what}: {exc.strerror or exc}") from None
-    finally:
-        os.close(fd)
-    return b"".join(chunks)
+
+    try:
+        return read_user_file(path, what=what, limit=limit, check=check)
+    except UserFileError as exc:
+        if exc.errno == errno.ENOENT:
+            return None
+        raise SecOCError(str(exc)) from None

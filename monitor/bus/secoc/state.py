@@ -103,9 +103,6 @@ def read_state_file(path: str | os.PathLike[str]) -> dict[str, Any] | None:
                        advice="it guards against replays: chmod 600", limit=_MAX_STATE_FILE)
     if raw is None:
         return None
-    if len(raw) > _MAX_STATE_FILE:
-        raise SecOCError(f"{p}: not a SecOC state file: larger than {_MAX_STATE_FILE} "
-                         f"bytes")
     try:
         doc = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:

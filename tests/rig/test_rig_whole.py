@@ -1,0 +1,451 @@
+"""A rig file is read whole, whatever bus it describes: our own bus goes through the same
+checks as any other (units, protection, truth), `MotorDatabase` serves only a rig that
+says exactly what it implements and the rig codec any other; units parse, convert and suit
+the model; a DBC with two messages on one frame ID, or listed twice, is refused in one
+line."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import subprocess
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from monitor.app.options import monitor_config
+from monitor.bus.codec import CodecError, MotorDatabase, load_database, load_dbcs
+from monitor.bus.rigcodec import RigCodec
+from monitor.columnar.replay import replay_file
+from monitor.pipeline import DiagnosisEvent
+from monitor.pipeline.events import Sample
+from monitor.rig import RigError, build_decoder, build_model, builtin_rig, load_rig
+from monitor.sinks.base import Sink
+from tests.archive.logs import ecu_frames, write_log
+
+ROOT = Path(__file__).resolve().parents[2]
+RIGS = ROOT / "tests" / "rigs"
+OUR_DBC = ROOT / "dbc" / "motor.dbc"
+MOTOR_TEXT = (ROOT / "rigs" / "motor.toml").read_text().replace('"../dbc/motor.dbc"',
+                                                               f'"{OUR_DBC}"')
+BIN = Path(sys.executable).parent
+CURRENT_LINE = ('outputs = [{ message = "MotorCurrent", signal = "ArmatureCurrent", '
+                'unit = "A" }]')
+TRUTH_LINE = 'truth = { message = "SimTruth", signal = "TrueGamma" }'
+CURRENT_E2E = ('MotorCurrent = { kind = "e2e_profile2", counter = "Counter", crc = "CRC", '
+               'data_id = "id_low_byte" }')
+TRUTH_CURRENT = MOTOR_TEXT.replace(CURRENT_E2E, "")  # the output below is not MotorCurrent
+NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
+
+
+def _rig(tmp_path: Path, text: str, name: str = "rig.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def _matrix(a: np.ndarray) -> str:
+    return "[" + ", ".join("[" + ", ".join(repr(float(v)) for v in row) + "]"
+                           for row in np.atleast_2d(a)) + "]"
+
+
+def _milliamp_rig(tmp_path: Path) -> Path:
+    """Our bus as rigs/motor.toml describes it, but the model takes the current in mA: the
+    paper's motor as matrices whose output row and sensor variance are in mA."""
+    m = build_model(builtin_rig())
+    head, tail = MOTOR_TEXT.replace('unit = "A"', 'unit = "mA"').split("[model]")
+    model = (f'[model]\nkind = "state_space"\nrate = 100.0\nE = {_matrix(m.E)}\n'
+             f"A = {_matrix(m.A)}\nB = {_matrix(m.B)}\nC = {_matrix(1000.0 * m.C)}\n"
+             f"Q = {_matrix(m.Qc)}\nR = {_matrix(1e6 * m.R)}\n\n")
+    return _rig(tmp_path, head + model + tail[tail.index("[diagnosis]"):], "milliamp.toml")
+
+
+@dataclass
+class _Keep(Sink):
+    samples: list[Sample] = field(default_factory=list)
+    transitions: list[DiagnosisEvent] = field(default_factory=list)
+
+    def on_sample(self, sample: Sample) -> None:
+        self.samples.append(sample)
+
+    def on_transition(self, event: DiagnosisEvent) -> None:
+        self.transitions.append(event)
+
+
+# ----------------------------------------------------------------- which decoder reads it
+
+
+def test_our_bus_in_milliamps_is_read_by_the_rig_codec_with_the_same_gamma(
+        tmp_path: Path) -> None:
+    """A capture of our bus replayed through the built-in rig (`MotorDatabase`) and
+    through a rig that wants the current in mA (the rig codec): the same gamma^ and
+    diagnosis, the current 1000 times larger."""
+    capture = write_log(tmp_path / "cap.log", ecu_frames(["fault-outage-recovery"]))
+    ours, mine = _Keep(), _Keep()
+    db = build_decoder(builtin_rig())
+    assert isinstance(db, MotorDatabase)
+    a = replay_file(capture, db, monitor_config(NO_OVERRIDES, builtin_rig()), ours)
+    rig = load_rig(_milliamp_rig(tmp_path))
+    codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec)
+    b = replay_file(capture, codec, monitor_config(NO_OVERRIDES, rig), mine)
+    assert a.columnar and b.columnar
+    assert len(ours.samples) == len(mine.samples) > 1000
+    gamma_a = np.array([s.gamma for s in ours.samples])
+    gamma_b = np.array([s.gamma for s in mine.samples])
+    np.testing.assert_allclose(gamma_b, gamma_a, rtol=0, atol=1e-9)
+    assert gamma_a.max() > 0.9  # the scenario's outage: gamma^ went somewhere
+    np.testing.assert_allclose([s.measured for s in mine.samples],
+                               [1000.0 * s.measured for s in ours.samples], rtol=1e-12)
+    assert ([(e.t, e.state) for e in mine.transitions]
+            == [(e.t, e.state) for e in ours.transitions])
+    assert [e.state for e in ours.transitions] == ["fault_free", "fault", "outage", "fault",
+                                                   "fault_free"]
+    assert a.counters == b.counters
+
+
+def test_the_builtin_rig_and_its_equivalents_are_our_bus(tmp_path: Path) -> None:
+    assert isinstance(build_decoder(builtin_rig()), MotorDatabase)
+    # the same units spelt otherwise, the default protection written out: the same rig
+    same = (MOTOR_TEXT.replace('unit = "A"', 'unit = "ampere"')
+            .replace("[protection]\n", '[protection]\nSimTruth = { kind = "none" }\n'))
+    assert isinstance(build_decoder(load_rig(_rig(tmp_path, same))), MotorDatabase)
+
+
+@pytest.mark.parametrize(("what", "text", "differs"), [
+    ("no truth", MOTOR_TEXT.replace(TRUTH_LINE, ""), "signals.truth"),
+    ("the current unprotected", MOTOR_TEXT.replace(CURRENT_E2E, ""),
+     "protection.MotorCurrent"),
+    ("another data ID", MOTOR_TEXT.replace('crc = "CRC", data_id = "id_low_byte" }\n\n',
+                                           'crc = "CRC", data_id = 7 }\n\n'),
+     "protection.MotorCurrent"),
+    ("the truth's current as the output", TRUTH_CURRENT.replace(
+        CURRENT_LINE, 'outputs = [{ message = "SimTruth", signal = "TrueCurrent" }]'),
+     "signals.outputs[0].message"),
+])
+def test_any_other_rig_on_our_dbc_is_read_by_the_rig_codec(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture, what: str, text: str,
+        differs: str) -> None:
+    """What `MotorDatabase` would not do as the rig says goes to the rig codec, which reads
+    every key; that our SecOC and MonitorDiagnosis frames are then not served is logged
+    once, and asking for our SecOC with --key is one line naming the key that differs."""
+    path = _rig(tmp_path, text)
+    with caplog.at_level(logging.INFO, logger="monitor.rig.check"):
+        rig = load_rig(path)
+        codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec), what
+    told = [r.getMessage() for r in caplog.records if "MonitorDiagnosis" in r.getMessage()]
+    assert told == [f"rig file {path}: not our bus as the built-in rig describes it "
+                    f"({differs}): read by the rig codec, so the monitor sends no "
+                    "MonitorDiagnosis frames; our bus's SecOC is not verified"]
+    with pytest.raises(RigError) as info:
+        build_decoder(rig, secoc_key=bytes(16))
+    assert str(info.value).startswith(f"rig file {path}: secoc: a SecOC key (--key) was "
+                                      "given, but no message of the rig has SecOC")
+    assert str(info.value).endswith("; our bus's own SecOC needs the bus described as the "
+                                    "built-in rig (rigs/motor.toml) does, and this rig "
+                                    f"differs at {differs}")
+
+
+def test_a_rig_on_our_dbc_reads_what_it_says(tmp_path: Path) -> None:
+    """The rig codec on our DBC: E2E with the rig's data ID (ours fails its CRC), the
+    truth's current as a model output in A, the voltage in the model's unit."""
+    mdb = load_database()
+    fid = mdb.frame_id("current", 3)
+    frame = mdb.encode_current(3, 1.25, counter=5)
+    rig = load_rig(_rig(tmp_path, MOTOR_TEXT.replace(
+        'crc = "CRC", data_id = "id_low_byte" }\n\n', 'crc = "CRC", data_id = 7 }\n\n')))
+    codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec)
+    assert getattr(codec.decode(fid, frame, False, False, False, 1.0), "reason", None) \
+        == "bad_crc"
+    frame = mdb.encode_truth(3, 0.5, current=2.5, speed=10.0)
+    rig = load_rig(_rig(tmp_path, TRUTH_CURRENT.replace(
+        CURRENT_LINE, 'outputs = [{ message = "SimTruth", signal = "TrueCurrent", '
+                      'unit = "A" }]')))
+    codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec)
+    d = codec.decode(mdb.frame_id("truth", 3), frame, False, False, False, 1.0)
+    assert getattr(d, "outputs", None) == pytest.approx((2.5,))
+    assert getattr(d, "truth", None) == pytest.approx(0.5)
+
+
+def test_our_dbc_in_milliamps_is_scaled_not_taken_as_amps(tmp_path: Path) -> None:
+    """The built-in rig on a DBC of our bus that gives the current in mA: `MotorDatabase`
+    would hand the estimator mA as A; the rig codec converts."""
+    dbc = tmp_path / "motor_ma.dbc"
+    text = OUR_DBC.read_text(encoding="cp1252")
+    old = 'ArmatureCurrent : 16|16@1- (0.01,0) [-300|300] "A"'
+    assert old in text
+    dbc.write_text(text.replace(old, 'ArmatureCurrent : 16|16@1- (10,0) [-300000|300000] '
+                                '"mA"'), encoding="cp1252")
+    codec = build_decoder(replace(builtin_rig(), dbc=(dbc,)))
+    assert isinstance(codec, RigCodec)
+    mdb = load_database()
+    d = codec.decode(mdb.frame_id("current", 2), mdb.encode_current(2, -1.5, counter=1),
+                     False, False, False, 1.0)
+    assert getattr(d, "outputs", None) == pytest.approx((-1.5,))
+    with pytest.raises(RigError, match=r"^rig file <built-in rig>: secoc: .* this rig differs "
+                                       r"at signals\.outputs\[0\]\.unit \(the DBC's values "
+                                       r"scaled\)$"):
+        build_decoder(replace(builtin_rig(), dbc=(dbc,)), secoc_key=bytes(16))
+
+
+# ----------------------------------------------------------------- nothing is ignored
+
+
+OUR_MISTAKES = [
+    ("a current in mA for a dc_motor", MOTOR_TEXT.replace('unit = "A"', 'unit = "mA"'),
+     "signals.outputs[0].unit: a dc_motor model's output is a current in A (its parameters "
+     "are SI), not 'mA': give unit = \"A\""),
+    ("a current in kg", MOTOR_TEXT.replace('unit = "A"', 'unit = "kg"'),
+     "signals.outputs[0].unit: cannot convert 'A' to 'kg'"),
+    ("a voltage in A", MOTOR_TEXT.replace('unit = "V"', 'unit = "A"'),
+     "signals.inputs[0].unit: cannot convert 'V' to 'A'"),
+    ("a unit pint does not know", MOTOR_TEXT.replace('unit = "V"', 'unit = "trun/s"'),
+     "signals.inputs[0].unit: 'trun/s' is not a unit (pint: "),
+    ("a counter the DBC does not have", MOTOR_TEXT.replace(
+        'counter = "Counter"', 'counter = "NoSuchCounter"'),
+     "protection.MotorVoltage.counter: MotorVoltage_N0 has no signal NoSuchCounter (it has "),
+    ("a CRC the DBC does not have", MOTOR_TEXT.replace('crc = "CRC"', 'crc = "Crc"'),
+     "protection.MotorVoltage.crc: MotorVoltage_N0 has no signal Crc (it has "),
+    ("a counter that is not where profile 2 has it", MOTOR_TEXT.replace(
+        'counter = "Counter"', 'counter = "FreshnessValue"'),
+     "protection.MotorVoltage.counter: MotorVoltage_N0: E2E profile 2 needs the alive "
+     "counter in the low nibble of byte 1"),
+    ("a truth the DBC does not have", MOTOR_TEXT.replace(
+        'signal = "TrueGamma"', 'signal = "NoSuchTruth"'),
+     "signals.truth.signal: SimTruth_N0 has no signal NoSuchTruth (it has TrueCurrent, "
+     "TrueGamma, TrueSpeed)"),
+    ("a truth in percent", MOTOR_TEXT.replace(
+        'signal = "TrueGamma" }', 'signal = "TrueGamma", unit = "%" }'),
+     "signals.truth.unit: the truth is gamma, a plain fraction 0..1 shown beside gamma^ as "
+     "it comes, not '%'"),
+    ("a truth that is a current", MOTOR_TEXT.replace(
+        'signal = "TrueGamma" }', 'signal = "TrueCurrent" }'),
+     "signals.truth.unit: the truth is gamma, a plain fraction 0..1 shown beside gamma^ as "
+     "it comes, not 'A' (the DBC's)"),
+    ("protection of a message the rig does not read", MOTOR_TEXT.replace(
+        "[protection]\n", '[protection]\nMonitorDiagnosis = { kind = "none" }\n'),
+     "protection.MonitorDiagnosis: not a message of the rig's signals"),
+    ("a node our DBC does not have", MOTOR_TEXT.replace('nodes = "all"', "nodes = [20]"),
+     "signals.inputs[0].message: no MotorVoltage message for nodes [20]"),
+    ("the same DBC twice", MOTOR_TEXT.replace(f'dbc = "{OUR_DBC}"',
+                                              f'dbc = ["{OUR_DBC}", "{OUR_DBC}"]'),
+     f"bus.dbc: {OUR_DBC}: listed twice"),
+]
+
+
+@pytest.mark.parametrize(("what", "text", "needle"), OUR_MISTAKES,
+                         ids=[m[0] for m in OUR_MISTAKES])
+def test_a_key_our_bus_used_to_ignore_is_checked(tmp_path: Path, what: str, text: str,
+                                                 needle: str) -> None:
+    assert text != MOTOR_TEXT, what
+    path = _rig(tmp_path, text)
+    with pytest.raises(RigError) as info:
+        load_rig(path)
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"rig file {path}: {needle}"), msg
+
+
+# ----------------------------------------------------------------- units
+
+
+def _twin(tmp_path: Path, rig_text: str, dbc_text: str | None = None) -> Path:
+    (tmp_path / "twin.dbc").write_text(dbc_text or (RIGS / "twin.dbc").read_text())
+    return _rig(tmp_path, rig_text)
+
+
+TWIN = (RIGS / "twin.toml").read_text()
+TWIN_Y1 = '{ message = "TwinSense", signal = "Y1" }'
+SERVO = (RIGS / "servo.toml").read_text()
+
+
+def _servo(tmp_path: Path, rig_text: str, voltage_unit: str = "V") -> Path:
+    dbc = (RIGS / "servo.dbc").read_text()
+    old = 'VoltageCmd : 0|32@1- (1,0) [-50|50] "V"'
+    assert old in dbc
+    (tmp_path / "servo.dbc").write_text(dbc.replace(
+        old, f'VoltageCmd : 0|32@1- (1,0) [-50|50] "{voltage_unit}"'))
+    return _rig(tmp_path, rig_text)
+
+
+UNIT_MISTAKES = [
+    ("a DBC unit pint does not know", "twin", TWIN.replace(
+        TWIN_Y1, '{ message = "TwinSense", signal = "Y1", unit = "rad/s" }'),
+     ('SG_ Y1 : 0|16@1- (0.001,0) [-30|30] ""', 'SG_ Y1 : 0|16@1- (0.001,0) [-30|30] '
+      '"trun/s"'),
+     "signals.outputs[0].unit: TwinSense_N1.Y1 has the unit 'trun/s' in the DBC, which is "
+     "not a unit (pint: "),
+    ("a DBC unit pint does not know, none in the rig", "twin", TWIN,
+     ('SG_ Y1 : 0|16@1- (0.001,0) [-30|30] ""', 'SG_ Y1 : 0|16@1- (0.001,0) [-30|30] '
+      '"trun/s"'),
+     "signals.outputs[0].signal: TwinSense_N1.Y1 has the unit 'trun/s' in the DBC, which is "
+     "not a unit (pint: "),
+    ("a DBC unit that is not the rig's quantity", "twin", TWIN.replace(
+        '{ message = "TwinCommand", signal = "U1" }',
+        '{ message = "TwinCommand", signal = "U1", unit = "rad/s" }'), None,
+     "signals.inputs[0].unit: cannot convert 'V' to 'rad/s': "),
+    ("a rig unit pint does not know, none in the DBC", "twin", TWIN.replace(
+        TWIN_Y1, '{ message = "TwinSense", signal = "Y1", unit = "trun/s" }'), None,
+     "signals.outputs[0].unit: 'trun/s' is not a unit (pint: "),
+    ("a dc_motor whose input is a current", "servo", SERVO.replace('unit = "V"',
+                                                                   'unit = "A"'), None,
+     "signals.inputs[0].unit: cannot convert 'V' to 'A'"),
+    ("a dc_motor input in mV from the DBC", "servo", SERVO.replace(
+        ', unit = "V" }', " }"), "mV",
+     "signals.inputs[0].unit: a dc_motor model's input is a voltage in V (its parameters "
+     "are SI), not 'mV' (the DBC's): give unit = \"V\" (the DBC's 'mV' are converted)"),
+    ("a dc_motor input without unit whose DBC gives a speed", "servo", SERVO.replace(
+        ', unit = "V" }', " }"), "rad/s",
+     "signals.inputs[0].unit: a dc_motor model's input is a voltage in V (its parameters "
+     "are SI), not 'rad/s' (the DBC's)"),
+]
+
+
+@pytest.mark.parametrize(("what", "base", "rig_text", "dbc_change", "needle"), UNIT_MISTAKES,
+                         ids=[m[0] for m in UNIT_MISTAKES])
+def test_each_unit_mistake_is_one_line(tmp_path: Path, what: str, base: str, rig_text: str,
+                                       dbc_change: tuple[str, str] | str | None,
+                                       needle: str) -> None:
+    if base == "twin":
+        dbc = (RIGS / "twin.dbc").read_text()
+        if isinstance(dbc_change, tuple):
+            assert dbc_change[0] in dbc
+            dbc = dbc.replace(*dbc_change)
+        path = _twin(tmp_path, rig_text, dbc)
+    else:
+        path = _servo(tmp_path, rig_text, dbc_change if isinstance(dbc_change, str) else "V")
+    with pytest.raises(RigError) as info:
+        load_rig(path)
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert msg.startswith(f"rig file {path}: {needle}"), msg
+
+
+def test_a_unit_only_the_rig_gives_is_taken_and_said_once(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = _twin(tmp_path, TWIN.replace(
+        TWIN_Y1, '{ message = "TwinSense", signal = "Y1", unit = "rad/s" }'))
+    with caplog.at_level(logging.INFO, logger="monitor.rig.check"):
+        rig = load_rig(path)
+        codec = build_decoder(rig)
+        build_decoder(rig)
+    assert isinstance(codec, RigCodec)
+    told = [r.getMessage() for r in caplog.records if r.name == "monitor.rig.check"]
+    assert told == [f"rig file {path}: signals.outputs[0]: TwinSense_N1.Y1 has no unit in "
+                    "the DBC; taken as the rig's 'rad/s'"]
+    fid, ext, data = codec.encode_sample("TwinSense", 1, [0.0, 0.0], [1.5, -2.0])
+    assert getattr(codec.decode(fid, data, ext, False, False, 1.0), "outputs", None) \
+        == pytest.approx((1.5, -2.0))
+
+
+def test_units_convert_and_any_unit_suits_a_state_space_model(tmp_path: Path) -> None:
+    """The twin's inputs are V in its DBC: a state-space model may take them in mV
+    (scaled), and its unit-less outputs in anything pint knows."""
+    path = _twin(tmp_path, TWIN.replace(
+        '{ message = "TwinCommand", signal = "U1" }',
+        '{ message = "TwinCommand", signal = "U1", unit = "mV" }').replace(
+        TWIN_Y1, '{ message = "TwinSense", signal = "Y1", unit = "furlong" }'))
+    codec = build_decoder(load_rig(path))
+    assert isinstance(codec, RigCodec)
+    assert [(i, s) for i, s, _ in codec.specs["TwinCommand"].inputs] == [(0, "U1"), (1, "U2")]
+    assert [f for _, _, f in codec.specs["TwinCommand"].inputs] == pytest.approx([1000.0, 1.0])
+    fid, ext, data = codec.encode_sample("TwinCommand", 1, [2500.0, -1.25], [])
+    d = codec.decode(fid, data, ext, False, False, 1.0)
+    assert [i for i, _ in getattr(d, "inputs", ())] == [0, 1]
+    assert [v for _, v in getattr(d, "inputs", ())] == pytest.approx([2500.0, -1.25])
+
+
+def test_a_dc_motor_takes_the_dbc_units_where_the_rig_gives_none(tmp_path: Path) -> None:
+    path = _servo(tmp_path, SERVO.replace(', unit = "V" }', " }").replace(
+        ', unit = "A" }', " }"))
+    with pytest.raises(RigError, match=r"outputs\[0\]\.unit: a dc_motor model's output is a "
+                                       r"current in A .*, not 'mA' \(the DBC's\): give unit = "
+                                       r"\"A\" \(the DBC's 'mA' are converted\)"):
+        load_rig(path)
+    path = _servo(tmp_path, SERVO.replace(', unit = "V" }', " }"))
+    assert isinstance(build_decoder(load_rig(path)), RigCodec)
+
+
+# ----------------------------------------------------------------- DBCs cantools only warns about
+
+
+DBC_HEAD = 'VERSION ""\n\nBU_: A\n\n'
+
+
+def _dbc(tmp_path: Path, name: str, *messages: tuple[int, str]) -> Path:
+    p = tmp_path / name
+    p.write_text(DBC_HEAD + "".join(
+        f'BO_ {fid} {msg}: 8 A\n SG_ S{i} : 0|8@1+ (1,0) [0|255] "" A\n\n'
+        for i, (fid, msg) in enumerate(messages)))
+    return p
+
+
+def test_two_messages_on_one_id_are_refused(tmp_path: Path,
+                                            caplog: pytest.LogCaptureFixture) -> None:
+    one = _dbc(tmp_path, "one.dbc", (0x110, "Foo"), (0x110, "Bar"))
+    with caplog.at_level(logging.DEBUG), pytest.raises(CodecError) as info:
+        load_dbcs([one])
+    assert str(info.value) == (f"{one}: messages Foo and Bar have the same 11-bit frame ID "
+                               "0x110")
+    assert not [r for r in caplog.records if r.name.startswith("cantools")]
+    ext = _dbc(tmp_path, "ext.dbc", (0x80000123, "Foo"), (0x80000123, "Bar"), (0x123, "Baz"))
+    with pytest.raises(CodecError, match=r"have the same 29-bit frame ID 0x123$"):
+        load_dbcs([ext])
+    named = _dbc(tmp_path, "named.dbc", (0x110, "Foo"), (0x111, "Foo"))
+    with pytest.raises(CodecError) as info:
+        load_dbcs([named])
+    assert str(info.value) == (f"{named}: messages Foo (0x110) and Foo (0x111) have the "
+                               "same name")
+
+
+def test_two_files_that_clash_are_refused_naming_both(tmp_path: Path) -> None:
+    a = _dbc(tmp_path, "a.dbc", (0x100, "Alpha"), (0x101, "Beta"))
+    b = _dbc(tmp_path, "b.dbc", (0x102, "Gamma"), (0x101, "Delta"))
+    with pytest.raises(CodecError) as info:
+        load_dbcs([a, b])
+    assert str(info.value) == (f"messages Beta (in {a}) and Delta (in {b}) have the same "
+                               "11-bit frame ID 0x101")
+    c = _dbc(tmp_path, "c.dbc", (0x103, "Alpha"))
+    with pytest.raises(CodecError) as info:
+        load_dbcs([a, c])
+    assert str(info.value) == (f"messages Alpha (0x100 in {a}) and Alpha (0x103 in {c}) have "
+                               "the same name")
+    link = tmp_path / "link.dbc"
+    link.symlink_to(a)
+    with pytest.raises(CodecError) as info:
+        load_dbcs([a, link])
+    assert str(info.value) == f"{link}: listed twice (as {a} too)"
+    with pytest.raises(CodecError) as info:
+        load_dbcs([a, c, a])
+    assert str(info.value) == f"{a}: listed twice"
+
+
+def test_a_clashing_dbc_is_one_line_on_the_command_line(tmp_path: Path) -> None:
+    """cantools' own warnings do not reach the terminal: one error line, exit 2."""
+    (tmp_path / "twin.dbc").write_text((RIGS / "twin.dbc").read_text().replace("1553", "1537"))
+    path = _rig(tmp_path, TWIN)
+    (tmp_path / "x.log").write_text("")
+    res = subprocess.run([str(BIN / "motor-monitor"), "replay", "x.log", "--rig", str(path)],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.splitlines() == [
+        f"motor-monitor: error: rig file {path}: bus.dbc: {tmp_path / 'twin.dbc'}: messages "
+        "TwinCommand_N1 and TwinSense_N1 have the same 11-bit frame ID 0x601"], res.stderr
+
+
+# ----------------------------------------------------------------- the example rigs
+
+
+@pytest.mark.parametrize("name", ["servo.toml", "press.toml", "twin.toml",
+                                  "secure_drive.toml", "fd_servo.toml"])
+def test_the_example_rigs_load_as_before(name: str, caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.INFO, logger="monitor.rig.check"):
+        assert isinstance(build_decoder(load_rig(RIGS / name)), RigCodec)
+    # their DBCs give every unit they use: nothing taken from the rig, nothing to say
+    assert not [r for r in caplog.records if r.name == "monitor.rig.check"], caplog.text
