@@ -87,14 +87,11 @@ Why it is built this way -- what failed on a small, stiff, back-EMF dominated mo
     the two-stage filter of a constant gamma whose old evidence fades; with one rule,
     q_gamma = 0, var_rule = 0, no projection and no events it is the augmented Kalman
     filter's gamma update to round-off (tested).
-(f) Scale: without an x0 the filter starts from the fault-free steady state of the first
-    input, x_ss = (I - A)^-1 B u, with V = d x_ss / d gamma (`steady_start`), and
-    P0 = None is the stationary Kalman covariance in the state's own units
+(f) Scale: P0 = None is the stationary Kalman covariance in the state's own units
     (`initial_covariance`); P0 = 1 meant 1 A on a 0.26 A current and 1 rad/s on a
     790 rad/s speed. The fuzzy input is normalised by the whole prior covariance (step 7):
     by P^- alone, the bias-free part, the servo's speed component of x_e swung by 28 of
     its "sigmas" in healthy running.
-
 (g) Cost, bounded per sample whatever the frame loss (5c6589b was reverted for starving a
     one-CPU daemon under a CAN flood). A sample costs one kernel call (35)-(54) plus its
     ring slot. The structure test (20) can fire at most once per dwell time (a negligible
@@ -105,6 +102,17 @@ Why it is built this way -- what failed on a small, stiff, back-EMF dominated mo
     then around its best: O(ring_len (max_onsets + 2 ring_len / max_onsets))); with the JIT
     it and the re-processing (at most ring_len kernel calls) run compiled, one call each.
     The estimator's restart after a long gap reuses the model's stationary covariance.
+(h) Start without an x0 (`start_state`): from the fault-free steady state of the first
+    input, x_ss = (I - A)^-1 B u with V = d x_ss / d gamma (`steady_start`), only when the
+    first output confirms it (a monitor attached to a running motor). Started from there
+    in every case, a motor at rest when the first command came -- no current at full
+    voltage, what an outage at steady state looks like -- was read as an outage for the
+    60-80 ms the filter took to converge, at every start of a replay and after every
+    restart. Otherwise the state at the first sample is the steady state whose output is
+    nearest the first output, each state's uncertainty the whole range from rest to the
+    steady state, conditioned on that output by the update (44)-(49); gamma's common part
+    starts at the small variance var_start, so the start-up transient goes to the state
+    and not to gamma^, and a fault present from the start is found by the test (20).
 
 A missed sample is a step with dt = k T: the ZOH model for that span holds the last
 voltage, which is what the ECU does, and the covariance grows accordingly.
@@ -132,7 +140,13 @@ from numpy.typing import NDArray
 
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, fire, infer
 from monitor.estimation.jit import njit
-from monitor.estimation.model import DiscreteModel
+from monitor.estimation.model import (
+    ESTIMATOR_LIMIT_BYTES,
+    DiscreteModel,
+    ModelError,
+    estimator_bytes,
+    ring_slot_size,
+)
 from monitor.estimation.ukf import sigma_weights, spd_inverse, ukf_predict, ukf_update
 
 Array = NDArray[np.float64]
@@ -144,8 +158,10 @@ __all__ = [
     "FuzzyUKF",
     "FuzzyUKFConfig",
     "ManySteps",
+    "StartState",
     "initial_covariance",
     "select_kernel",
+    "start_state",
     "steady_start",
     "step_many",
 ]
@@ -178,6 +194,10 @@ class FuzzyUKFConfig:
     var_reopen: the same on a structure-learning event.
     var_rule: variance of each rule's own part, initially and on an event (small: the
         loss of effectiveness does not depend on x_e much).
+    var_start: initial variance of the common part after a start from the first output
+        (`start_state`, when the steady state of the first input does not explain it):
+        small, so that the start-up transient goes to the widely uncertain state and not
+        to gamma^; a fault present from the start is found by the structure test (20).
     var_max: cap on the common variance (no excitation, u = 0, does not grow it forever).
     nis_window: time constant of the innovation average, seconds.
     nis_threshold: structure-learning threshold on the chi-square statistic of the averaged
@@ -191,7 +211,8 @@ class FuzzyUKFConfig:
         O(window (max_onsets + 2 window / max_onsets)) instead of O(window^2).
     P0: initial state covariance: None, the stationary Kalman covariance (in the state's
         own units); a number, that value on the diagonal. Without an x0 the filter starts
-        from the fault-free steady state of the first input.
+        from what its first output says (`start_state`), this covariance being the floor
+        of the start's.
     """
 
     alpha: float = 1e-4
@@ -201,6 +222,7 @@ class FuzzyUKFConfig:
     var_reopen: float = 0.05
     var_max: float = 0.25
     var_rule: float = 1e-4
+    var_start: float = 1e-4
     nis_window: float = 0.05
     nis_threshold: float = 14.0
     dwell: float = 0.2
@@ -247,13 +269,6 @@ def _rule_variance(var: Array, rule_idx: IntArray, rule_w: Array, nf: int, a: in
     for k in range(nf):
         acc += rule_w[k] * rule_w[k] * var[rule_idx[k], a]
     return acc
-
-
-def ring_slot_size(n: int, m: int, p: int) -> int:
-    """Floats per sample in the onset ring: the state before the sample (x, P, V, z, the
-    innovation average, gamma^, the common variance), the sample (u, y, dt) and the
-    filter's view of it under the old fault (K, S_tot^-1, nu)."""
-    return 2 * n + n * n + n * m + 3 * p + 3 * m + 1 + n * p + p * p
 
 
 @njit
@@ -739,34 +754,12 @@ def select_kernel(choice: str | None = None) -> tuple[str, Callable[..., None]]:
 
 
 def initial_covariance(model: DiscreteModel) -> Array:
-    """A scale-aware initial covariance of the observable state (P0 = None).
-
-    The Kalman filter's stationary posterior covariance at the model's period (the
-    discrete Riccati equation): the state known as well as the filter will ever know it,
-    in the state's own units, where an absolute P0 = 1 is a tiny uncertainty for a speed
-    of 800 rad/s and a huge one for a current of 0.26 A. Where that has no positive
-    definite solution (no process noise, say), the covariance of the state fitted to n
-    noisy samples of the outputs, (O' R^-1 O)^-1 with O = [C; C A; ...; C A^(n-1)].
-    """
-    A, _, Q = model.at(model.T)
-    C, R = model.C, model.R
-    n = A.shape[0]
-    P: Array | None = None
-    try:
-        Pm = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
-        P = Pm - Pm @ C.T @ np.linalg.solve(C @ Pm @ C.T + R, C @ Pm)
-        P = 0.5 * (P + P.T)
-        ev = np.linalg.eigvalsh(P)
-        if not (np.all(np.isfinite(ev)) and ev[0] > 1e-12 * ev[-1]):
-            P = None
-    except (np.linalg.LinAlgError, ValueError):
-        P = None
-    if P is None:
-        obs = np.vstack([C @ np.linalg.matrix_power(A, k) for k in range(n)])
-        Ri = np.kron(np.eye(n), np.linalg.inv(R))
-        P = np.linalg.inv(obs.T @ Ri @ obs)
-        P = 0.5 * (P + P.T)
-    return np.asarray(P)
+    """A scale-aware initial covariance of the observable state (P0 = None): the Kalman
+    filter's stationary posterior covariance at the model's period, else the covariance of
+    the state fitted to n noisy output samples (`DiscreteModel.initial_covariance`). The
+    model computes it, and refuses to be built without one, when it is made: the rig check
+    then guarantees that the estimator starts."""
+    return model.initial_covariance()
 
 
 _P0_CACHE: dict[int, tuple[DiscreteModel, Array]] = {}
@@ -788,7 +781,8 @@ def _initial_covariance_of(model: DiscreteModel) -> Array:
 
 
 def steady_start(model: DiscreteModel, u: Array, y: Array) -> tuple[Array, Array]:
-    """(x^, V) to start from without a known initial state: the fault-free steady state.
+    """(x^, V) to start from without a known initial state: the fault-free steady state
+    (`start_state` uses it when the first output confirms it).
 
     A monitor attached to a running motor would otherwise start from x = 0 and read its
     own convergence as a fault. The steady state x_ss = (I - A)^-1 B u (1 - gamma) depends
@@ -815,6 +809,112 @@ def steady_start(model: DiscreteModel, u: Array, y: Array) -> tuple[Array, Array
     x0: Array = np.array(sol[:, 0], dtype=np.float64)
     V0: Array = np.array(sol[:, 1:], dtype=np.float64)
     return x0, V0
+
+
+# The steady state of the first input explains the first output when the output it predicts
+# is within 3 sigma per output (squared whitened distance 9 p): otherwise the plant is
+# somewhere else (at rest, in a transient, faulty), and the filter starts from the output.
+_START_GATE = 9.0
+
+
+@dataclass
+class StartState:
+    """Where the filter starts without an x0 (`start_state`).
+
+    measured False: x, V, P are the state before the first sample, which the kernel then
+    processes like any other (time update (35)-(43) and measurement update (44)-(49)).
+    measured True: x, P are the estimate at the first sample itself, the prior x_prior
+    conditioned on its output, with V = 0; y_prior, nu and S are that update's predicted
+    output, innovation and innovation covariance (the kernel does not run on the sample).
+    """
+
+    measured: bool
+    x: Array
+    V: Array
+    P: Array
+    x_prior: Array | None = None
+    y_prior: Array | None = None
+    nu: Array | None = None
+    S: Array | None = None
+
+
+def start_state(model: DiscreteModel, u: Array, y: Array, P_base: Array) -> StartState:
+    """The start of the filter without a known initial state: what the first output says.
+
+    A monitor meets a plant in one of two ways: attached to one that runs (at the steady
+    state of its command, or of an earlier one, healthy or not), or started with it (at
+    rest when the first command comes, the first output one period into the response).
+    Starting from the fault-free steady state of the first command in every case made a
+    start at rest read as an outage -- current 0 at full voltage is what an outage at
+    steady state looks like -- until the filter converged. So:
+
+    1. The steady state of the command, x_c = (I - A)^-1 B u, is the prior. If the output
+       it predicts explains the first output (within 3 sigma per output, with the predicted
+       output covariance C (A P_base A' + Q) C' + R of (44)-(45)) and rest does not (at the
+       sample, or one period into the command's response), the filter starts there,
+       coupled to the unknown gamma (`steady_start`, V = d x_c / d gamma), and the kernel
+       processes the first sample: a monitor attached to a running healthy motor starts
+       without a transient, as before. When both explain it -- a back-EMF dominated motor
+       whose steady current is within its sensor's noise -- the output cannot tell: case 2.
+    2. Otherwise the output is what is known, at the first sample's own time. The prior
+       there is the steady state whose output comes nearest to it, x_k = (I - A)^-1 B v
+       with C x_k + D u = y fitted for v (least squares; the smallest change from u when
+       there are more inputs than outputs), v kept between rest and the command on each
+       actuator (an output no steady state gives -- a fast motor's current one period
+       after a step -- must not throw the prior far out of the plant's range). Its
+       uncertainty is diagonal on top of P_base, s_i = max(|x_c,i|, |x_k,i|, |e_i|) with
+       e = C^+ (y - C x_k - D u): each state anywhere from rest to the larger of the two
+       steady states, the outputs as far as the fit misses. That prior is conditioned on
+       the first output by the measurement update (44)-(49) -- the Kalman update, the
+       model being linear -- without a time update, since the input that acted before the
+       first sample is not known. The directions the output pins come out at its noise,
+       the others stay wide and the next samples narrow them; the state carries no
+       sensitivity to gamma (V = 0), being no steady state of the first input.
+
+    A model with an integrator among its observable states has no steady state: x_k is
+    then the least-squares fit of [I - A; C] x = [B u; y - D u] (`steady_start`), x_c = x_k.
+    In case 2 the filter gives gamma^ = 0 the small variance `var_start`
+    (`FuzzyUKF._init_from_sample`), so that the start-up transient goes to the wide state.
+    """
+    A, B, Q = model.at(model.T)
+    C, D, R = model.C, model.D, model.R
+    n = A.shape[0]
+    x_s, V_s = steady_start(model, u, y)
+    IA = np.eye(n) - A
+    steady = bool(np.linalg.cond(IA) < 1e12)
+    Du = D @ u
+    if steady:
+        Sp = C @ (A @ P_base @ A.T + Q) @ C.T + R
+        gate = _START_GATE * model.p
+
+        def fits(e: Array) -> bool:
+            return float(e @ np.linalg.solve(Sp, e)) <= gate
+
+        # rest explains the output too (a back-EMF dominated motor with a noisy sensor: its
+        # steady current is within the noise of none): the output cannot tell them apart
+        at_rest = fits(y - Du) or fits(y - C @ B @ u - Du)
+        if fits(y - C @ (A @ x_s + B @ u) - Du) and not at_rest:
+            return StartState(False, x_s, V_s, P_base.copy())
+        Gx = np.linalg.solve(IA, B)  # the steady state per unit of each input
+        x_c = Gx @ u
+        dv, *_ = np.linalg.lstsq(C @ Gx, y - Du - C @ x_c, rcond=None)
+        v = np.clip(u + dv, np.minimum(u, 0.0), np.maximum(u, 0.0))
+        x_k = Gx @ v
+    else:
+        x_c = x_k = x_s
+    nu = y - C @ x_k - Du
+    s = np.maximum(np.maximum(np.abs(x_c), np.abs(x_k)), np.abs(np.linalg.pinv(C) @ nu))
+    Pk = P_base + np.diag(s * s)
+    S = C @ Pk @ C.T + R
+    S = 0.5 * (S + S.T)
+    K = np.linalg.solve(S, C @ Pk).T
+    IKC = np.eye(n) - K @ C
+    P = IKC @ Pk @ IKC.T + K @ R @ K.T  # Joseph form: symmetric, positive definite
+    P = 0.5 * (P + P.T)
+    x = x_k + K @ nu
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        return StartState(False, x_s, V_s, P_base.copy())
+    return StartState(True, x, np.zeros_like(V_s), P, x_k, C @ x_k + Du, nu, S)
 
 
 def _work_size(n: int, m: int, p: int) -> int:
@@ -844,6 +944,15 @@ class FuzzyUKF:
         self.config = cfg
         n, m, p = model.n, model.m, model.p
         self._dims = (n, m, p)
+        # the model check sized the default estimator with the same rule; a configuration
+        # with more MFs or a longer onset window is sized again here, before allocating
+        need = sum(estimator_bytes(n, m, p, model.T, max_mf=cfg.fuzzy.max_mf,
+                                   onset_window=cfg.onset_window))
+        if need > ESTIMATOR_LIMIT_BYTES:
+            raise ModelError(f"the estimator of {n} observable states at {1.0 / model.T:g} Hz "
+                             f"would need {need / 2**30:.3g} GiB a node (at most "
+                             f"{ESTIMATOR_LIMIT_BYTES / 2**30:g}): fewer MFs (max_mf) or a "
+                             "shorter onset window")
         w = sigma_weights(n, cfg.alpha, cfg.beta)
         self.fuzzy = SelfConstructingFuzzySystem(n, m, cfg.fuzzy, 0.0, cfg.var_rule)
         # Actuators without a loss of effectiveness (not in model.fault_inputs) get the
@@ -971,8 +1080,14 @@ class FuzzyUKF:
         yy = self._y
         uu[:] = u
         yy[:] = y
-        if self._needs_init:
-            self._init_from_sample(uu, yy)
+        out = self.out
+        if self._needs_init and self._init_from_sample(uu, yy):
+            # the first sample conditioned the start (`start_state`): no kernel call
+            self._time += dt
+            self.steps += 1
+            out.structure_event = False
+            out.nis = self._stats[0]
+            return out
         blk = self._blocks.get(dt)
         if blk is None:
             blk = self._block(dt)
@@ -987,7 +1102,6 @@ class FuzzyUKF:
         self._kernel(blk[0], uu, yy, prm, self._st, fz.centres, fz.counts, fz.cons, fz.var,
                      fz.rule_idx, fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf)
         self._time = now
-        out = self.out
         if self._stats[3] > 0.0 and self._structure_event():
             out.structure_event = True
             out.rules = fz.rule_count
@@ -1009,12 +1123,39 @@ class FuzzyUKF:
         j, _, models = self._onset(k)
         self._reprocess(j, k, k - len(models[2]) + 1, models)
 
-    def _init_from_sample(self, u: Array, y: Array) -> None:
-        """x^ and V before the first sample, without a given x0 (see `steady_start`)."""
+    def _init_from_sample(self, u: Array, y: Array) -> bool:
+        """The start without a given x0 (`start_state`); True when the first sample has
+        been used by it (then its output is written here and the kernel does not run).
+
+        A start from the first output gives gamma's common part the small variance
+        `var_start` (the transient of the start goes to the state, whose uncertainty is
+        wide, not to gamma^), and that sample is out of the onset search of (20): it had
+        no time update, so it cannot be processed again from the state before it.
+        """
         self._needs_init = False
-        x, V = steady_start(self.model, u, y)
-        self.x[:] = x
-        self.V[:] = V
+        st = start_state(self.model, u, y, self.P.copy())
+        self.x[:] = st.x
+        self.V[:] = st.V
+        self.P[:] = st.P
+        if not st.measured:
+            return False
+        assert st.x_prior is not None and st.y_prior is not None
+        assert st.nu is not None and st.S is not None
+        self.common_var[self._faulty] = self.config.var_start
+        self._onset_floor = 1
+        out = self.out
+        out.gamma[:] = 0.0
+        out.fault[:] = 0.0
+        out.x_tilde[:] = st.x_prior  # the fault model's state (52) before the output
+        out.x_e[:] = st.x_prior - st.x
+        out.y_hat[:] = st.y_prior
+        Ls = np.linalg.cholesky(st.S)
+        out.innovation[:] = scipy.linalg.solve_triangular(Ls, st.nu, lower=True)
+        out.y_est[:] = self.model.C @ st.x + self.model.D @ u
+        self._stats[0] = float(out.innovation @ out.innovation)  # NIS
+        self._stats[1] = 0.0
+        self._stats[3] = 0.0
+        return True
 
     def _field(self, k: int, name: str) -> Array:
         a, b = self._rf[name]
@@ -1302,10 +1443,19 @@ def step_many(est: FuzzyUKF, u: Array, y: Array, dt: Array) -> ManySteps:
     U = np.ascontiguousarray(u, dtype=np.float64)
     Y = np.ascontiguousarray(y, dtype=np.float64)
     dts = np.ascontiguousarray(dt, dtype=np.float64)
-    if est._needs_init:
-        est._u[:] = U[0]
-        est._y[:] = Y[0]
-        est._init_from_sample(est._u, est._y)
+    first = 0
+    if est._needs_init:  # the start (`start_state`) and the first sample, as step() does
+        out = est.step(U[0], Y[0], float(dts[0]))
+        gamma[0] = out.gamma
+        y_est[0] = out.y_est
+        nis[0] = out.nis
+        rules[0] = out.rules
+        event[0] = out.structure_event
+        first = 1
+        if out.gamma.max() != out.gamma.max():
+            return ManySteps(1, gamma, y_est, nis, rules, event, True)
+        if N == 1:
+            return ManySteps(1, gamma, y_est, nis, rules, event, False)
     uniq, inv = np.unique(dts, return_inverse=True)
     entries = []
     for d in uniq.tolist():
@@ -1317,7 +1467,7 @@ def step_many(est: FuzzyUKF, u: Array, y: Array, dt: Array) -> ManySteps:
     clock = np.array([est._time, est._last_event, 0.0, float(est.steps)])
     fz = est.fuzzy
     cfg = est.config
-    i = 0
+    i = first
     nan = False
     while i < N:
         start = i
