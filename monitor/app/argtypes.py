@@ -40,12 +40,16 @@ def positive_int(text: str) -> int:
 
 
 def rate(text: str) -> float:
+    """An output rate in Hz the monitor can use: the rig file's bounds (`rate_problem`)."""
+    from monitor.rig.load import rate_problem  # the rig's rule, one place for both
+
     try:
         v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
-    if not (math.isfinite(v) and 0.0 < v <= 100_000.0):
-        raise argparse.ArgumentTypeError(f"must be a rate in Hz, 0 < rate <= 100000: {text!r}")
+    problem = rate_problem(v)
+    if problem is not None:
+        raise argparse.ArgumentTypeError(f"the rate {problem}")
     return v
 
 

@@ -35,13 +35,24 @@ can lose effectiveness; the others are known inputs that enter B and D with gamm
 Unobservable states (the motor angle theta when only the current is measured: a mode at
 z = 1, not even detectable) are split off by `StateSpace.observable_part`; the estimator
 never carries their covariance.
+
+Any value a rig file can hold is either refused in one `ModelError` line or gives a model
+the estimator runs (issue 17). The checks cannot overflow: matrices are scaled to a largest
+entry of 1 before ranks and definiteness are judged, the pencil's regularity and the
+observability are SVD ranks (a staircase, not powers of A), Van Loan's integral is doubled
+from a short step; every numpy or scipy failure while building a model becomes a
+ModelError (`_numerics`), whose `key` is "rate" where the sample period is to blame. A
+`DiscreteModel` is built only when what `FuzzyUKF` computes from it before its first step
+succeeds (`DiscreteModel._check_estimable`): its memory, a finite zero-order hold over one
+period, a positive definite initial covariance and innovation covariance.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal, NamedTuple, cast
@@ -51,7 +62,7 @@ import scipy.linalg
 import scipy.signal
 from numpy.typing import NDArray
 
-from monitor.errors import MonitorError
+from monitor.errors import MonitorError, one_line
 
 Array = NDArray[np.float64]
 FaultInputs = Sequence[int | str] | None
@@ -64,6 +75,7 @@ __all__ = [
     "ModelError",
     "StateSpace",
     "dc_motor",
+    "estimator_bytes",
     "inverse_van_loan",
     "inverse_zoh",
     "model_from_matrices",
@@ -74,7 +86,48 @@ _log = logging.getLogger(__name__)
 
 
 class ModelError(MonitorError, ValueError):
-    """A model that cannot be estimated: the message says what is wrong with it."""
+    """A model that cannot be estimated: the message says what is wrong with it.
+
+    `key` names the one setting to blame when it is not a matrix the message names
+    ("rate": the model is fine, its sample period is not), so that a rig file's error can
+    point at that key; None otherwise.
+    """
+
+    def __init__(self, message: str, key: str | None = None) -> None:
+        super().__init__(message)
+        self.key = key
+
+
+# The floating-point failures numpy and scipy raise on a model at the edge of the range
+# (an overflowing expm, a Riccati solve or an SVD that does not converge), with `_numerics`
+# turning overflow, invalid operations and division by zero into FloatingPointError.
+_NUMERIC_FAILURES = (np.linalg.LinAlgError, FloatingPointError, OverflowError,
+                     ZeroDivisionError, ValueError)
+
+
+@contextmanager
+def _numerics(what: str, key: str | None = None, advice: str = "") -> Iterator[None]:
+    """Run a model computation with floating-point trouble raised, and report any failure
+    as one ModelError line: `what` was being computed, what numpy or scipy said, `advice`.
+
+    Overflow, invalid operations (inf - inf, 0 * inf) and division by zero raise instead of
+    warning, so an overflow inside scipy's expm ends here rather than as NaN that some later
+    Cholesky chokes on. A ModelError from inside passes unchanged.
+    """
+    try:
+        with np.errstate(over="raise", invalid="raise", divide="raise"):
+            yield
+    except ModelError:
+        raise
+    except _NUMERIC_FAILURES as exc:
+        tail = f"; {advice}" if advice else ""
+        raise ModelError(f"{what} fails in floating point ({one_line(exc, 80)}){tail}",
+                         key) from None
+
+
+# The estimator forms covariances, the squares of the states (E^-1 Q E^-T, C P C'), so a
+# model quantity beyond the square root of the float range (1.8e308) overflows there.
+MAX_ENTRY = 1e150
 
 
 def _empty() -> Array:
@@ -98,6 +151,11 @@ def _as_matrix(name: str, value: object, rows: int | None = None, cols: int | No
         raise ModelError(f"{name} must be a 2-D matrix, got {arr.ndim} dimensions")
     if not np.all(np.isfinite(arr)):
         raise ModelError(f"{name} contains NaN or infinite entries")
+    top = float(np.abs(arr).max(initial=0.0))
+    if top > MAX_ENTRY:
+        raise ModelError(f"{name} has an entry of {top:.3g}: the estimator squares the "
+                         f"model's quantities (covariances), so entries beyond {MAX_ENTRY:g} "
+                         "leave the floating-point range; rescale the units")
     if rows is not None and arr.shape[0] != rows:
         raise ModelError(f"{name} has {arr.shape[0]} rows, {rows_of or f'expected {rows}'}")
     if cols is not None and arr.shape[1] != cols:
@@ -151,24 +209,67 @@ def _fault_indices(fault_inputs: FaultInputs, m: int, input_names: tuple[str, ..
     return tuple(sorted(idx))
 
 
+def _unit_scaled(M: Array) -> Array:
+    """M divided by its largest entry in magnitude (M itself when zero): the same
+    symmetry, definiteness and rank, with every later product inside the float range."""
+    top = float(np.abs(M).max(initial=0.0))
+    return M / top if top > 0.0 else M
+
+
 def _check_noise(name: str, M: Array, definite: bool) -> None:
-    if not np.allclose(M, M.T, atol=1e-12 * max(1.0, float(np.abs(M).max(initial=0.0)))):
+    # Judged on the matrix scaled to a largest entry of 1: a covariance of 1e308 (or
+    # 1e-308) is as symmetric and definite as its scaled copy, and M + M.T overflows.
+    S = _unit_scaled(M)
+    top = float(np.abs(M).max(initial=0.0))
+    # 1e-12 of max(1, largest entry), in the units of M (a tiny matrix keeps the absolute
+    # tolerance it always had), expressed on the scaled copy
+    tol = 1e-12 * max(1.0, 1.0 / max(top, 1e-300))
+    if not np.allclose(S, S.T, atol=tol):
         raise ModelError(f"{name} must be symmetric")
-    low = float(np.min(np.linalg.eigvalsh(0.5 * (M + M.T))))
-    if definite and low <= 0:
-        raise ModelError(f"{name} must be positive definite (every measurement is noisy)")
-    if low < -1e-12 * max(1.0, float(np.abs(M).max())):
+    sym = 0.5 * (S + S.T)
+    low = float(np.min(np.linalg.eigvalsh(sym)))
+    if definite:
+        # The estimator factors R (Cholesky) and inverts the innovation covariance: a
+        # smallest eigenvalue lost in the round-off of the largest is not definite.
+        if low <= 0 or low <= S.shape[0] * np.finfo(float).eps * float(
+                np.abs(sym).max(initial=0.0)):
+            raise ModelError(f"{name} must be positive definite (every measurement is noisy)")
+        try:
+            np.linalg.cholesky(sym)
+        except np.linalg.LinAlgError:
+            raise ModelError(f"{name} must be positive definite (every measurement is "
+                             "noisy)") from None
+        if low * top < 1.0 / MAX_ENTRY:
+            raise ModelError(f"{name} has an eigenvalue of {low * top:.3g}: the estimator "
+                             f"inverts it (the innovation covariance), which overflows below "
+                             f"{1.0 / MAX_ENTRY:g}; rescale the units")
+    if low < -tol:
         raise ModelError(f"{name} must be positive semi-definite")
 
 
+def _equilibrated(M: Array, sweeps: int = 4) -> Array:
+    """M with its rows and then its columns scaled to a largest entry near 1, a few sweeps
+    (by powers of two, exact): the same rank, judged without the units of the states."""
+    for axis in (1, 0) * sweeps:
+        top = np.abs(M).max(axis=axis, keepdims=True)
+        M = M / np.exp2(np.round(np.log2(np.where(top > 0, top, 1.0))))
+    return M
+
+
 def _check_regular(E: Array, A: Array) -> None:
-    # A pencil sE - A is regular iff det(sE - A) is not identically zero; a
-    # polynomial of degree <= n vanishing at n+1 distinct points is zero.
+    # A pencil sE - A is regular iff det(sE - A) is not identically zero, i.e. iff sE - A
+    # has full rank at some s; a regular pencil is singular at its (at most n) eigenvalues
+    # only, so full rank at any of three random real points settles it (real: a complex
+    # SVD is a hundred times slower here). E and A are scaled to a largest entry of 1
+    # first (regularity is unchanged by scaling either), sE - A is equilibrated (rows and
+    # columns scaled alike: the rank is unchanged, but a state in other units, J = 1e9
+    # beside La = 1e-3, no longer looks like a zero column) and the rank is numpy's SVD
+    # rank: no determinant, whose value over- or underflows with n.
     n = A.shape[0]
+    Es, As = _unit_scaled(E), _unit_scaled(A)
     rng = np.random.default_rng(0)
-    pts = rng.uniform(0.5, 2.0, n + 1) * np.exp(1j * rng.uniform(0, np.pi, n + 1))
-    scale = max(1.0, float(np.abs(A).max()), float(np.abs(E).max())) ** n
-    if all(abs(np.linalg.det(s * E - A)) < 1e-10 * scale for s in pts):
+    pts = rng.uniform(0.5, 2.0, 3) * rng.choice([-1.0, 1.0], 3)
+    if all(np.linalg.matrix_rank(_equilibrated(s * Es - As)) < n for s in pts):
         raise ModelError("singular pencil: det(sE - A) vanishes for every s (no solution)")
 
 
@@ -231,18 +332,35 @@ def _validate(E: object, A: object, B: object, C: object, D: object, Q: object, 
 def van_loan(A: Array, Qc: Array, T: float) -> Array:
     """Discrete process-noise covariance of dx = A x dt + dW with E[dW dW'] = Qc dt.
 
-    Van Loan (1978): expm([[-A, Qc], [0, A']] T) = [[., F^-1 Qd], [0, F']], so
-    Qd = F (F^-1 Qd) with F = expm(A T). Symmetrised against round-off.
+    Van Loan (1978): expm([[-A, Qc], [0, A']] h) = [[., F^-1 Qd], [0, F']], so
+    Qd = F (F^-1 Qd) with F = expm(A h). That block holds expm(-A h), which grows like
+    e^(|A| h): over a period long against the model's fastest mode it overflows (a 1 kHz
+    pole over 1 s is e^1000) and loses every digit long before. So it is taken over
+    h = T / 2^k with |A| h <= 1/2, and doubled k times by the semigroup property
+    Qd(2 h) = Qd(h) + F(h) Qd(h) F(h)', F(2 h) = F(h)^2, a sum of covariances that cannot
+    cancel. Symmetrised against round-off.
     """
     n = A.shape[0]
+    # |A T| in the infinity norm, summed on A scaled to a largest entry of 1 and scaled back
+    # in Python floats: 1e308 entries give inf (then at most 1100 halvings: below that h is
+    # no longer a float) instead of raising.
+    size = float(np.abs(_unit_scaled(A)).sum(axis=1).max(initial=0.0)) * float(
+        np.abs(A).max(initial=0.0)) * T
+    k = 0 if not size > 0.5 else min(1100, math.ceil(math.log2(min(size, 1e308) / 0.5)))
+    h = math.ldexp(T, -k)
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n] = -A
     M[:n, n:] = Qc
     M[n:, n:] = A.T
-    G = scipy.linalg.expm(M * T)
+    G = scipy.linalg.expm(M * h)
     F = G[n:, n:].T
     Qd = F @ G[:n, n:]
-    return 0.5 * (Qd + Qd.T)
+    Qd = 0.5 * (Qd + Qd.T)
+    for _ in range(k):
+        Qd = Qd + F @ Qd @ F.T
+        Qd = 0.5 * (Qd + Qd.T)
+        F = F @ F
+    return Qd
 
 
 def inverse_zoh(Ad: Array, Bd: Array, T: float) -> tuple[Array, Array]:
@@ -288,6 +406,9 @@ def inverse_zoh(Ad: Array, Bd: Array, T: float) -> tuple[Array, Array]:
     return np.ascontiguousarray(L[:n, :n] / T), np.ascontiguousarray(L[:n, n:] / T)
 
 
+KRON_STATES = 16  # up to this many states the exact Kronecker inverse of Van Loan is used
+
+
 def inverse_van_loan(A: Array, Qd: Array, T: float) -> Array:
     """The noise intensity Qc per second whose Van Loan covariance over T is Qd.
 
@@ -296,7 +417,9 @@ def inverse_van_loan(A: Array, Qd: Array, T: float) -> Array:
     off expm([[K, I], [0, 0]] T). Phi is invertible for the principal-logarithm A of
     `inverse_zoh` (its eigenvalues (e^{mu T} - 1)/mu are not 0 when |Im mu| < 2 pi / T),
     including integrators, where the Stein form Qc - Ad Qc Ad' = -(A Qd + Qd A') is
-    singular. The cost is O(n^6): instantaneous for the few states of an actuator model.
+    singular. The cost is O(n^6): instantaneous for the few states of an actuator model;
+    above KRON_STATES states the Stein equation is solved instead (O(n^3), not with an
+    integrator).
 
     A Qd that no white noise produces over one period (the exact Qc is indefinite, e.g. a
     diagonal Qd on states the dynamics couple within T) is replaced by the nearest positive
@@ -304,14 +427,28 @@ def inverse_van_loan(A: Array, Qd: Array, T: float) -> Array:
     then reproduces Qd only approximately.
     """
     n = A.shape[0]
-    eye = np.eye(n)
-    K = np.kron(A, eye) + np.kron(eye, A)
-    N = n * n
-    G = np.zeros((2 * N, 2 * N))
-    G[:N, :N] = K
-    G[:N, N:] = np.eye(N)
-    Phi = scipy.linalg.expm(G * T)[:N, N:]
-    Qc = np.linalg.solve(Phi, Qd.reshape(N)).reshape(n, n)
+    if n <= KRON_STATES:
+        eye = np.eye(n)
+        K = np.kron(A, eye) + np.kron(eye, A)
+        N = n * n
+        G = np.zeros((2 * N, 2 * N))
+        G[:N, :N] = K
+        G[:N, N:] = np.eye(N)
+        Phi = scipy.linalg.expm(G * T)[:N, N:]
+        Qc = np.linalg.solve(Phi, Qd.reshape(N)).reshape(n, n)
+    else:
+        # O(n^6) is minutes and gigabytes here (n = 200: a 80000-square expm). Qd solves
+        # A Qd + Qd A' + Qc = F Qc F' (the Lyapunov differential equation integrated over
+        # T, F = expm(A T)), a Stein equation in Qc that scipy solves in O(n^3) -- unless
+        # two eigenvalues of F multiply to 1 (an integrator), where it is singular.
+        F = scipy.linalg.expm(A * T)
+        lam = np.linalg.eigvals(F)
+        if float(np.min(np.abs(1.0 - np.multiply.outer(lam, lam)))) < 1e-6:
+            raise ModelError(
+                f"Q: a discrete model of {n} states with an integrator (an eigenvalue of A "
+                f"at 1) has no continuous noise intensity computable in reasonable time "
+                f"(more than {KRON_STATES} states): give the continuous model")
+        Qc = scipy.linalg.solve_discrete_lyapunov(F, -(A @ Qd + Qd @ A.T))
     Qc = 0.5 * (Qc + Qc.T)
     w, V = np.linalg.eigh(Qc)
     if w.size and w.min() < -1e-9 * max(float(np.abs(w).max()), 1e-300):
@@ -357,20 +494,34 @@ class StateSpace:
         keeps physical coordinates.
         """
         n = self.n
-        obs = np.vstack([self.C @ np.linalg.matrix_power(self.A, k) for k in range(n)])
-        # Scale-aware rank decision (the observability matrix mixes units).
-        _, s, Vt = np.linalg.svd(obs)
-        tol = max(obs.shape) * np.finfo(float).eps * (s[0] if s.size else 1.0) * 1e3
-        rank = int(np.sum(s > tol))
-        null = Vt[rank:]
+        # The observable subspace is the Krylov space of A' on the rows of C, built one
+        # orthonormal block at a time (the observability staircase): the powers C A^k of
+        # the textbook test overflow with n (35^200) and their rank decision drowns the
+        # slow modes in the fast ones. A and C are scaled to a largest entry of 1 (the
+        # subspace does not change); a new direction counts when it stands out of the
+        # round-off of one such product.
+        As = _unit_scaled(self.A)
+        tol = max(n, self.p) * np.finfo(float).eps * 1e3
+        basis = np.zeros((n, 0))
+        block = _unit_scaled(self.C).T
+        while block.size and basis.shape[1] < n:
+            for _ in range(2):  # twice: one Gram-Schmidt pass loses orthogonality
+                block = block - basis @ (basis.T @ block)
+            U, sv, _ = np.linalg.svd(block, full_matrices=False)
+            new = U[:, sv > tol]
+            basis = np.hstack([basis, new])
+            block = As.T @ new
+        rank = basis.shape[1]
         if rank == n:
             return np.eye(n), np.zeros((0, n))
+        _, _, Vt = np.linalg.svd(basis.T)
+        null = Vt[rank:]
         # Prefer coordinate axes when the unobservable subspace is spanned by them.
         axes = [j for j in range(n) if np.linalg.norm(null[:, j]) > 1 - 1e-9]
         if len(axes) == n - rank:
             keep = [j for j in range(n) if j not in axes]
             return np.eye(n)[keep], np.eye(n)[axes]
-        return Vt[:rank], null
+        return np.ascontiguousarray(basis.T), null
 
 
 def _reduce(E: Array, A: Array, B: Array, C: Array, D: Array, names: tuple[str, ...]
@@ -395,6 +546,9 @@ def _reduce(E: Array, A: Array, B: Array, C: Array, D: Array, names: tuple[str, 
         U = np.eye(n)[:, dyn + alg]
         V = U
         S = np.diag(E)[dyn]
+        hint = ("; E's diagonal entries below 1e-12 of its largest are taken as 0: if that is "
+                "a unit mismatch, rescale the states"
+                if np.any((d > 0) & (d <= 1e-12 * d.max())) else "")
     else:
         U, s, Vt = np.linalg.svd(E)
         r = int(np.sum(s > 1e-12 * s[0]))
@@ -402,6 +556,7 @@ def _reduce(E: Array, A: Array, B: Array, C: Array, D: Array, names: tuple[str, 
         S = s[:r]
         dyn = list(range(r))
         alg = list(range(r, n))
+        hint = ""
     r = len(dyn)
     At = U.T @ A @ V
     Bt = U.T @ B
@@ -409,10 +564,12 @@ def _reduce(E: Array, A: Array, B: Array, C: Array, D: Array, names: tuple[str, 
     A11, A12 = At[:r, :r], At[:r, r:]
     A21, A22 = At[r:, :r], At[r:, r:]
     B1, B2 = Bt[:r], Bt[r:]
-    if abs(np.linalg.det(A22)) < 1e-12 * max(1.0, float(np.abs(A22).max())) ** A22.shape[0]:
+    # A22 invertible, judged by its singular values against the size of A (a determinant
+    # over- or underflows with the block's size)
+    if np.linalg.matrix_rank(A22, tol=1e-12 * float(np.abs(At).max(initial=0.0))) < n - r:
         raise ModelError(
             "singular E with a singular algebraic block: the descriptor system is not "
-            "index 1 (impulsive modes); only regular index-1 systems are supported"
+            f"index 1 (impulsive modes); only regular index-1 systems are supported{hint}"
         )
     A22i = np.linalg.inv(A22)
     Sinv = np.diag(1.0 / S)
@@ -436,7 +593,9 @@ def _reduce_noise(E: Array, Q: Array) -> Array:
     if np.linalg.matrix_rank(E) == n:
         Ei = np.linalg.inv(E)
         return Ei @ Q @ Ei.T
-    keep = [j for j in range(n) if abs(E[j, j]) > 1e-12] if np.allclose(
+    # the dynamic states of `_reduce`: the same relative rule
+    d = np.abs(np.diag(E))
+    keep = [j for j in range(n) if d[j] > 1e-12 * d.max()] if np.allclose(
         E, np.diag(np.diag(E))
     ) else None
     if keep is None:
@@ -449,9 +608,45 @@ def _reduce_noise(E: Array, Q: Array) -> Array:
     return Einv @ Q[np.ix_(keep, keep)] @ Einv
 
 
+MIN_PERIOD_S = 1e-6  # `DiscreteModel.full_at` keys its steps by the microsecond
+
+ESTIMATOR_LIMIT_BYTES = 2**30
+"""The memory one node's estimator may take (a bus has up to 16 nodes)."""
+ESTIMATOR_MAX_MF = 5  # FuzzyConfig().max_mf
+ESTIMATOR_ONSET_WINDOW_S = 0.2  # FuzzyUKFConfig().onset_window
+
+
+def ring_slot_size(n: int, m: int, p: int) -> int:
+    """Floats per sample in the fuzzy UKF's onset ring: the state before the sample (x, P,
+    V, z, the innovation average, gamma^, the common variance), the sample (u, y, dt) and
+    the filter's view of it under the old fault (K, S_tot^-1, nu). Here rather than in the
+    estimator, so that the model check sizes the estimator without importing it (numba)."""
+    return 2 * n + n * n + n * m + 3 * p + 3 * m + 1 + n * p + p * p
+
+
+def estimator_bytes(n: int, m: int, p: int, T: float, *, max_mf: int = ESTIMATOR_MAX_MF,
+                    onset_window: float = ESTIMATOR_ONSET_WINDOW_S) -> tuple[float, float]:
+    """Bytes of one node's fuzzy UKF for n observable states, m inputs, p outputs at period
+    T, as (rule base, onset ring): the rule base over the observable state (consequents and
+    their variances, max_mf^n rules per input; 2^n firing rules) and the onset ring
+    (onset_window / T + 1 samples).
+    The rule base grows as 5^n: 160 MB an input at n = 10, 4 GB at n = 12. Computed in
+    the log domain: n = 200 is a number, not an overflow."""
+    def power(base: float, k: int) -> float:
+        return math.exp(min(700.0, k * math.log(base)))
+
+    rules = 16.0 * m * power(max_mf, n) + 16.0 * power(2.0, n)
+    ring = 8.0 * (math.ceil(onset_window / T) + 1) * ring_slot_size(n, m, p)
+    return rules, ring
+
+
 def _check_period(T: float) -> float:
     if not (isinstance(T, (int, float, np.floating)) and math.isfinite(T) and T > 0):
-        raise ModelError(f"sample period must be a positive number of seconds, got {T!r}")
+        raise ModelError(f"sample period must be a positive number of seconds, got {T!r}",
+                         "rate")
+    if T < MIN_PERIOD_S:
+        raise ModelError(f"sample period must be at least {MIN_PERIOD_S:g} s (the estimator "
+                         f"keeps its steps to the microsecond), got {T!r}", "rate")
     return float(T)
 
 
@@ -472,9 +667,10 @@ class _Descriptor:
 
     def _validate_into(self, q_field: str) -> None:
         """Validate the fields and store them normalised (the noise covariance in q_field)."""
-        parts = _validate(self.E, self.A, self.B, self.C, self.D, getattr(self, q_field),
-                          self.R, self.state_names, self.input_names, self.output_names,
-                          self.fault_inputs)
+        with _numerics("checking the model's matrices"):
+            parts = _validate(self.E, self.A, self.B, self.C, self.D, getattr(self, q_field),
+                              self.R, self.state_names, self.input_names,
+                              self.output_names, self.fault_inputs)
         for name, value in zip(_Parts._fields, parts, strict=True):
             object.__setattr__(self, q_field if name == "Q" else name, value)
 
@@ -569,9 +765,11 @@ class DiscreteDescriptor(_Descriptor):
     def to_continuous(self) -> ContinuousDescriptor:
         """The equivalent continuous model by the inverse ZOH (`inverse_zoh`,
         `inverse_van_loan`), in standard form (E = I); R and the names carry over."""
-        ss = self.standard_form()
-        Ac, Bc = inverse_zoh(ss.A, ss.B, self.T)
-        Qc = inverse_van_loan(Ac, _reduce_noise(self.E, self.Q), self.T)
+        with _numerics("the inverse zero-order hold (the continuous model of A, B and Q)",
+                       advice="give the continuous model"):
+            ss = self.standard_form()
+            Ac, Bc = inverse_zoh(ss.A, ss.B, self.T)
+            Qc = inverse_van_loan(Ac, _reduce_noise(self.E, self.Q), self.T)
         return ContinuousDescriptor(
             E=np.eye(ss.n), A=Ac, B=Bc, C=ss.C, Qc=Qc, R=self.R, D=ss.D,
             state_names=ss.state_names, input_names=self.input_names,
@@ -603,8 +801,11 @@ class DiscreteModel:
 
     def __post_init__(self) -> None:
         self.T = _check_period(self.T)
-        ss = self.continuous.standard_form()
-        W, N = ss.observable_part()
+        with _numerics("reducing the model to its observable standard form (E^-1 A, "
+                       "E^-1 B, E^-1 Q E^-T)", advice="rescale the states (units) or check E"):
+            ss = self.continuous.standard_form()
+            self.continuous.noise_standard_form()
+            W, N = ss.observable_part()
         self._ss = ss
         self.Wobs = W
         self.Wunobs = N
@@ -616,7 +817,121 @@ class DiscreteModel:
             ss.state_names[int(np.argmax(np.abs(w)))] if np.isclose(np.abs(w).max(), 1) else f"x{i}"
             for i, w in enumerate(W)
         )
-        self._check_fault_observable()
+        self._p0 = self._check_estimable()
+        with _numerics("the fault's observability test"):
+            self._check_fault_observable()
+
+    def _check_estimable(self) -> Array:
+        """What the estimator computes from the model before its first step, computed once
+        here, so that a model that passes is one `FuzzyUKF` takes without raising: its
+        memory (`estimator_bytes` of the default estimator) within ESTIMATOR_LIMIT_BYTES,
+        the zero-order hold over one period finite, and the initial covariance P0 (the
+        estimator's, `initial_covariance`) with P0 and the innovation covariance
+        C P0 C' + R both Cholesky-factorable (the sigma points and the gain). Returns P0.
+        """
+        T = self.T
+        if self.n == 0:
+            raise ModelError("no state of the model reaches its outputs (C and its products "
+                             "with A are zero): the estimator needs at least one state the "
+                             "outputs observe")
+        rules, ring = estimator_bytes(self.n, self.m, self.p, T)
+        need = rules + ring
+        if need > ESTIMATOR_LIMIT_BYTES:
+            raise ModelError(
+                f"the estimator of this model's {self.n} observable states at {1.0 / T:g} Hz "
+                f"would need {need / 2**30:.3g} GiB a node (at most "
+                f"{ESTIMATOR_LIMIT_BYTES / 2**30:g}): "
+                + ("its onset ring holds n^2 floats a sample: lower the rate"
+                   if ring > rules else
+                   f"its fuzzy rule base spans the observable state ({ESTIMATOR_MAX_MF}^n "
+                   "rules): fewer observable states (at most 10 for one input)"),
+                "rate" if ring > rules else None)
+        A, B, Q = self.at(T)
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B)) and np.all(np.isfinite(Q))):
+            raise self._zoh_failure()
+        P = self._initial_covariance()
+        if P is None:
+            raise ModelError(
+                f"the estimator finds no initial covariance at {1.0 / T:g} Hz: the "
+                "stationary Kalman covariance does not exist (no process noise on an "
+                "unstable or undamped mode) and the states are not recoverable from n "
+                "samples of the outputs; give Q > 0 on every state or sample faster")
+        try:
+            with np.errstate(over="raise", invalid="raise"):
+                np.linalg.cholesky(P)
+                np.linalg.cholesky(self.C @ P @ self.C.T + self.R)
+        except (np.linalg.LinAlgError, FloatingPointError):
+            raise ModelError(
+                f"the estimator's initial covariance at {1.0 / T:g} Hz is not positive "
+                "definite in floating point (states whose variances differ by more than "
+                "1e12 or beyond the float range): rescale the states (units) or check Q "
+                "and R") from None
+        return P
+
+    def _zoh_failure(self) -> ModelError:
+        """Why the zero-order hold over one period is not finite, as the error to raise:
+        an unstable mode that grows past the float range within a period (the rate's
+        fault: key "rate"), or |A T| too large for scipy's expm (whose norm estimates
+        square A T several times) although the model is stable."""
+        T = self.T
+        A = self._ss.A
+        try:
+            growth = float(np.max(np.linalg.eigvals(A).real)) * T
+        except np.linalg.LinAlgError:
+            growth = math.inf
+        if growth > 300.0:  # its covariance grows by e^(2 growth); e^709 is the largest float
+            return ModelError(
+                f"a mode of the model grows by e^{growth:.4g} within one sample period "
+                f"({T:g} s), its covariance by the square of that, beyond the floating-point "
+                f"range (unstable A, max Re(eig) = {growth / T:.4g}/s): sample faster or "
+                "check the signs in A", "rate")
+        size = float(np.abs(A).max(initial=0.0)) * T
+        return ModelError(
+            f"the zero-order hold expm(A T) over one sample period ({T:g} s) is beyond "
+            f"floating point: A T has entries up to {size:.3g} (a mode that much faster "
+            "than the sampling); rescale the units of A")
+
+    def _initial_covariance(self) -> Array | None:
+        """The estimator's P0 (see `initial_covariance`), None if there is none."""
+        A, _, Q = self.at(self.T)
+        C, R = self.C, self.R
+        n = A.shape[0]
+        # Overflow, NaN and a failed solve all mean "not this way": each result is tested.
+        with np.errstate(all="ignore"):
+            P: Array | None = None
+            try:
+                Pm = scipy.linalg.solve_discrete_are(A.T, C.T, Q, R)
+                P = Pm - Pm @ C.T @ np.linalg.solve(C @ Pm @ C.T + R, C @ Pm)
+                P = 0.5 * (P + P.T)
+                ev = np.linalg.eigvalsh(P)
+                if not (np.all(np.isfinite(ev)) and ev[0] > 1e-12 * ev[-1]):
+                    P = None
+            except (np.linalg.LinAlgError, ValueError):
+                P = None
+            if P is None:
+                try:
+                    obs = np.vstack([C @ np.linalg.matrix_power(A, k) for k in range(n)])
+                    Ri = np.kron(np.eye(n), np.linalg.inv(R))
+                    P = np.linalg.inv(obs.T @ Ri @ obs)
+                    P = 0.5 * (P + P.T)
+                except (np.linalg.LinAlgError, ValueError):
+                    return None
+            if not np.all(np.isfinite(P)):
+                return None
+        return np.asarray(P)
+
+    def initial_covariance(self) -> Array:
+        """A scale-aware initial covariance of the observable state (the estimator's P0).
+
+        The Kalman filter's stationary posterior covariance at the model's period (the
+        discrete Riccati equation): the state known as well as the filter will ever know
+        it, in the state's own units, where an absolute P0 = 1 is a tiny uncertainty for a
+        speed of 800 rad/s and a huge one for a current of 0.26 A. Where that has no
+        positive definite solution (no process noise, say), the covariance of the state
+        fitted to n noisy samples of the outputs, (O' R^-1 O)^-1 with
+        O = [C; C A; ...; C A^(n-1)]. Computed and checked when the model is built.
+        """
+        return self._p0
 
     @classmethod
     def from_discrete(
@@ -680,17 +995,21 @@ class DiscreteModel:
 
     def full_at(self, dt: float) -> tuple[Array, Array, Array, Array, Array]:
         """(A_o, B_o, Q_o, A_full, B_full) for a step of dt seconds, cached per microsecond."""
-        key = round(dt * 1e6)
+        key = round(dt * 1e6) if math.isfinite(dt) else 0
         hit = self._cache.get(key)
         if hit is not None:
             return hit
         if key <= 0:
             raise ModelError(f"step of {dt!r} s: time must move forward")
         ss = self._ss
-        Ad, Bd, _, _, _ = scipy.signal.cont2discrete(
-            (ss.A, ss.B, ss.C, ss.D), key * 1e-6, method="zoh"
-        )
-        Qd = van_loan(ss.A, self.continuous.noise_standard_form(), key * 1e-6)
+        # The period itself was checked finite when the model was built; a step of many
+        # periods (predicting through lost samples) of an unstable model may overflow,
+        # which the estimator meets as NaN, counts and restarts from: no warning each time.
+        with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+            Ad, Bd, _, _, _ = scipy.signal.cont2discrete(
+                (ss.A, ss.B, ss.C, ss.D), key * 1e-6, method="zoh"
+            )
+            Qd = van_loan(ss.A, self.continuous.noise_standard_form(), key * 1e-6)
         W = self.Wobs
         entry = (
             np.ascontiguousarray(W @ Ad @ W.T),
@@ -799,6 +1118,12 @@ def dc_motor(
             raise ModelError(f"motor parameter {name} must be positive, got {getattr(p, name)}")
     if p.La < 0:
         raise ModelError(f"motor parameter La must be >= 0, got {p.La}")
+    for name, value in (*((k, getattr(p, k)) for k in ("J", "b", "Ke", "Ki", "Ra", "La")),
+                        ("process_noise", q), ("output_sigma^2", r)):
+        if not (math.isfinite(value) and abs(value) <= MAX_ENTRY):
+            raise ModelError(f"motor parameter {name} is {value:.3g}: beyond {MAX_ENTRY:g} the "
+                             "estimator's covariances leave the floating-point range; "
+                             "rescale the units")
     E = np.diag([p.La, p.J, 1.0])
     A = np.array([[-p.Ra, -p.Ke, 0.0], [p.Ki, -p.b, 0.0], [0.0, 1.0, 0.0]])
     B = np.array([[1.0], [0.0], [0.0]])
@@ -809,6 +1134,10 @@ def dc_motor(
     if not (math.isfinite(speed_noise_ratio) and speed_noise_ratio > 0):
         raise ModelError(f"speed_noise_ratio must be positive, got {speed_noise_ratio}")
     Qc = Eq @ (q * np.diag([1.0, speed_noise_ratio, speed_noise_ratio])) @ Eq
+    if float(np.abs(Qc).max()) > MAX_ENTRY:  # a J or La in other units, squared
+        raise ModelError(f"J = {p.J:g} kg m^2, La = {p.La:g} H: the motor's process-noise "
+                         f"intensity (La^2 q, J^2 q speed_noise_ratio) reaches "
+                         f"{float(np.abs(Qc).max()):.3g}, beyond {MAX_ENTRY:g}; check the units")
     return ContinuousDescriptor(
         E=E,
         A=A,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from collections.abc import Sequence
@@ -19,6 +20,7 @@ from monitor.estimation.fuzzy_ukf import FuzzyUKF
 from monitor.estimation.model import (
     ContinuousDescriptor,
     DCMotorParameters,
+    DiscreteModel,
     ModelError,
     dc_motor,
 )
@@ -34,6 +36,15 @@ Array = NDArray[np.float64]
 __all__ = ["KINDS", "Identification", "identify"]
 
 KINDS = ("auto", "dc_motor", "state_space")
+MAX_ORDER = 10  # the largest state the estimator's rule base holds (`estimator_bytes`)
+
+_log = logging.getLogger(__name__)
+
+# What numpy and scipy raise when a fit meets data it cannot describe (a Riccati equation
+# without a stabilising solution, an SVD that does not converge on a degenerate record, an
+# optimiser's step that overflows): each becomes one IdentifyError line, never a traceback.
+NUMERIC_FAILURES = (np.linalg.LinAlgError, ValueError, FloatingPointError, OverflowError,
+                    ZeroDivisionError)
 
 
 @dataclass(frozen=True)
@@ -122,13 +133,19 @@ def _floats(a: Array) -> list[Any]:
 
 def _fit_motor(u: Array, y: Array, T: float, template: DCMotorParameters,
                names: tuple[tuple[str, ...], tuple[str, ...]]) -> _Candidate:
-    sub, _ = subspace_model(u, y, 2)
-    fit = fit_dc_motor(u, y, T, template, sub)
-    prm = fit.params
-    base = dc_motor(prm, q=fit.q, r=fit.r, speed_noise_ratio=fit.kappa)
-    model = ContinuousDescriptor(E=base.E, A=base.A, B=base.B, C=base.C, Qc=base.Qc,
-                                 R=base.R, state_names=base.state_names,
-                                 input_names=names[0], output_names=names[1])
+    try:
+        sub, _ = subspace_model(u, y, 2)
+        fit = fit_dc_motor(u, y, T, template, sub)
+        prm = fit.params
+        base = dc_motor(prm, q=fit.q, r=fit.r, speed_noise_ratio=fit.kappa)
+        model = ContinuousDescriptor(E=base.E, A=base.A, B=base.B, C=base.C, Qc=base.Qc,
+                                     R=base.R, state_names=base.state_names,
+                                     input_names=names[0], output_names=names[1])
+    except IdentifyError:
+        raise
+    except NUMERIC_FAILURES as exc:  # ModelError is a ValueError too
+        raise IdentifyError(f"the DC-motor model does not fit this capture "
+                            f"({one_line(exc, 160)}): {MOTOR_ADVICE}") from None
     params = {k: {"value": float(getattr(prm, k)),
                   "std": float(getattr(prm, k)) * fit.log_std[k]} for k in
               ("La", "Ra", "b", "Ke", "Ki")}
@@ -148,12 +165,19 @@ def _fit_motor(u: Array, y: Array, T: float, template: DCMotorParameters,
 
 def _fit_black_box(u: Array, y: Array, T: float, order: int | None,
                    names: tuple[tuple[str, ...], tuple[str, ...]]) -> _Candidate:
-    fit = fit_state_space(u, y, T, order)
-    n = fit.order
-    model = ContinuousDescriptor(
-        E=np.eye(n), A=fit.Ac, B=fit.Bc, C=fit.C, Qc=0.5 * (fit.Qc + fit.Qc.T), R=fit.R,
-        state_names=tuple(f"x{i + 1}" for i in range(n)), input_names=names[0],
-        output_names=names[1])
+    advice = ("the black-box fit found no usable model: record a longer capture with the "
+              "input varying more (steps or a PRBS), or give --order")
+    try:
+        fit = fit_state_space(u, y, T, order)
+        n = fit.order
+        model = ContinuousDescriptor(
+            E=np.eye(n), A=fit.Ac, B=fit.Bc, C=fit.C, Qc=0.5 * (fit.Qc + fit.Qc.T), R=fit.R,
+            state_names=tuple(f"x{i + 1}" for i in range(n)), input_names=names[0],
+            output_names=names[1])
+    except IdentifyError:
+        raise
+    except NUMERIC_FAILURES as exc:  # ModelError (a NaN noise intensity, say) included
+        raise IdentifyError(f"{advice} ({one_line(exc, 100)})") from None
     extra = {
         "order_selection": {"bic": {str(k): v for k, v in fit.bic.items()},
                             "subspace_singular_values": fit.singular_values,
@@ -163,14 +187,19 @@ def _fit_black_box(u: Array, y: Array, T: float, order: int | None,
     return _Candidate("state_space", model, fit.q, n, None, dict(fit.invariants), extra)
 
 
+MOTOR_ADVICE = ("the DC-motor model needs the armature voltage as input and the armature "
+                "current as output; for another plant use --model state_space")
+
+
 def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
-              T: float) -> tuple[dict[str, Any], dict[str, Array]]:
+              T: float, advice: str = "ask for a larger order or another kind"
+              ) -> tuple[dict[str, Any], dict[str, Array]]:
     """Simulation fit on training and hold-out, innovation tests on the hold-out."""
     try:
         dm = model.discretize(T)
     except ModelError as exc:
         raise IdentifyError(f"the fitted model cannot serve the estimator ({one_line(exc, 150)}): "
-                            "ask for a larger order or another kind") from exc
+                            f"{advice}") from exc
     A, B, Qd = dm.at(T)
     C, R = dm.C, dm.R
     kf = kalman(A, C, Qd, R)
@@ -198,11 +227,19 @@ def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
         "innovation_std": _floats(np.sqrt(np.diag(kf.S))),
         "slowest_time_constant_s": tau,
         "poles_continuous": [[float(z.real), float(z.imag)] for z in np.sort_complex(lam)],
-        "dc_gain": _floats(dm.dc_gain),
+        "dc_gain": _dc_gain(dm),
     }
     t_va = np.asarray((ntr + np.arange(yva.shape[0])) * T, dtype=float)
     traces: dict[str, Array] = {"t_holdout": t_va, "y_holdout": yva, "y_sim": ysim_va}
     return res, traces
+
+
+def _dc_gain(dm: DiscreteModel) -> list[Any] | None:
+    """The model's DC gain, None for a model with an integrator (it has none)."""
+    try:
+        return _floats(dm.dc_gain)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def _fuzzy_ukf(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
@@ -278,8 +315,16 @@ def identify(
     # overflow in a trial step of an optimiser is caught by the finiteness checks.
     with threadpool_limits(limits=1, user_api="blas"), np.errstate(over="ignore",
                                                                    invalid="ignore"):
-        ident = _identify(u, y, T, kind, order, holdout, template or DCMotorParameters(),
-                          input_names, output_names, run_filter)
+        try:
+            ident = _identify(u, y, T, kind, order, holdout, template or DCMotorParameters(),
+                              input_names, output_names, run_filter)
+        except IdentifyError:
+            raise
+        except NUMERIC_FAILURES as exc:  # a degenerate record no check above foresaw
+            raise IdentifyError(
+                f"the identification failed numerically ({one_line(exc, 100)}): the capture "
+                f"does not describe a linear plant driven by its input; {RECORDING_ADVICE}"
+            ) from None
     ident.report["seconds"] = time.perf_counter() - t0
     return ident
 
@@ -290,8 +335,9 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
     requested = kind
     if kind not in KINDS:
         raise IdentifyError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
-    if order is not None and not (isinstance(order, int) and 1 <= order <= 12):
-        raise IdentifyError(f"order must be an integer from 1 to 12, got {order!r}")
+    if order is not None and not (isinstance(order, int) and 1 <= order <= MAX_ORDER):
+        raise IdentifyError(f"order must be an integer from 1 to {MAX_ORDER} (the estimator's "
+                            f"fuzzy rule base spans the state: 5^n rules), got {order!r}")
     u, y = V.check_capture(np.asarray(u_in), np.asarray(y_in), T, holdout)
     N, m = u.shape
     p = y.shape[1]
@@ -312,20 +358,38 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
     t = time.perf_counter()
     excitation = V.check_excitation(utr, 2 if kind != "state_space" or order is None
                                     else order, names[0])
+    V.check_outputs(y, names[1])
     cands: list[tuple[_Candidate, dict[str, Any], dict[str, Array]]] = []
     auto_note: dict[str, Any] = {}
+    motor_failed: str | None = None
     if kind == "dc_motor" or (kind == "auto" and siso):
-        c = _fit_motor(utr, ytr, T, template, names)
-        ev, tr = _evaluate(c.model, u, y, ntr, T)
-        cands.append((c, ev, tr))
-        auto_note["dc_motor_nrmse_holdout_pct"] = ev["fit"]["nrmse_holdout_pct"][0]
-        if kind == "auto" and ev["cross_correlation"]["passed"] and \
-                ev["fit"]["nrmse_holdout_pct"][0] >= V.MIN_FIT:
-            auto_note["reason"] = "dc_motor residuals independent of the input"
-            kind = "dc_motor"
+        try:
+            c = _fit_motor(utr, ytr, T, template, names)
+            ev, tr = _evaluate(c.model, u, y, ntr, T, MOTOR_ADVICE)
+        except (IdentifyError, *NUMERIC_FAILURES) as exc:
+            if kind != "auto":
+                raise
+            # auto tries the motor first; a plant it cannot describe (issue 16) is the
+            # black box's: said in one line once the black box has served, or in the
+            # black box's own refusal
+            motor_failed = one_line(exc, 160)
+            auto_note["dc_motor_failed"] = one_line(exc, 400)
+        else:
+            cands.append((c, ev, tr))
+            auto_note["dc_motor_nrmse_holdout_pct"] = ev["fit"]["nrmse_holdout_pct"][0]
+            if kind == "auto" and ev["cross_correlation"]["passed"] and \
+                    ev["fit"]["nrmse_holdout_pct"][0] >= V.MIN_FIT:
+                auto_note["reason"] = "dc_motor residuals independent of the input"
+                kind = "dc_motor"
     if kind == "state_space" or kind == "auto":
-        c = _fit_black_box(utr, ytr, T, order, names)
-        ev, tr = _evaluate(c.model, u, y, ntr, T)
+        try:
+            c = _fit_black_box(utr, ytr, T, order, names)
+            ev, tr = _evaluate(c.model, u, y, ntr, T)
+        except IdentifyError as exc:
+            if motor_failed is None:
+                raise
+            raise IdentifyError(f"{exc} (the DC-motor model did not fit either: "
+                                f"{motor_failed})") from None
         cands.append((c, ev, tr))
         auto_note["state_space_nrmse_holdout_pct"] = float(np.mean(ev["fit"]["nrmse_holdout_pct"]))
     best = max(cands, key=lambda c: float(np.mean(c[1]["fit"]["nrmse_holdout_pct"])))
@@ -396,6 +460,8 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         report["fuzzy_ukf"] = _fuzzy_ukf(cand.model, u, y, ntr, T)
         timing["fuzzy_ukf"] = time.perf_counter() - t
     report["timing_s"] = timing
+    if motor_failed is not None:
+        _log.warning("auto: %s; the black box is used", motor_failed)
     return Identification(model=cand.model, q=cand.q, Qc=cand.model.Qc, R=cand.model.R, T=T,
                           kind=cand.kind, order=cand.order, motor=cand.motor, report=report,
                           traces=traces)

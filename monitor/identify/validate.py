@@ -11,6 +11,9 @@ Refusals (each an IdentifyError with one line saying what to record instead):
   inputs with 2 n + 1 rows below 1e-7 of the largest: a sine is exciting of order 2 only);
   and, after the fit, a training fit below MIN_FIT % (the input moves the output too
   little against the noise);
+* an output that cannot show the response (`check_outputs`): stuck at one value,
+  quantised to fewer than MIN_LEVELS values, or held at its largest or smallest value for
+  more than SATURATED of the capture (clipped by a sensor, DBC or current limit);
 * a fault or outage inside the capture: the same model structure fitted separately on the
   first and the second half must explain the other half nearly as well as its own: the
   simulation fit (NRMSE, each model with its own best initial state) of the other half's
@@ -43,6 +46,7 @@ __all__ = [
     "CONFIDENCE",
     "check_capture",
     "check_excitation",
+    "check_outputs",
     "consistency_drop",
     "cross_correlation_test",
     "nrmse",
@@ -50,6 +54,8 @@ __all__ = [
 ]
 
 MIN_SAMPLES = 1000
+MIN_LEVELS = 16  # an output with fewer distinct values is quantised too coarsely
+SATURATED = 0.05  # share of the capture at the output's extreme value: clipped
 MIN_TIME_CONSTANTS = 10.0
 MIN_CHANGES = 10
 MIN_FIT = 30.0
@@ -115,6 +121,38 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
             f"the input is persistently exciting of order {pe // m} only, a {order}-state "
             f"model needs {L} (a sine gives 2): {RECORDING_ADVICE}")
     return {"persistent_excitation_rows": L, "hankel_singular_ratio": ratio}
+
+
+def check_outputs(y: Array, names: Sequence[str]) -> None:
+    """Refuse an output that cannot show the plant's response: stuck at one value, taking
+    fewer than MIN_LEVELS distinct values (quantised far coarser than its variation), or
+    sitting at its largest or smallest value for more than SATURATED of the capture (a
+    sensor, DBC or current limit clips it). A healthy output of a plant driven around its
+    operating point varies continuously: its extremes are reached once or a few times."""
+    N = y.shape[0]
+    for i, name in enumerate(names):
+        col = y[:, i]
+        levels = np.unique(col)
+        if levels.size == 1:
+            raise IdentifyError(
+                f"output '{name}' is stuck at {col[0]:.6g} over the whole capture: the sensor "
+                "does not measure, or this is not the output the input drives; check the "
+                "sensor and the rig's signals, then record again")
+        if levels.size < MIN_LEVELS:
+            step = float(np.min(np.diff(levels)))
+            raise IdentifyError(
+                f"output '{name}' takes only {levels.size} distinct values (steps of "
+                f"{step:.4g}) over the capture: quantised far coarser than its variation, "
+                "so its dynamics are lost; record the output at a finer resolution (the DBC "
+                "signal's scale), or with larger input steps")
+        for where, value in (("largest", levels[-1]), ("smallest", levels[0])):
+            share = float(np.count_nonzero(col == value)) / N
+            if share > SATURATED:
+                raise IdentifyError(
+                    f"output '{name}' sits at its {where} value {value:.6g} for "
+                    f"{100 * share:.0f} % of the capture: saturated (a sensor, DBC or "
+                    "current limit), where it no longer follows the input; record with "
+                    "smaller input steps that keep it inside its range")
 
 
 def nrmse(y: Array, yhat: Array) -> list[float]:
