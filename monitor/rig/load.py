@@ -177,6 +177,11 @@ def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None) -> Rig:
     diag_t = top.table("diagnosis")
     diagnosis = _diagnosis(diag_t, fail)
     diag_t.done()
+    if diagnosis.silence_timeout_s <= SILENT_PERIODS / rate:
+        # Otherwise the node would be declared silent (no_data) between two samples.
+        raise fail("diagnosis.silence_timeout_s", f"{diagnosis.silence_timeout_s:g} s is not "
+                   f"longer than {SILENT_PERIODS} sample periods at model.rate = {rate:g} Hz "
+                   f"({SILENT_PERIODS / rate:g} s): give a longer timeout or a higher rate")
     top.done()
     rig = Rig(dbc=dbc, layout=layout, inputs=inputs, outputs=outputs, truth=truth,
               protection=protection, model=model, rate=rate, diagnosis=diagnosis,
@@ -388,6 +393,10 @@ def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
     raise fail("model.kind", f"must be dc_motor or state_space, got {kind!r}")
 
 
+SILENT_PERIODS = 2
+"""The silence timeout must span more than this many sample periods."""
+
+
 def _diagnosis(t: _Table, fail: Callable[[str, str], RigError]) -> DiagnosisSpec:
     d = DiagnosisSpec()
     spec = DiagnosisSpec(
@@ -397,6 +406,8 @@ def _diagnosis(t: _Table, fail: Callable[[str, str], RigError]) -> DiagnosisSpec
         silence_timeout_s=t.number("silence_timeout_s", d.silence_timeout_s, positive=True),
         mismatch_window_s=t.number("mismatch_window_s", d.mismatch_window_s, positive=True),
         mismatch_dwell_s=t.number("mismatch_dwell_s", d.mismatch_dwell_s, positive=True),
+        withhold_alarms_on_mismatch=t.take("withhold_alarms_on_mismatch", bool,
+                                           d.withhold_alarms_on_mismatch),
     )
     if not 0.0 < spec.f1 < spec.f2 < 1.0:
         raise fail("diagnosis.f1", f"thresholds must satisfy 0 < f1 < f2 < 1, got "

@@ -75,6 +75,10 @@ MISTAKES = [
      "model.rate: must be > 0"),
     ("thresholds out of order", SERVO_TEXT.replace("f1 = 0.15", "f1 = 0.9"),
      "diagnosis.f1: thresholds must satisfy 0 < f1 < f2 < 1"),
+    ("a silence timeout within two sample periods", SERVO_TEXT.replace(
+        "rate = 1000.0", "rate = 5.0").replace("[diagnosis]",
+                                               "[diagnosis]\nsilence_timeout_s = 0.3"),
+     "diagnosis.silence_timeout_s: 0.3 s is not longer than 2 sample periods"),
     ("a motor parameter that is not a number", SERVO_TEXT.replace("J = 2e-5", 'J = "big"'),
      "model.J: must be a number"),
     ("a negative motor parameter", SERVO_TEXT.replace("J = 2e-5", "J = -2e-5"),
