@@ -31,6 +31,7 @@ from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState
 from monitor.estimation.model import DCMotorParameters
 from monitor.pipeline import Counters, DiagnosisEvent, MonitorPipeline, Sample
 from monitor.pipeline import counters as C
+from monitor.pipeline.events import HEALTH
 from monitor.rig import Rig
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.jsonl import JsonLinesSink
@@ -63,8 +64,9 @@ class _PrintTransitions(Sink):
         self.t_start = t_start
 
     def on_transition(self, event: DiagnosisEvent) -> None:
-        print(f"  t = {event.t - self.t_start:6.2f} s  node {event.node}: {event.previous} -> "
-              f"{event.state}  (gamma^ = {event.gamma:.2f})", flush=True)
+        what = (f"{event.previous} -> {event.state}  (gamma^ = {event.gamma:.2f})"
+                if event.kind == HEALTH else event.text)  # the model-mismatch flag's
+        print(f"  t = {event.t - self.t_start:6.2f} s  node {event.node}: {what}", flush=True)
 
 
 def _report(rows: np.ndarray, path: Path, f1: float, f2: float) -> None:

@@ -353,10 +353,11 @@ def test_reject_reason_values() -> None:
         ("voltage", {"CRC": 0, "Counter": 0, "VoltageCommand": -40001}, "VoltageCommand"),
         ("truth", {"TrueGamma": 10001, "TrueCurrent": 0, "TrueSpeed": 0}, "TrueGamma"),
         ("truth", {"TrueGamma": 0, "TrueCurrent": 0, "TrueSpeed": 300001}, "TrueSpeed"),
-        ("diagnosis", {"CRC": 0, "Counter": 0, "HealthState": 7, "GammaEstimate": 0,
-                       "FaultEstimate": 0, "RuleCount": 0}, "HealthState"),
+        ("diagnosis", {"CRC": 0, "Counter": 0, "HealthState": 4, "GammaEstimate": 0,
+                       "FaultEstimate": 0, "RuleCount": 0, "ModelMismatch": 0}, "HealthState"),
         ("diagnosis", {"CRC": 0, "Counter": 0, "HealthState": 0, "GammaEstimate": -501,
-                       "FaultEstimate": 0, "RuleCount": 0}, "GammaEstimate"),
+                       "FaultEstimate": 0, "RuleCount": 0, "ModelMismatch": 0},
+         "GammaEstimate"),
     ],
 )
 def test_out_of_range_per_signal(
@@ -395,7 +396,7 @@ def test_bytearray_and_memoryview_payloads(mdb: MotorDatabase) -> None:
         lambda m: m.encode_voltage(0, 1.0, -1),
         lambda m: m.encode_truth(0, 1.5, 0.0, 0.0),
         lambda m: m.encode_diagnosis(0, "broken", 0.0, 0.0, 0, 0),
-        lambda m: m.encode_diagnosis(0, 5, 0.0, 0.0, 0, 0),  # past model_mismatch (4)
+        lambda m: m.encode_diagnosis(0, 4, 0.0, 0.0, 0, 0),  # past no_data (3)
         lambda m: m.encode_diagnosis(0, 0, 0.0, 0.0, 256, 0),
         lambda m: m.encode_diagnosis(0, 0, 1.6, 0.0, 1, 0),
     ],

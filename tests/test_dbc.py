@@ -105,7 +105,16 @@ def test_signal_ranges(db: Database) -> None:
     state = diag.get_signal_by_name("HealthState")
     assert state.choices is not None
     assert {int(k): str(v) for k, v in state.choices.items()} == dict(enumerate(HEALTH_STATES))
+    assert (state.start, state.length, state.maximum) == (12, 4, 3)
     assert diag.get_signal_by_name("RuleCount").maximum == 255
+    # the model-mismatch flag: one bit of the byte no other signal used, so receivers of
+    # the older layout decode every signal where it was
+    layout = {s.name: (s.start, s.length) for s in diag.signals}
+    assert layout == {"CRC": (0, 8), "Counter": (8, 4), "HealthState": (12, 4),
+                      "GammaEstimate": (16, 16), "FaultEstimate": (32, 16),
+                      "RuleCount": (48, 8), "ModelMismatch": (56, 1)}
+    flag = diag.get_signal_by_name("ModelMismatch")
+    assert (flag.minimum, flag.maximum, flag.is_signed) == (0, 1, False)
 
 
 def test_cantools_dump_runs() -> None:

@@ -1,7 +1,7 @@
 """The monitor says when its model stops fitting: an unmodelled sensor offset (which no loss
-of effectiveness can explain: gamma would have to be negative) turns the node to
-model_mismatch, on the bus and in the events, instead of a fault alarm; a fitting model over
-healthy and faulty runs never does."""
+of effectiveness can explain: gamma would have to be negative) raises the node's
+model-mismatch flag, on the bus and in the events, beside its diagnosis (which stays
+fault_free: no fault alarm); a fitting model over healthy and faulty runs never does."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from monitor.app.replay import feed_log
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.diagnosis import HealthState
 from monitor.pipeline import DiagnosisEvent, MonitorConfig
+from monitor.pipeline.events import HEALTH, MODEL_MISMATCH
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario, scenario_from_dict
 from tests.support.pipeline import pipeline
@@ -41,20 +42,24 @@ def _diagnose(db: MotorDatabase, frames: list[can.Message]) -> tuple[
     return events, sent
 
 
-def test_unmodelled_offset_is_a_model_mismatch_not_a_fault() -> None:
+def test_unmodelled_offset_raises_the_flag_not_a_fault() -> None:
     db = load_database()
     healthy = scenario_from_dict({"name": "h", "duration": 20.0})
     frames = list(VirtualECU(None, db, 0, healthy, seed=4).frames(start_time=T0))
     events, sent = _diagnose(db, _offset(db, frames, 10.0, after=5.0))
-    states = [(e.state, e.cause, round(e.t - T0, 1)) for e in events]
-    assert "fault" not in [s for s, _, _ in states] and "outage" not in [s for s, _, _ in
-                                                                         states], states
-    mism = [t for s, c, t in states if s == "model_mismatch"]
-    assert mism and 5.0 < mism[0] < 12.0, states
-    assert [c for s, c, _ in states if s == "model_mismatch"] == ["model"]
-    # ... and the bus hears it: MonitorDiagnosis frames with HealthState 4
-    assert any(int(db.decode_can(m).raw["HealthState"]) == HealthState.MODEL_MISMATCH  # type: ignore[union-attr]
-               for m in sent)
+    health = [e.state for e in events if e.kind == HEALTH]
+    assert health == ["fault_free"], events  # the diagnosis stays: no fault alarm
+    flags = [(e.model_mismatch, e.cause, e.state, round(e.t - T0, 1)) for e in events
+             if e.kind == MODEL_MISMATCH]
+    assert len(flags) == 1 and flags[0][:3] == (True, "nis", "fault_free"), flags
+    assert 5.0 < flags[0][3] < 12.0, flags
+    # ... and the bus hears it: ModelMismatch 1 beside HealthState fault_free (0)
+    raw = [db.decode_can(m).raw for m in sent]  # type: ignore[union-attr]
+    pairs = {(int(r["HealthState"]), int(r["ModelMismatch"])) for r in raw}
+    assert (HealthState.FAULT_FREE, 1) in pairs, pairs  # (no_data, 0) before the first sample
+    assert pairs <= {(HealthState.FAULT_FREE, 0), (HealthState.FAULT_FREE, 1),
+                     (HealthState.NO_DATA, 0)}, pairs
+    assert int(raw[-1]["ModelMismatch"]) == 1
 
 
 def test_a_fitting_model_is_never_flagged() -> None:
@@ -63,7 +68,8 @@ def test_a_fitting_model_is_never_flagged() -> None:
         frames = list(VirtualECU(None, db, 0, load_scenario(name), seed=seed)
                       .frames(start_time=T0))
         events, _ = _diagnose(db, frames)
-        assert "model_mismatch" not in [e.state for e in events], (name, events)
+        assert not any(e.model_mismatch or e.kind == MODEL_MISMATCH for e in events), (
+            name, events)
     long_run = scenario_from_dict({"name": "long", "duration": 300.0})
     events, _ = _diagnose(db, list(VirtualECU(None, db, 0, long_run, seed=9)
                                    .frames(start_time=T0)))

@@ -139,6 +139,9 @@ CASES = [
          "ev.jsonl", ("--events", "--key")),
     Case("replay --rrd = --dbc", ("replay", CAP, "--dbc", "{w}/motor.dbc", "--rrd", "{out}"),
          "motor.dbc", "rec.rrd", ("--rrd", "--dbc")),
+    # (named as the input itself, the suffix is refused first: .toml is no table)
+    Case("replay --samples = --rig", ("replay", CAP, "--rig", RIG, "--samples", "{out}"),
+         "rig.toml", "s.csv", ("--samples", "rig.toml")),
     # the archive replay: the files it names under --out DIR
     Case("replay --out DIR: a log's events = PATH", ("replay", CAP, "--out", "{w}/arch"),
          "cap.log", "arch/cap.log.events.jsonl", ("--out", "cap.log.events.jsonl", "PATH")),

@@ -536,11 +536,13 @@ def test_a_recording_split_into_parts_holds_every_row_once(tmp_path: Path) -> No
     k = np.arange(n, dtype=np.float64)
     cols = SampleColumns(t=T0 + k * DT, measured=np.sin(k), estimated=np.cos(k), gamma=k,
                          rules=np.ones(n, np.int64), state=np.zeros(n, np.int64),
-                         nis=np.ones(n), true_gamma=np.full(n, np.nan))
+                         nis=np.ones(n), true_gamma=np.full(n, np.nan),
+                         model_mismatch=np.zeros(n, np.bool_))
     for a in range(0, n, 3000):  # uneven slices across the batch boundaries
-        sink.on_sample_columns(0, SampleColumns(*(c[a:a + 3000] for c in (
-            cols.t, cols.measured, cols.estimated, cols.gamma, cols.rules, cols.state,
-            cols.nis, cols.true_gamma))))
+        at = slice(a, a + 3000)
+        sink.on_sample_columns(0, SampleColumns(
+            cols.t[at], cols.measured[at], cols.estimated[at], cols.gamma[at], cols.rules[at],
+            cols.state[at], cols.nis[at], cols.true_gamma[at], cols.model_mismatch[at]))
     sink.close()
     parts = list(sink.parts)
     assert parts == recording_parts(path)

@@ -225,10 +225,15 @@ motor_monitor_events_total{name="rejected/crc"} 4.0
 motor_monitor_events_total{name="rejected/counter"} 1.0
 # TYPE motor_monitor_node_health_state gauge
 motor_monitor_node_health_state{node="0"} 0.0
-motor_monitor_node_health_state{node="10"} 4.0
+motor_monitor_node_health_state{node="10"} 1.0
 motor_monitor_node_health_state{node="2"} 1.0
 motor_monitor_node_health_state{node="3"} 3.0
 motor_monitor_node_health_state{node="7"} 2.0
+# TYPE motor_monitor_node_model_mismatch gauge
+motor_monitor_node_model_mismatch{node="0"} 0.0
+motor_monitor_node_model_mismatch{node="10"} 1.0
+motor_monitor_node_model_mismatch{node="2"} 0.0
+motor_monitor_node_model_mismatch{node="7"} 0.0
 # TYPE motor_monitor_node_gamma gauge
 motor_monitor_node_gamma{node="0"} 0.0123
 motor_monitor_node_gamma{node="10"} 0.5
@@ -270,12 +275,12 @@ STATUS_TABLE = """\
 monitor.prom (written {age} s ago)
 bus load 5.9 %, 3530 frames, 2 error frames, 5 kernel drops, 5 rejected, 3 lost, 40 diagnoses sent
 
-node  state            gamma^     NIS   samples
-   0  fault_free        0.012    1.04      1599
-   2  fault             0.410    0.90       800
-   3  no_data             nan     nan         0
-   7  outage            0.970     nan         3
-  10  model_mismatch    0.500   31.50        12
+node  state       mismatch  gamma^     NIS   samples
+   0  fault_free  no         0.012    1.04      1599
+   2  fault       no         0.410    0.90       800
+   3  no_data     -            nan     nan         0
+   7  outage      no         0.970     nan         3
+  10  fault       yes        0.500   31.50        12
 
         id    frames  period ms  jitter ms
      0x110      1600      10.00      0.002
@@ -318,6 +323,8 @@ def test_status_renders_a_monitor_file_as_before(tmp_path: Path,
         ('motor_monitor_node_health_state{node="0"} -Inf\n', "is -inf, not a health state"),
         ('motor_monitor_node_health_state{node="0"} 9\n', "is 9.0, not a health state"),
         ('motor_monitor_node_health_state{node="0"} 1.5\n', "is 1.5, not a health state"),
+        ('motor_monitor_node_health_state{node="0"} 4\n', "is 4.0, not a health state (0 to 3)"),
+        ('motor_monitor_node_model_mismatch{node="0"} 2\n', "is 2.0, not 0 or 1"),
         ("motor_monitor_node_health_state 1\n", "has no 'node' label"),
         ('motor_monitor_node_health_state{node="abc"} 1\n', "node='abc' is not a node number"),
         ('motor_monitor_node_gamma{node="1e9"} 1\n', "is not a node number"),
@@ -330,7 +337,8 @@ def test_status_renders_a_monitor_file_as_before(tmp_path: Path,
         ('motor_monitor_node_health_state{node="' + "9" * 100_000 + '"} 1\n',
          "is not a node number"),
     ],
-    ids=["empty", "comment", "nan", "inf", "-inf", "nine", "fraction", "no-node",
+    ids=["empty", "comment", "nan", "inf", "-inf", "nine", "fraction", "four", "flag-two",
+         "no-node",
          "node-text", "node-float", "nis-no-node", "id-text", "period-no-id", "no-name",
          "not-prometheus", "node-huge"],
 )
@@ -380,12 +388,12 @@ def test_status_watch_shows_a_vanished_file_and_goes_on(tmp_path: Path) -> None:
         pytest.fail(f"no {text!r} after {SECONDS} s: {bytes(out)[-500:]!r}")
 
     try:
-        seen = wait_for(b"model_mismatch", 0)
+        seen = wait_for(b"  10  fault       yes", 0)
         path.unlink()
         seen = wait_for(f"metrics file {path}: no such file".encode(), seen)
         seen = wait_for(b"trying again every 0.1 s", seen)
         _status_file(tmp_path, STATUS_FIXTURE)
-        wait_for(b"model_mismatch", seen)
+        wait_for(b"  10  fault       yes", seen)
     finally:
         proc.terminate()
         _, err = proc.communicate(timeout=SECONDS)

@@ -67,4 +67,5 @@ def monitor_config(args: argparse.Namespace, the_rig: Rig | None = None) -> Moni
         rate=args.rate if getattr(args, "rate", None) is not None else r.rate,
         thresholds=thresholds, dwell_s=d.dwell_s, hysteresis=d.hysteresis,
         silence_timeout_s=d.silence_timeout_s, model=build_model(r),
-        mismatch_window_s=d.mismatch_window_s, mismatch_dwell_s=d.mismatch_dwell_s)
+        mismatch_window_s=d.mismatch_window_s, mismatch_dwell_s=d.mismatch_dwell_s,
+        withhold_alarms_on_mismatch=d.withhold_alarms_on_mismatch)

@@ -1,5 +1,6 @@
 """The sinks a command's options ask for: the Rerun recording (--rrd, --record-dir) or live
-viewer (--connect), JSON lines of the events (--events), the log."""
+viewer (--connect), JSON lines of the events (--events), every sample to a file
+(--samples), the log."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import argparse
 import sys
 from collections.abc import MutableMapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from monitor.errors import MonitorError, UsageError
 from monitor.pipeline import MonitorConfig
@@ -22,8 +23,11 @@ from monitor.sinks.rerun import (
 )
 from monitor.sinks.rotation import RotatingRerunSink
 
+if TYPE_CHECKING:
+    from monitor.rig import Rig
+
 __all__ = ["MAX_UNBACKED_FLUSH_S", "count_compactions", "event_lines", "record_flush_s",
-           "rerun_sink"]
+           "rerun_sink", "samples_sink"]
 
 MAX_UNBACKED_FLUSH_S = 0.25
 """The longest recording flush interval without the raw bus log: what a SIGKILL may lose."""
@@ -102,3 +106,18 @@ def event_lines(path: str | None, *, to_stdout: bool, append: bool = True) -> Si
     if path:
         return JsonLinesSink(open(path, "a" if append else "w", encoding="utf-8"), owned=True)
     return JsonLinesSink(sys.stdout) if to_stdout else None
+
+
+def samples_sink(path: str | Path, rig: Rig, cfg: MonitorConfig) -> Sink:
+    """Every estimated sample to `path` (.parquet or .csv: `monitor.sinks.samples`), its
+    columns named after the rig's signals and units. The caller has checked `path`
+    (`monitor.app.paths.check_outputs`) and its suffix."""
+    from monitor.rig.check import signal_units
+    from monitor.sinks.samples import SamplesFileSink, SampleTable
+
+    units_in, units_out = signal_units(rig)
+    table = SampleTable(
+        inputs=tuple((r.signal, u) for r, u in zip(rig.inputs, units_in, strict=True)),
+        outputs=tuple((r.signal, u) for r, u in zip(rig.outputs, units_out, strict=True)),
+        fault_inputs=cfg.plant().faults)
+    return SamplesFileSink(path, table)

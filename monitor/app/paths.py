@@ -42,7 +42,7 @@ __all__ = ["PNG_MAGIC", "RIG_HEADER", "RRD_MAGICS", "Input", "Kind", "Output",
            "monitor_inputs", "write_text"]
 
 Kind = Literal["rig", "identify-report", "png", "thresholds", "events", "rrd", "metrics",
-               "summary-csv", "summary-parquet"]
+               "summary-csv", "summary-parquet", "samples-csv", "samples-parquet"]
 """What an output is, and so how a file of that name is recognised as one motor-monitor
 wrote (`is_own_file`)."""
 
@@ -295,7 +295,9 @@ def _is_event(line: bytes) -> bool:
     except (UnicodeDecodeError, ValueError, RecursionError):
         return False
     fields = {f.name for f in dataclasses.fields(DiagnosisEvent)}
-    return isinstance(doc, dict) and set(doc) == fields
+    # also the lines of a monitor from before the model-mismatch flag: `run --events` goes
+    # on appending to such a file
+    return isinstance(doc, dict) and set(doc) in (fields, fields - {"model_mismatch", "kind"})
 
 
 def _events(p: _Probe) -> bool:
@@ -331,15 +333,34 @@ def _summary_csv(p: _Probe) -> bool:
     return p.first_line().rstrip(b"\r").startswith(b",".join(_column_names()))
 
 
-def _summary_parquet(p: _Probe) -> bool:
+def _parquet_footer(p: _Probe) -> bytes | None:
+    """The footer (schema and key-value metadata) of a Parquet file, None if not one."""
     end = p.tail(8)
     if p.head(4) != b"PAR1" or len(end) != 8 or end[4:] != b"PAR1":
-        return False
+        return None
     length = int.from_bytes(end[:4], "little")
     if not 0 < length <= min(_PARQUET_FOOTER_LIMIT, p.size - 12):
-        return False
-    footer = p.at(p.size - 8 - length, length)
-    return all(name in footer for name in _column_names())
+        return None
+    return p.at(p.size - 8 - length, length)
+
+
+def _summary_parquet(p: _Probe) -> bool:
+    footer = _parquet_footer(p)
+    return footer is not None and all(name in footer for name in _column_names())
+
+
+def _samples_csv(p: _Probe) -> bool:
+    from monitor.sinks.samples import CSV_FIRST, CSV_LAST
+
+    line = p.first_line().rstrip(b"\r")
+    return line.startswith(CSV_FIRST.encode()) and line.endswith(CSV_LAST.encode())
+
+
+def _samples_parquet(p: _Probe) -> bool:
+    from monitor.sinks.samples import PARQUET_KEY
+
+    footer = _parquet_footer(p)
+    return footer is not None and PARQUET_KEY in footer
 
 
 _KINDS: dict[Kind, tuple[str, Callable[[_Probe], bool]]] = {
@@ -352,6 +373,8 @@ _KINDS: dict[Kind, tuple[str, Callable[[_Probe], bool]]] = {
     "metrics": ("motor-monitor's Prometheus metrics", _metrics),
     "summary-csv": ("an archive summary motor-monitor wrote", _summary_csv),
     "summary-parquet": ("an archive summary motor-monitor wrote", _summary_parquet),
+    "samples-csv": ("a samples file motor-monitor wrote", _samples_csv),
+    "samples-parquet": ("a samples file motor-monitor wrote", _samples_parquet),
 }
 
 
@@ -360,7 +383,8 @@ def is_own_file(path: str | os.PathLike[str], kind: Kind) -> bool:
     few KiB of its start and end: the first line of a rig file (`RIG_HEADER`), a thresholds
     file (`THRESHOLDS_HEADER`) or a metrics file; the first and last line of JSON lines of
     events; the magic bytes of a recording, a PNG plot (and matplotlib's mark) or a Parquet
-    summary (and its columns); a report's "capture" object; the header of a CSV summary.
+    summary (and its columns) or samples file (and its key-value metadata key); a report's
+    "capture" object; the header of a CSV summary or samples file.
     An empty file is taken as ours (replacing it loses nothing); a file that cannot be read
     is not."""
     flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_NOCTTY", 0)

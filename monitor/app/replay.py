@@ -2,15 +2,16 @@
 through the same pipeline as a live one, as fast as it goes.
 
 One log file: its diagnosis events go to standard output as JSON lines (or to --events),
-its recording to --rrd FILE. Several logs, a directory or a glob pattern, or --out DIR:
+its recording to --rrd FILE, every estimated sample to --samples FILE (.parquet or .csv,
+`monitor.sinks.samples`). Several logs, a directory or a glob pattern, or --out DIR:
 the archive replay of `monitor.archive` (each log's events and, with --rrd, recording under
 --out, a summary table and a fleet overview; --jobs N local processes or --cluster ADDRESS,
 a Dask cluster). Exit status: 0 every log replayed, 1 some log could not be (its row in the
 summary says why), 2 a mistake in the command line or the configuration.
 
-Every output (--events, --rrd, each file under --out) is checked before the first frame is
-read (`monitor.app.paths`): none is a log or a configuration file the replay reads, and a
-file motor-monitor did not write is replaced only with --force.
+Every output (--events, --rrd, --samples, each file under --out) is checked before the first
+frame is read (`monitor.app.paths`): none is a log or a configuration file the replay reads,
+and a file motor-monitor did not write is replaced only with --force.
 """
 
 from __future__ import annotations
@@ -28,9 +29,10 @@ from typing import TYPE_CHECKING, Any
 import can
 
 from monitor.app import options, outputs
-from monitor.app.paths import Output, check_directory, check_outputs, monitor_inputs
+from monitor.app.paths import Kind, Output, check_directory, check_outputs, monitor_inputs
 from monitor.bus.logfile import LOG_SUFFIXES, LogDamaged, LogError, read_log
 from monitor.errors import ERROR_LINE_LIMIT, UsageError, one_line
+from monitor.files import shown_path
 from monitor.pipeline import MonitorPipeline
 from monitor.pipeline import counters as C
 from monitor.sinks.base import Sink
@@ -88,6 +90,7 @@ def _replay_one_log(args: argparse.Namespace) -> int:
                          "recording per log)")
     if args.jobs is not None or args.cluster is not None:
         raise UsageError("--jobs and --cluster replay logs into --out DIR: give --out DIR")
+    samples = _samples_path(args.samples)
     setup = monitor_setup(ReplaySettings.from_args(args))
     log_path = Path(args.paths[0])
     outs: list[Output] = []
@@ -95,6 +98,8 @@ def _replay_one_log(args: argparse.Namespace) -> int:
         outs.append(Output("--events", Path(args.events), "events"))
     if args.rrd:
         outs += [Output("--rrd", p, "rrd") for p in _recording_files(Path(args.rrd))]
+    if samples is not None:
+        outs.append(Output("--samples", samples, _SAMPLE_KINDS[samples.suffix.lower()]))
     check_outputs([("PATH", log_path), *monitor_inputs(setup.rig, args)], outs,
                   force=args.force)
 
@@ -102,7 +107,9 @@ def _replay_one_log(args: argparse.Namespace) -> int:
         sinks: list[Sink] = [LogSink()]
         recording = outputs.rerun_sink(args, setup.cfg, replay=True)
         events = outputs.event_lines(args.events, to_stdout=True, append=False)
-        return sinks + [s for s in (recording, events) if s is not None]
+        table = (None if samples is None
+                 else outputs.samples_sink(samples, setup.rig, setup.cfg))
+        return sinks + [s for s in (recording, events, table) if s is not None]
 
     try:
         run = ENGINES[args.engine](log_path, setup, open_sinks)
@@ -139,6 +146,9 @@ def _replay_archive(args: argparse.Namespace) -> int:
     if args.rrd is not None and args.rrd is not True:
         raise UsageError(f"--rrd takes no file name with --out DIR (each log gets its own "
                          f"DIR/<log>.rrd): {args.rrd!r}")
+    if args.samples is not None:
+        raise UsageError("--samples writes one log's samples: replay that log alone, "
+                         "without --out")
     if args.jobs is not None and args.cluster is not None:
         raise UsageError("--jobs and --cluster exclude each other (local processes, or the "
                          "cluster's workers)")
@@ -160,6 +170,22 @@ def _replay_archive(args: argparse.Namespace) -> int:
           f"({failed} failed), {n} frames in {el:.2f} s ({n / max(el, 1e-9):.0f} frames/s); "
           f"summary: {', '.join(str(p) for p in done.written)}", file=sys.stderr)
     return 1 if failed else 0
+
+
+_SAMPLE_KINDS: dict[str, Kind] = {".parquet": "samples-parquet", ".csv": "samples-csv"}
+
+
+def _samples_path(given: str | bool | None) -> Path | None:
+    """--samples FILE, its suffix checked (one `UsageError` line), or None."""
+    if given is None:
+        return None
+    if given is True:
+        raise UsageError("--samples: give the file's name (FILE.parquet or FILE.csv)")
+    path = Path(str(given))
+    if path.suffix.lower() not in _SAMPLE_KINDS:
+        raise UsageError(f"--samples {shown_path(path)}: the file's name must end in "
+                         ".parquet or .csv (the format)")
+    return path
 
 
 def _recording_files(rrd: Path) -> list[Path]:
@@ -215,8 +241,13 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     p.add_argument("--rrd", nargs="?", const=True, default=None, metavar="FILE",
                    help="one log: record to this .rrd file; with --out: --rrd alone records "
                    "each log to DIR/<log>.rrd")
+    p.add_argument("--samples", nargs="?", const=True, default=None, metavar="FILE",
+                   help="one log: every estimated sample (time, node, inputs, outputs, "
+                   "predicted outputs, gamma^ and f^ per faulty input, NIS, health state) to "
+                   "FILE.parquet or FILE.csv, columns named after the rig's signals and units, "
+                   "replaced")
     p.add_argument("--force", action="store_true",
-                   help="replace --events, --rrd and the files under --out even if "
+                   help="replace --events, --rrd, --samples and the files under --out even if "
                    "motor-monitor did not write them (without it, only files it wrote are "
                    "replaced; an output is never one of the inputs)")
     p.set_defaults(func=run_replay)

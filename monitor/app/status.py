@@ -1,13 +1,14 @@
 """`motor-monitor status FILE.prom [--watch S]`: the daemon's figures in the terminal, read
 from the metrics file it writes (`run --metrics`), parsed with prometheus_client's own
-text parser: per node its health, gamma^ and NIS; the bus load, frames, error frames, drops
-and rejections; the busiest IDs with their period and jitter; the estimation latency.
+text parser: per node its health, model-mismatch flag, gamma^ and NIS; the bus load,
+frames, error frames, drops and rejections; the busiest IDs with their period and jitter;
+the estimation latency.
 
 The file is read like every file a user names (`monitor.files.read_user_text`: a regular
 file, at most `METRICS_FILE_LIMIT`), and what it holds is checked before it is shown: a
 file that is not Prometheus text, holds no metrics, or has a sample the monitor never
-writes (a health state that is no `HealthState`, a node or ID label missing or not a
-number) is one `UsageError` line naming the file.
+writes (a health state that is no `HealthState`, a model-mismatch flag other than 0 or 1,
+a node or ID label missing or not a number) is one `UsageError` line naming the file.
 """
 
 from __future__ import annotations
@@ -110,6 +111,14 @@ def _state_label(value: float, node: str, path: Path) -> str:
                      f"{int(max(HealthState))})")
 
 
+def _flag(value: float, node: str, path: Path) -> str:
+    """"yes" or "no" for the model-mismatch gauge's 1 or 0; `UsageError` for anything else."""
+    if value in (0.0, 1.0):
+        return "yes" if value else "no"
+    raise UsageError(f"metrics file {shown_path(path)}: {_P}node_model_mismatch of node "
+                     f"{node} is {value!r}, not 0 or 1")
+
+
 def render(m: Samples, path: Path, age_s: float) -> str:
     """The figures of `m` as the terminal shows them; `UsageError`, one line, for a sample
     the monitor never writes (see the module's docstring)."""
@@ -124,15 +133,20 @@ def render(m: Samples, path: Path, age_s: float) -> str:
         f"{ev.get('e2e/lost_frames', 0):.0f} lost, "
         f"{ev.get('publish/sent', 0):.0f} diagnoses sent",
         "",
-        f"{'node':>4s}  {'state':15s} {'gamma^':>7s} {'NIS':>7s} {'samples':>9s}",
+        f"{'node':>4s}  {'state':11s} {'mismatch':8s} {'gamma^':>7s} {'NIS':>7s} "
+        f"{'samples':>9s}",
     ]
     gamma = dict(_labelled(m, _P + "node_gamma", "node", path))
     nis = dict(_labelled(m, _P + "node_nis", "node", path))
     samples = dict(_labelled(m, _P + "node_samples_total", "node", path))
+    # "-": a file of a monitor from before the flag (no such gauge)
+    mismatch = {n: _flag(v, n, path)
+                for n, v in _labelled(m, _P + "node_model_mismatch", "node", path)}
     for n, v in sorted(_labelled(m, _P + "node_health_state", "node", path),
                        key=lambda r: int(r[0])):
         state = _state_label(v, n, path)
-        lines.append(f"{n:>4s}  {state:15s} {gamma.get(n, math.nan):7.3f} "
+        lines.append(f"{n:>4s}  {state:11s} {mismatch.get(n, '-'):8s} "
+                     f"{gamma.get(n, math.nan):7.3f} "
                      f"{nis.get(n, math.nan):7.2f} {samples.get(n, 0):9.0f}")
     ids = sorted(_labelled(m, _P + "id_frames_total", "id", path), key=lambda r: -r[1])[:8]
     if ids:

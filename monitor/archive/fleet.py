@@ -5,8 +5,8 @@ matplotlib comes with the `archive` extra and is imported only when the figure i
 (the daemon never loads a plotting library). The states take the colours the recording
 gives them in the Rerun viewer's plots: fault in the colour of threshold F1 and outage in
 that of F2 (the thresholds that lead into them, `monitor.sinks.blueprint.STYLES`),
-fault-free in the true gamma's green, model mismatch in the rule count's purple, no data
-in the NIS grey, lightened.
+fault-free in the true gamma's green, no data in the NIS grey, lightened. (The
+model-mismatch flag stands beside the state: the summary's `seconds_model_mismatch`.)
 """
 
 from __future__ import annotations
@@ -32,7 +32,6 @@ STATE_COLOURS: dict[str, tuple[int, int, int]] = {
     "fault": _STYLE_COLOUR["gamma/F1"],
     "outage": _STYLE_COLOUR["gamma/F2"],
     "no_data": _lighten(_STYLE_COLOUR["nis"], 0.55),
-    "model_mismatch": _STYLE_COLOUR["rules"],
 }
 assert set(STATE_COLOURS) == set(STATES)
 

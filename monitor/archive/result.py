@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 from monitor.archive.engine import EngineRun
 from monitor.diagnosis.classifier import HealthState
+from monitor.pipeline.events import HEALTH
 
 __all__ = ["STATES", "LogResult", "NodeResult", "Transition", "failed_result", "log_result",
            "state_timeline"]
@@ -50,13 +51,15 @@ def state_timeline(transitions: tuple[Transition, ...], t_first: float,
 @dataclass(frozen=True)
 class NodeResult:
     """One node of one log: seconds in each health state between the log's first and last
-    frame, its transitions, estimated samples, worst NIS (NaN without samples)."""
+    frame, its health transitions, estimated samples, worst NIS (NaN without samples), and
+    seconds with the model-mismatch flag up (beside the state)."""
 
     node: int
     seconds_in_state: Mapping[str, float]
     transitions: tuple[Transition, ...]
     samples: int
     worst_nis: float
+    seconds_model_mismatch: float = 0.0
 
     def timeline(self, t_first: float, t_last: float) -> list[tuple[float, float, str]]:
         """(start, end, state) for every stretch of one state, covering [t_first, t_last]."""
@@ -105,14 +108,28 @@ def log_result(log: str, run: EngineRun, *, wall_s: float, events: str | None,
     nodes: list[NodeResult] = []
     for node in sorted(run.nodes):
         stats = run.nodes[node]
+        node_events = [e for e in run.transitions if e.node == node]
         transitions = tuple(Transition(e.t, e.previous, e.state, e.cause, e.gamma)
-                            for e in run.transitions if e.node == node)
+                            for e in node_events if e.kind == HEALTH)
         seconds = dict.fromkeys(STATES, 0.0)
+        flagged = 0.0
         if t_first is not None and t_last is not None:
             for start, end, state in state_timeline(transitions, t_first, t_last):
                 seconds[state] = seconds.get(state, 0.0) + (end - start)
+            # every event carries the flag after it: the flag's own timeline, from down
+            since: float | None = None
+            for e in node_events:
+                at = min(max(e.t, t_first), t_last)
+                if e.model_mismatch and since is None:
+                    since = at
+                elif not e.model_mismatch and since is not None:
+                    flagged += at - since
+                    since = None
+            if since is not None:
+                flagged += t_last - since
         nodes.append(NodeResult(node=node, seconds_in_state=seconds, transitions=transitions,
-                                samples=stats.samples, worst_nis=stats.worst_nis))
+                                samples=stats.samples, worst_nis=stats.worst_nis,
+                                seconds_model_mismatch=flagged))
     return LogResult(log=log, ok=run.failure is None, reason=run.failure or "",
                      frames=run.frames, wall_s=wall_s, t_first=t_first,
                      t_last=t_last, counters=dict(sorted(run.counters.items())),

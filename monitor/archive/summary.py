@@ -11,8 +11,9 @@ Columns, in order:
 * `frames`: frames read; `t_first`, `t_last`, `duration_s`: the log's first and last
   timestamps (bus time, s); `wall_s`: seconds its replay took;
 * `seconds_<state>`: seconds the node spent in each health state (`fault_free`, `fault`,
-  `outage`, `no_data`, `model_mismatch`) between the log's first and last frame; a node is
-  `no_data` until its first transition;
+  `outage`, `no_data`) between the log's first and last frame; a node is `no_data` until
+  its first transition; `seconds_model_mismatch`: seconds its model-mismatch flag was up
+  (beside the state, which it keeps);
 * `transitions_count`, `transitions`: the node's health transitions, in Parquet a list of
   structs (`t`, `previous`, `state`, `cause`, `gamma`), in CSV the same list as JSON;
 * `worst_nis`: the node's largest normalised innovation squared (empty without samples);
@@ -50,7 +51,7 @@ COLUMNS: tuple[tuple[str, pa.DataType], ...] = (
     ("log", pa.string()), ("node", pa.int64()), ("status", pa.string()),
     ("reason", pa.string()), ("frames", pa.int64()), ("t_first", pa.float64()),
     ("t_last", pa.float64()), ("duration_s", pa.float64()), ("wall_s", pa.float64()),
-    *((f"seconds_{s}", pa.float64()) for s in STATES),
+    *((f"seconds_{s}", pa.float64()) for s in STATES), ("seconds_model_mismatch", pa.float64()),
     ("transitions_count", pa.int64()), ("transitions", pa.list_(_TRANSITION)),
     ("worst_nis", pa.float64()), ("samples", pa.int64()),
     ("events", pa.string()), ("rrd", pa.string()), ("rrd_parts", pa.int64()),
@@ -82,12 +83,14 @@ def summary_rows(results: Sequence[LogResult], out: Path) -> tuple[list[dict[str
         counts = {name: int(r.counters.get(name, 0)) for name in counters}
         if not r.nodes:
             rows.append({**common, "node": None, **{f"seconds_{s}": 0.0 for s in STATES},
+                         "seconds_model_mismatch": 0.0,
                          "transitions_count": 0, "transitions": [], "worst_nis": None,
                          "samples": 0, **counts})
         for n in r.nodes:
             rows.append({
                 **common, "node": n.node,
                 **{f"seconds_{s}": n.seconds_in_state.get(s, 0.0) for s in STATES},
+                "seconds_model_mismatch": n.seconds_model_mismatch,
                 "transitions_count": len(n.transitions),
                 "transitions": [{"t": tr.t, "previous": tr.previous, "state": tr.state,
                                  "cause": tr.cause, "gamma": tr.gamma}

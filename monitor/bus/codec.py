@@ -280,10 +280,12 @@ class MotorDatabase:
         fault: float,
         rules: int,
         counter: int,
+        model_mismatch: bool = False,
     ) -> bytes:
         """MonitorDiagnosis payload with counter and E2E CRC.
 
-        `state` is a name from `HEALTH_STATES` or its index; `fault` is gamma*u in volts.
+        `state` is a name from `HEALTH_STATES` or its index; `fault` is gamma*u in volts;
+        `model_mismatch` the flag beside the state (signal ModelMismatch, bit 56).
         Values outside the DBC range raise `CodecError`: clipping is the caller's decision.
         """
         if isinstance(state, str):
@@ -303,6 +305,7 @@ class MotorDatabase:
             "GammaEstimate": gamma,
             "FaultEstimate": fault,
             "RuleCount": rules,
+            "ModelMismatch": 1 if model_mismatch else 0,
         }
         return self._encode("diagnosis", node, signals, counter)
 

@@ -17,7 +17,8 @@ message names carry the node as ``_N<node>``, e.g. ``MotorCurrent_N3``):
   TrueGamma (0..1, 1e-4), TrueCurrent (A, 0.01, +-300), TrueSpeed (rad/s, 0.01, +-3000).
 * ``diagnosis`` MonitorDiagnosis_N<n>, 0x180 + n, 100 ms, Monitor: HealthState (bits
   12-15, VAL_ `HEALTH_STATES`), GammaEstimate (0.001, -0.5..1.5: signed because estimator
-  transients undershoot 0), FaultEstimate (gamma*u, V, 0.1, +-1000), RuleCount (0..255), E2E.
+  transients undershoot 0), FaultEstimate (gamma*u, V, 0.1, +-1000), RuleCount (0..255),
+  ModelMismatch (bit 56: the model-mismatch flag beside the state, 0/1), E2E.
 * ``sync``      SecOCSync_N<n>, 0x1F0 + n, 1 s per stream, MotorECU -> Monitor, only with
   SecOC on: SyncKind (bits 0-3, VAL_ 0 current, 1 voltage: `SECOC_KINDS`), SyncFreshness
   (bits 8-39, the low 32 bits of that stream's freshness value), SyncAuthenticator (bits

@@ -10,8 +10,8 @@ results on every test log.
   (`MonitorPipeline._periods`, `monitor.pipeline.periods`) and late samples.
 * `classify`: per node, samples and ticks in order: `OnlineClassifier.update` and
   `mark_no_data` (eq (76) with hysteresis and dwell), `MismatchDetector.update` and
-  `reset`, the health-state transitions and the due `Diagnosis` of `_on_output` and
-  `tick`.
+  `reset`, the reported state (`reported_state`), the model-mismatch flag's and the health
+  state's changes and the due `Diagnosis` of `MonitorPipeline._report` and `tick`.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from monitor.diagnosis.classifier import reported_state
 from monitor.estimation.jit import njit
 from monitor.pipeline import periods
 
@@ -35,9 +36,9 @@ B1 = NDArray[np.bool_]
 
 # classify state vector (floats; NaN stands for None)
 CLS_STATE = ("state", "cand", "cand_since", "away_since", "cls_last_t", "avg", "out_since",
-             "in_since", "flagged", "last_publish", "last_t")
+             "in_since", "flagged", "last_publish", "last_t", "reported")
 CLS_PARAMS = ("f1", "f2", "f1_up", "f1_down", "f2_up", "f2_down", "dwell", "mm_a", "mm_lo",
-              "mm_hi", "mm_dwell", "p", "publish_period", "silence_timeout")
+              "mm_hi", "mm_dwell", "p", "publish_period", "silence_timeout", "withhold")
 
 
 @njit
@@ -102,11 +103,7 @@ def admit(t: F8, lost: I8, wrap: B1, seen: B1, last: F8, rate: float, max_gap: f
     last[0] = lt
 
 
-@njit
-def _reported(s: F8) -> int:
-    if s[8] != 0.0 and s[0] != 3.0:
-        return 4
-    return int(s[0])
+_reported_state = njit(reported_state)
 
 
 @njit
@@ -182,54 +179,84 @@ def _mm_update(s: F8, prm: F8, t: float, nis: float) -> int:
 
 
 @njit
+def _report(s: F8, prm: F8, i: int, ti: float, was: bool, fcause: int, hcause: int, due: bool,
+            state_out: I8, ev: I8, prev_out: I8, cause: I8, fev: I8, flag_out: B1) -> None:
+    """`MonitorPipeline._report`: the reported state after item i, the flag's change (fev:
+    its cause + 1), the state's (cause; -1: "model" for an alarm the flag held until now,
+    else "estimate") and the due Diagnosis."""
+    prev = int(s[11])
+    flagged = s[8] != 0.0
+    c = int(s[0])
+    w = prm[14] != 0.0
+    new = _reported_state(c, prev, flagged, w)
+    s[11] = float(new)
+    changed = flagged != was
+    fev[i] = fcause + 1 if changed else 0
+    if new != prev:
+        if hcause < 0:
+            held = was and not flagged and _reported_state(c, prev, True, w) != c
+            hcause = 1 if held else 0
+        cause[i] = hcause
+        changed = True
+    prev_out[i] = prev
+    if changed:
+        ev[i] = 1
+        s[9] = ti
+    elif due and ti - s[9] >= prm[12]:
+        ev[i] = 2
+        s[9] = ti
+    state_out[i] = new
+    flag_out[i] = flagged
+
+
+@njit
 def classify(is_tick: B1, t: F8, g: F8, nis: F8, reset_before: B1, nan: B1, s: F8,
-             prm: F8, state_out: I8, ev: I8, prev_out: I8, cause: I8, counts: I8) -> None:
+             prm: F8, state_out: I8, ev: I8, prev_out: I8, cause: I8, fev: I8, flag_out: B1,
+             counts: I8) -> None:
     """One node's samples and ticks in bus order (see the module docstring).
 
-    Per item: state_out the reported state after it; ev 0 nothing, 1 a transition (and its
-    Diagnosis), 2 a Diagnosis only; prev_out the state before a transition; cause 0
-    estimate, 1 model, 2 silence. counts += [nodes/model_mismatch, nodes/silent].
+    Per item: state_out the reported state after it, flag_out the model-mismatch flag after
+    it; ev 0 nothing, 1 a change (and its Diagnosis), 2 a Diagnosis only; prev_out the state
+    before it; a health transition where ev is 1 and prev_out differs from state_out, its
+    cause 0 estimate, 1 model, 2 silence; fev 0 no flag change, else the flag's cause + 1
+    (0 nis, 1 restart, 2 silence). counts += [nodes/model_mismatch, nodes/silent].
     """
     for i in range(t.shape[0]):
         ev[i] = 0
+        fev[i] = 0
         ti = t[i]
+        was = s[8] != 0.0
         if is_tick[i]:
             lt = s[10]
             silent = lt != lt or ti - lt >= prm[13]
             if silent and int(s[0]) != 3:
-                prev = _reported(s)
                 if ti > s[4]:
                     s[4] = ti
                 _enter(s, 3)
                 _mm_reset(s, prm)
                 counts[1] += 1
-                ev[i] = 1
-                prev_out[i] = prev
-                cause[i] = 2
-                s[9] = ti
-            elif silent and ti - s[9] >= prm[12]:
+                _report(s, prm, i, ti, was, 2, 2, False, state_out, ev, prev_out, cause, fev,
+                        flag_out)
+                continue
+            if silent and ti - s[9] >= prm[12]:
                 ev[i] = 2
                 s[9] = ti
-            state_out[i] = _reported(s)
+            prev_out[i] = int(s[11])
+            state_out[i] = int(s[11])
+            flag_out[i] = was
             continue
         s[10] = ti
+        fc = 0
         if reset_before[i]:
             _mm_reset(s, prm)
+            fc = 1
         if nan[i]:
             _mm_reset(s, prm)
-            state_out[i] = _reported(s)
+            _report(s, prm, i, ti, was, 1, -1, False, state_out, ev, prev_out, cause, fev,
+                    flag_out)
             continue
-        prev = _reported(s)
         _cls_update(s, prm, ti, g[i])
         if _mm_update(s, prm, ti, nis[i]) == 1:
             counts[0] += 1
-        new = _reported(s)
-        if new != prev:
-            ev[i] = 1
-            prev_out[i] = prev
-            cause[i] = 1 if (prev == 4 or new == 4) else 0
-            s[9] = ti
-        elif ti - s[9] >= prm[12]:
-            ev[i] = 2
-            s[9] = ti
-        state_out[i] = new
+        _report(s, prm, i, ti, was, fc, -1, True, state_out, ev, prev_out, cause, fev,
+                flag_out)

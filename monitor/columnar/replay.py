@@ -31,7 +31,14 @@ from monitor.estimation.model import DiscreteModel
 from monitor.pipeline import MonitorConfig
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import Counters
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, SampleColumns
+from monitor.pipeline.events import (
+    HEALTH,
+    MODEL_MISMATCH,
+    BusEvent,
+    Diagnosis,
+    DiagnosisEvent,
+    SampleColumns,
+)
 from monitor.sinks.base import Sink
 
 __all__ = ["ReplayResult", "columnar_obstacle", "replay_chunks", "replay_file"]
@@ -46,8 +53,9 @@ class ReplayResult:
     """What a replay of one log did.
 
     frames: frames read; counters: the pipeline's counters at the end; events: every
-    health-state transition, in order; nodes: per node its final state, gamma^, rules and
-    samples (as `MonitorPipeline.summary` gives them); columnar: False when the file went
+    `DiagnosisEvent` (health transitions and model-mismatch flag changes), in order; nodes:
+    per node its final state, model-mismatch flag, gamma^, rules and samples (as
+    `MonitorPipeline.summary` gives them); columnar: False when the file went
     through the per-frame path, `fallback` says why.
     """
 
@@ -77,7 +85,7 @@ class _Node:
         self.last_admit = np.array([math.nan])
         s = np.zeros(len(K.CLS_STATE))
         s[:] = [3.0, -1.0, 0.0, math.nan, -math.inf, 0.0, math.nan, math.nan, 0.0,
-                -math.inf, math.nan]
+                -math.inf, math.nan, 3.0]
         s[5] = cls_prm[11]
         self.s = s
         self.gamma = np.zeros(model.m)  # the estimator's latest gamma^ (fresh: zeros)
@@ -97,7 +105,7 @@ def _cls_params(cfg: MonitorConfig, p: int) -> NDArray[np.float64]:
     lo, hi = mm.band
     return np.array([c._f1, c._f2, c._f1_up, c._f1_down, c._f2_up, c._f2_down, c._dwell,
                      mm._a, lo, hi, mm.dwell_s, float(p), cfg.publish_period_s,
-                     cfg.silence_timeout_s])
+                     cfg.silence_timeout_s, float(cfg.withhold_alarms_on_mismatch)])
 
 
 def _held(has: NDArray[np.bool_], values: NDArray[np.float64], carried: float,
@@ -258,7 +266,8 @@ class _Replay:
         events.sort(key=lambda e: (e[0], e[1], e[2]))
         for _, _, _, ev in events:
             if isinstance(ev, DiagnosisEvent):
-                cnt.inc(C.transition(ev.state))
+                if ev.kind == HEALTH:
+                    cnt.inc(C.transition(ev.state))
                 self.events.append(ev)
                 self.sink.on_transition(ev)
             elif isinstance(ev, Diagnosis):
@@ -358,7 +367,7 @@ class _Replay:
         dts: NDArray[np.float64] = (kA * nm.T).astype(np.float64)
         nA = len(A)
         gam = np.zeros((nA, m))
-        yest = np.zeros(nA)
+        yest = np.zeros((nA, self.model.p))  # every output, for the samples file
         nis = np.zeros(nA)
         rules = np.zeros(nA, np.int64)
         isnan = np.zeros(nA, np.bool_)
@@ -372,7 +381,7 @@ class _Replay:
             res = step_many(nm.est, U[i:end], Y[i:end], dts[i:end])
             j = i + res.count
             gam[i:j] = res.gamma[:res.count]
-            yest[i:j] = res.y_est[:res.count, 0]
+            yest[i:j] = res.y_est[:res.count]
             nis[i:j] = res.nis[:res.count]
             rules[i:j] = res.rules[:res.count]
             n_events += int(res.structure_event[:res.count].sum())
@@ -406,9 +415,11 @@ class _Replay:
         ev = np.zeros(L, np.int64)
         prev = np.zeros(L, np.int64)
         cause = np.zeros(L, np.int64)
+        fev = np.zeros(L, np.int64)
+        flag = np.zeros(L, np.bool_)
         counts = np.zeros(2, np.int64)
         K.classify(is_tick, tt, gg, ni, rb, nn, nm.s, self.cls_prm, st_out, ev, prev, cause,
-                   counts)
+                   fev, flag, counts)
         if counts[0]:
             cnt.inc(C.NODES_MODEL_MISMATCH, int(counts[0]))
         if counts[1]:
@@ -417,12 +428,16 @@ class _Replay:
         sample_of = order_k[~is_tick]  # item -> sample index, in order
         st_sample = np.zeros(nA, np.int64)
         st_sample[sample_of] = st_out[~is_tick]
+        mm_sample = np.zeros(nA, np.bool_)
+        mm_sample[sample_of] = flag[~is_tick]
         good = ~isnan
         if good.any():
             self.router.samples(nm.node, SampleColumns(
-                t=c.t[pos_s][good], measured=Y[good, 0], estimated=yest[good],
+                t=c.t[pos_s][good], measured=Y[good, 0], estimated=yest[good, 0],
                 gamma=gmax[good], rules=rules[good], state=st_sample[good], nis=nis[good],
-                true_gamma=np.where(got_t[oA], held_t[oA], np.nan)[good]))
+                true_gamma=np.where(got_t[oA], held_t[oA], np.nan)[good],
+                model_mismatch=mm_sample[good],
+                inputs=U[good], outputs=Y[good], predicted=yest[good], gammas=gam[good]))
         # transitions and due diagnoses
         if not self.router.wants_diagnosis:
             ev[ev == 2] = 0
@@ -454,32 +469,35 @@ class _Replay:
             fv = float(g_vec[j] * u_vec[j])
             t_ev = float(tt[item])
             state = _STATES[int(st_out[item])]
+            p_state = _STATES[int(prev[item])]
+            mm = bool(flag[item])
             key = int(tick_keys[item])
-            if ev[item] == 1:
-                p_state = _STATES[int(prev[item])]
+            if fev[item]:  # the flag's event first (`MonitorPipeline._report`)
+                events.append((key, order, len(events), DiagnosisEvent(
+                    t=t_ev, node=nm.node, state=p_state.label, previous=p_state.label,
+                    gamma=g, fault_volts=fv, rules=rl,
+                    cause=("nis", "restart", "silence")[int(fev[item]) - 1],
+                    model_mismatch=mm, kind=MODEL_MISMATCH)))
+            if ev[item] == 1 and state != p_state:
                 why = ("estimate", "model", "silence")[int(cause[item])]
                 events.append((key, order, len(events), DiagnosisEvent(
                     t=t_ev, node=nm.node, state=state.label, previous=p_state.label, gamma=g,
-                    fault_volts=fv, rules=rl, cause=why)))
+                    fault_volts=fv, rules=rl, cause=why, model_mismatch=mm)))
             if self.router.wants_diagnosis:
                 events.append((key, order, len(events),
-                               Diagnosis(nm.node, t_ev, state, g, fv, rl)))
+                               Diagnosis(nm.node, t_ev, state, g, fv, rl, mm)))
 
     @functools.cached_property
     def _fresh_rules(self) -> int:
         return FuzzyUKF(self.model, self.cfg.estimator).out.rules
 
     def result(self, path: Path | None) -> ReplayResult:
-        nodes = {n: {"state": _STATES[_reported(nm.s)].label, "gamma": float(nm.gamma.max()),
+        nodes = {n: {"state": _STATES[int(nm.s[11])].label,
+                     "model_mismatch": bool(nm.s[8] != 0.0), "gamma": float(nm.gamma.max()),
                      "rules": nm.rules, "samples": nm.samples}
                  for n, nm in sorted(self.nodes.items())}
         return ReplayResult(path, self.offset, dict(sorted(self.counters.items())),
                             list(self.events), nodes)
-
-
-def _reported(s: NDArray[np.float64]) -> int:
-    """`NodeMonitor.state`: model_mismatch while flagged, unless no data."""
-    return 4 if s[8] != 0.0 and s[0] != 3.0 else int(s[0])
 
 
 def columnar_obstacle(db: Any, cfg: MonitorConfig | None = None) -> str | None:

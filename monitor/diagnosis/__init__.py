@@ -49,7 +49,8 @@ Online use
 `classify` is (76) applied to one value. `OnlineClassifier` adds a hysteresis band around
 each threshold and a dwell time measured in sample timestamps, so noise near a threshold
 does not make the reported state flicker. `HealthState` values are the numbers sent on the
-CAN bus.
+CAN bus. `MismatchDetector` raises a model-mismatch flag beside the state (the innovations
+say the model does not explain the plant); `reported_state` is the state reported with it.
 """
 
 from monitor.diagnosis.classifier import (
@@ -57,6 +58,7 @@ from monitor.diagnosis.classifier import (
     MismatchDetector,
     OnlineClassifier,
     classify,
+    reported_state,
     transitions,
 )
 from monitor.diagnosis.fcm import (
@@ -87,6 +89,7 @@ __all__ = [
     "fcm_memberships",
     "fuzzy_c_means",
     "load_thresholds",
+    "reported_state",
     "save_thresholds",
     "thresholds_from_clusters",
     "transitions",

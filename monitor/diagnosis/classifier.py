@@ -8,29 +8,26 @@ from enum import IntEnum
 
 from monitor.diagnosis.thresholds import DiagnosisError, Thresholds
 
-__all__ = ["HealthState", "MismatchDetector", "OnlineClassifier", "classify", "transitions"]
-
-
+__all__ = ["HealthState", "MismatchDetector", "OnlineClassifier", "classify", "reported_state",
+           "transitions"]
 
 
 class HealthState(IntEnum):
     """Diagnosed actuator health; the integer values are sent on the CAN bus.
 
-    The regions of (76) give FAULT_FREE, FAULT and OUTAGE; NO_DATA is a silent node;
-    MODEL_MISMATCH is not a region of (76) but a verdict on the model: the innovations say
-    the model no longer explains the plant (see `MismatchDetector`), so gamma^ -- and a
-    fault alarm read from it -- cannot be trusted.
+    The regions of (76) give FAULT_FREE, FAULT and OUTAGE; NO_DATA is a silent node. Whether
+    the model explains the plant is not a state but a flag beside it (`MismatchDetector`):
+    a node keeps its diagnosis while the flag is up.
     """
 
     FAULT_FREE = 0
     FAULT = 1
     OUTAGE = 2
     NO_DATA = 3
-    MODEL_MISMATCH = 4
 
     @property
     def label(self) -> str:
-        """'fault_free', 'fault', 'outage', 'no_data' or 'model_mismatch'."""
+        """'fault_free', 'fault', 'outage' or 'no_data'."""
         return self.name.lower()
 
 
@@ -199,6 +196,22 @@ class OnlineClassifier:
         if t - self._away_since >= self._dwell - slack:
             return self._enter(1 if s != 1 else c, t, self._away_since)
         return None
+
+
+def reported_state(classified: int, reported: int, flagged: bool, withhold: bool) -> int:
+    """The health state a node reports, from the classifier's (eq (76), debounced).
+
+    The classifier's state, except with `withhold` (a rig's `withhold_alarms_on_mismatch`)
+    while the model-mismatch flag is up: a change to fault (1) or outage (2) is held -- the
+    node keeps reporting `reported`, the state it reported before -- because gamma^ is read
+    through a model the innovations reject. Every other change (to fault_free, no_data) goes
+    through. When the flag falls the classifier's state is reported again: an alarm still
+    there is reported then. Plain ints (`HealthState` values), so the columnar kernels
+    compile this very function.
+    """
+    if withhold and flagged and classified != reported and (classified == 1 or classified == 2):
+        return reported
+    return classified
 
 
 def transitions(

@@ -1133,14 +1133,25 @@ class FuzzyUKF:
         no time update, so it cannot be processed again from the state before it.
         """
         self._needs_init = False
-        st = start_state(self.model, u, y, self.P.copy())
+        try:
+            st = start_state(self.model, u, y, self.P.copy())
+            Ls = np.linalg.cholesky(st.S) if st.measured and st.S is not None else None
+        except np.linalg.LinAlgError:
+            # a start the float range does not hold (a model or a sample at its edge: the
+            # wide prior's innovation covariance not positive definite): the steady state,
+            # else rest -- a start must never raise on a model the rig check accepted
+            try:
+                x0, V0 = steady_start(self.model, u, y)
+            except np.linalg.LinAlgError:
+                x0, V0 = np.zeros_like(self.x), np.zeros_like(self.V)
+            st, Ls = StartState(False, x0, V0, self.P.copy()), None
         self.x[:] = st.x
         self.V[:] = st.V
         self.P[:] = st.P
         if not st.measured:
             return False
         assert st.x_prior is not None and st.y_prior is not None
-        assert st.nu is not None and st.S is not None
+        assert st.nu is not None and Ls is not None
         self.common_var[self._faulty] = self.config.var_start
         self._onset_floor = 1
         out = self.out
@@ -1149,7 +1160,6 @@ class FuzzyUKF:
         out.x_tilde[:] = st.x_prior  # the fault model's state (52) before the output
         out.x_e[:] = st.x_prior - st.x
         out.y_hat[:] = st.y_prior
-        Ls = np.linalg.cholesky(st.S)
         out.innovation[:] = scipy.linalg.solve_triangular(Ls, st.nu, lower=True)
         out.y_est[:] = self.model.C @ st.x + self.model.D @ u
         self._stats[0] = float(out.innovation @ out.innovation)  # NIS

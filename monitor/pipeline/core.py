@@ -33,8 +33,10 @@ times the 4-bit counter wrapped in a long gap: the whole wraps that fit, so a fr
 samples that the estimator predicts through.
 
 A node whose current frames stop for `silence_timeout_s` turns to `no_data` (see `tick`).
-A node's `Diagnosis` is due on every state change and at a steady rate (the bus publisher
-sink turns it into a MonitorDiagnosis frame).
+A node's `Diagnosis` is due on every change of its state or of its model-mismatch flag
+(`MismatchDetector`, a flag beside the state, never replacing it; `DiagnosisEvent` says how
+both are reported) and at a steady rate (the bus publisher sink turns it into a
+MonitorDiagnosis frame).
 
 What comes out goes to one `monitor.sinks.Sink` (a `FanOut` for several): typed events
 from `monitor.pipeline.events`, never Rerun calls or CAN frames. Interface outages and
@@ -62,6 +64,7 @@ from monitor.diagnosis import (
     MismatchDetector,
     OnlineClassifier,
     Thresholds,
+    reported_state,
 )
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import (
@@ -72,7 +75,15 @@ from monitor.estimation.model import (
 )
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import Counters
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.pipeline.events import (
+    HEALTH,
+    MODEL_MISMATCH,
+    BusEvent,
+    Diagnosis,
+    DiagnosisEvent,
+    Sample,
+    VoltageSample,
+)
 from monitor.pipeline.periods import counter_periods, wrapped
 from monitor.sinks import base as sinks
 
@@ -101,6 +112,9 @@ class MonitorConfig:
     rate: nominal output-sample rate of the ECUs (Hz).
     model: the plant of every node; None: the DC motor of `motor`, `process_noise` and
     `current_sigma` (the paper's Table 1 by default).
+    withhold_alarms_on_mismatch: while a node's model-mismatch flag is up, hold a change
+    to fault or outage until the flag falls (`monitor.diagnosis.reported_state`); off by
+    default: a fault the estimator sees is reported, mismatch or not.
     """
 
     nodes: tuple[int, ...] | None = None
@@ -119,6 +133,7 @@ class MonitorConfig:
     model: ContinuousDescriptor | None = None
     mismatch_window_s: float = 2.0
     mismatch_dwell_s: float = 3.0
+    withhold_alarms_on_mismatch: bool = False  # see `monitor.diagnosis.reported_state`
     jitter_fraction: float = 0.25  # of a period: counted as time/jitter (no counter)
 
     def plant(self) -> ContinuousDescriptor:
@@ -167,6 +182,7 @@ class NodeMonitor:
         self.last_publish: float = -math.inf
         self.truth_gamma: float | None = None
         self.samples = 0
+        self.reported = HealthState.NO_DATA
 
     @property
     def voltage(self) -> float | None:
@@ -174,16 +190,22 @@ class NodeMonitor:
         return float(self.u[0]) if self.u_seen[0] else None
 
     def restart(self) -> None:
-        """Forget the estimate (after a gap too long to predict through)."""
+        """Forget the estimate (after a gap too long to predict through, or a NaN); the
+        mismatch detector forgets the innovations of the old estimate with it."""
         self.estimator = FuzzyUKF(self.model, self.cfg.estimator)
         self.mismatch.reset(self.model.p)
 
     @property
     def state(self) -> HealthState:
-        """The reported state: the classifier's, unless the model no longer fits."""
-        if self.mismatch.flagged and self.classifier.state != HealthState.NO_DATA:
-            return HealthState.MODEL_MISMATCH
-        return self.classifier.state
+        """The reported state: the classifier's, or the one held before it while the
+        model-mismatch flag is up (`reported_state`, with withhold_alarms_on_mismatch)."""
+        return self.reported
+
+    @property
+    def model_mismatch(self) -> bool:
+        """The model-mismatch flag: the innovations say the model does not explain the
+        plant (`MismatchDetector`); it stands beside the state, never replaces it."""
+        return self.mismatch.flagged
 
     @property
     def gamma(self) -> float:
@@ -327,6 +349,8 @@ class MonitorPipeline:
             self.counters.inc(C.SAMPLES_NO_VOLTAGE)
             return
         last = nm.last_t
+        was_flagged = nm.mismatch.flagged
+        flag_cause = "nis"
         if last is None:
             k = 1
         else:
@@ -337,6 +361,7 @@ class MonitorPipeline:
             if dt > self.cfg.max_gap_s:
                 self.counters.inc(C.ESTIMATOR_RESTARTS)
                 nm.restart()
+                flag_cause = "restart"
                 k = 1
             else:
                 k = self._periods(dt, lost)
@@ -353,21 +378,20 @@ class MonitorPipeline:
         if g != g:  # NaN can only come from a numerical failure: count, restart
             self.counters.inc(C.ESTIMATOR_NAN)
             nm.restart()
+            self._report(nm, t, was_flagged, "restart", due=False)
             return
         if out.structure_event:
             self.counters.inc(C.ESTIMATOR_STRUCTURE_EVENTS)
-        prev = nm.state
         nm.classifier.update(t, g)
         if nm.mismatch.update(t, float(out.nis)) is True:
             self.counters.inc(C.NODES_MODEL_MISMATCH)
-        new = nm.state
-        if new != prev:
-            self._transition(nm, t, prev, new, "model" if HealthState.MODEL_MISMATCH in
-                             (prev, new) else "estimate")
-        elif t - nm.last_publish >= self.cfg.publish_period_s:
-            self._diagnosis_due(nm, t)
+        new = self._report(nm, t, was_flagged, flag_cause, due=True)
         self.sink.on_sample(Sample(nm.node, t, float(outputs[0]), float(out.y_est[0]), g,
-                                   out.rules, new, float(out.nis), nm.truth_gamma))
+                                   out.rules, new, float(out.nis), nm.truth_gamma,
+                                   nm.mismatch.flagged,
+                                   inputs=tuple(nm.u.tolist()), outputs=tuple(y.tolist()),
+                                   predicted=tuple(out.y_est.tolist()),
+                                   gammas=tuple(out.gamma.tolist())))
         if t - self._last_counters_t >= self.cfg.counters_period_s:
             self.emit_counters(t)
 
@@ -392,30 +416,58 @@ class MonitorPipeline:
 
     # ------------------------------------------------------------------ diagnosis out
 
-    def _transition(self, nm: NodeMonitor, t: float, prev: HealthState, new: HealthState,
-                    cause: str) -> None:
+    def _report(self, nm: NodeMonitor, t: float, was_flagged: bool, flag_cause: str, *,
+                due: bool, health_cause: str | None = None) -> HealthState:
+        """After a step (or a reset) of a node's classifier and mismatch detector: the new
+        reported state (`reported_state`), the events of what changed -- the flag's first,
+        then the state's (cause `health_cause`, by default "model" for an alarm the flag
+        held until now, else "estimate") -- and one due `Diagnosis` if anything changed,
+        or if `due` and the publication period has passed."""
+        prev = nm.reported
+        flagged = nm.mismatch.flagged
+        c = int(nm.classifier.state)
+        w = self.cfg.withhold_alarms_on_mismatch
+        new = HealthState(reported_state(c, int(prev), flagged, w))
+        nm.reported = new
+        changed = flagged != was_flagged
+        if changed:
+            self._event(nm, t, prev, prev, flag_cause, MODEL_MISMATCH)
+        if new != prev:
+            if health_cause is None:
+                held = was_flagged and not flagged and reported_state(c, int(prev), True, w) != c
+                health_cause = "model" if held else "estimate"
+            self._event(nm, t, prev, new, health_cause, HEALTH)
+            changed = True
+        if changed or (due and t - nm.last_publish >= self.cfg.publish_period_s):
+            self._diagnosis_due(nm, t)
+        return new
+
+    def _event(self, nm: NodeMonitor, t: float, prev: HealthState, new: HealthState,
+               cause: str, kind: str) -> None:
         ev = DiagnosisEvent(t=t, node=nm.node, state=new.label, previous=prev.label,
                             gamma=nm.gamma, fault_volts=nm.fault_volts,
-                            rules=nm.estimator.out.rules, cause=cause)
-        self.counters.inc(C.transition(new.label))
+                            rules=nm.estimator.out.rules, cause=cause,
+                            model_mismatch=nm.mismatch.flagged, kind=kind)
+        if kind == HEALTH:
+            self.counters.inc(C.transition(new.label))
         self.sink.on_transition(ev)
-        self._diagnosis_due(nm, t)
 
     def _diagnosis_due(self, nm: NodeMonitor, t: float) -> None:
         nm.last_publish = t
         self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.state, nm.gamma, nm.fault_volts,
-                                         nm.estimator.out.rules))
+                                         nm.estimator.out.rules, nm.mismatch.flagged))
 
     def tick(self, now: float) -> None:
         """Timeouts and steady publication, at bus time `now` (no frame needed)."""
         for nm in self.nodes.values():
             silent = nm.last_t is None or now - nm.last_t >= self.cfg.silence_timeout_s
             if silent and nm.classifier.state != HealthState.NO_DATA:
-                prev = nm.state
+                was_flagged = nm.mismatch.flagged
                 nm.classifier.mark_no_data(now)
                 nm.mismatch.reset(nm.model.p)
                 self.counters.inc(C.NODES_SILENT)
-                self._transition(nm, now, prev, HealthState.NO_DATA, "silence")
+                self._report(nm, now, was_flagged, "silence", due=False,
+                             health_cause="silence")
             elif silent and now - nm.last_publish >= self.cfg.publish_period_s:
                 self._diagnosis_due(nm, now)
         # Counters go with estimated samples (at their time stamps); when none come (a
@@ -448,7 +500,8 @@ class MonitorPipeline:
         return {
             "counters": dict(sorted(self.counters.items())),
             "nodes": {
-                n: {"state": nm.state.label, "gamma": nm.gamma,
+                n: {"state": nm.state.label, "model_mismatch": nm.model_mismatch,
+                    "gamma": nm.gamma,
                     "rules": nm.estimator.out.rules, "samples": nm.samples}
                 for n, nm in sorted(self.nodes.items())
             },

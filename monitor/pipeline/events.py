@@ -6,20 +6,28 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
+from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
 
 from monitor.diagnosis.classifier import HealthState
 
-__all__ = ["BusEvent", "Diagnosis", "DiagnosisEvent", "Sample", "SampleColumns", "VoltageSample"]
+__all__ = ["HEALTH", "MODEL_MISMATCH", "BusEvent", "Diagnosis", "DiagnosisEvent", "Sample",
+           "SampleColumns", "VoltageSample"]
 
 
 @dataclass(frozen=True, slots=True)
 class Sample:
     """One estimator step of a node: the measured and estimated output, gamma^ (the
     estimated loss of effectiveness), the rule count, the reported health state, the
-    normalised innovation squared and, from a virtual ECU, the true gamma."""
+    normalised innovation squared and, from a virtual ECU, the true gamma.
+
+    `measured`/`estimated` are the first output (what the recording plots); `inputs`
+    (held at the sample), `outputs`, `predicted` (the estimate's outputs) and `gammas`
+    (gamma^ per input, 0 for a known one) carry every signal of a multi-input
+    multi-output rig, in the rig's order, for the samples file (empty where a producer
+    fills none)."""
 
     node: int
     t: float
@@ -30,6 +38,11 @@ class Sample:
     state: HealthState
     nis: float
     true_gamma: float | None = None
+    model_mismatch: bool = False  # the node's flag after this step (`DiagnosisEvent`)
+    inputs: tuple[float, ...] = ()
+    outputs: tuple[float, ...] = ()
+    predicted: tuple[float, ...] = ()
+    gammas: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,9 +54,31 @@ class VoltageSample:
     volts: float
 
 
+HEALTH: Final = "health"
+"""`DiagnosisEvent.kind` of a change of the health state."""
+MODEL_MISMATCH: Final = "model_mismatch"
+"""`DiagnosisEvent.kind` of a change of the model-mismatch flag."""
+
+
 @dataclass(frozen=True)
 class DiagnosisEvent:
-    """A change of a node's health state (also written as a JSON line by `replay`)."""
+    """A change of a node's diagnosis: of its health state or of its model-mismatch flag
+    (also written as a JSON line by `replay` and `--events`).
+
+    Every event carries the node's state and flag after it (`state`, `model_mismatch`), so
+    a reader of the events alone knows both at any time. `kind` says which changed:
+
+    * ``"health"``: `previous` -> `state`; `cause` ``"estimate"`` (the classifier of (76)
+      moved), ``"silence"`` (no frames for the silence timeout) or ``"model"`` (an alarm
+      held while the flag was up, `reported_state`, reported as the flag falls).
+    * ``"model_mismatch"``: the flag rose or fell (to `model_mismatch`); the state is
+      unchanged (`previous` == `state`): the flag stands beside the diagnosis, it does not
+      replace it. `cause` ``"nis"`` (the windowed NIS left its band, or came back, for the
+      dwell: `MismatchDetector`), ``"silence"`` or ``"restart"`` (the estimator restarted
+      after a gap or a numerical failure; the detector forgets its history with it).
+
+    When both change at one sample, the flag's event comes first.
+    """
 
     t: float
     node: int
@@ -52,7 +87,9 @@ class DiagnosisEvent:
     gamma: float
     fault_volts: float
     rules: int
-    cause: str  # "estimate" or "silence"
+    cause: str
+    model_mismatch: bool = False
+    kind: str = HEALTH
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), separators=(",", ":"))
@@ -60,12 +97,19 @@ class DiagnosisEvent:
     @property
     def text(self) -> str:
         """One human line, as the log and the recording show it."""
+        if self.kind == MODEL_MISMATCH:
+            what = "raised" if self.model_mismatch else "cleared"
+            return (f"model mismatch {what} ({self.cause}; diagnosis {self.state}, "
+                    f"gamma^ = {self.gamma:.3f})")
+        flag = ", model mismatch" if self.model_mismatch else ""
         return (f"{self.previous} -> {self.state} (gamma^ = {self.gamma:.3f}, "
-                f"{self.rules} rules, {self.cause})")
+                f"{self.rules} rules, {self.cause}{flag})")
 
     @property
     def level(self) -> str:
-        """INFO for a return to fault-free, WARN for anything else."""
+        """INFO for a return to fault-free or a cleared flag, WARN for anything else."""
+        if self.kind == MODEL_MISMATCH:
+            return "WARN" if self.model_mismatch else "INFO"
         return "INFO" if self.state == HealthState.FAULT_FREE.label else "WARN"
 
 
@@ -83,6 +127,7 @@ class Diagnosis:
     gamma: float
     fault_volts: float
     rules: int
+    model_mismatch: bool = False  # the flag beside the state (`DiagnosisEvent`)
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,7 +145,8 @@ _STATES = tuple(HealthState)
 @dataclass
 class SampleColumns:
     """A node's estimator samples, one row each (`Sample`'s fields as columns; true_gamma
-    NaN where none)."""
+    NaN where none; `inputs`, `outputs`, `predicted` and `gammas` one row per sample and
+    one column per signal, None where a producer fills none)."""
 
     t: NDArray[np.float64]
     measured: NDArray[np.float64]
@@ -110,11 +156,25 @@ class SampleColumns:
     state: NDArray[np.int64]
     nis: NDArray[np.float64]
     true_gamma: NDArray[np.float64]
+    model_mismatch: NDArray[np.bool_]
+    inputs: NDArray[np.float64] | None = None
+    outputs: NDArray[np.float64] | None = None
+    predicted: NDArray[np.float64] | None = None
+    gammas: NDArray[np.float64] | None = None
 
     def rows(self, node: int) -> list[Sample]:
         tg = self.true_gamma
+        mm = self.model_mismatch
+        n = len(self.t)
+
+        def per_row(a: NDArray[np.float64] | None) -> list[tuple[float, ...]]:
+            return [()] * n if a is None else [tuple(r) for r in a.tolist()]
+
+        u, y, yh, gs = (per_row(a) for a in (self.inputs, self.outputs, self.predicted,
+                                             self.gammas))
         return [Sample(node, float(self.t[i]), float(self.measured[i]),
                        float(self.estimated[i]), float(self.gamma[i]), int(self.rules[i]),
                        _STATES[int(self.state[i])], float(self.nis[i]),
-                       None if tg[i] != tg[i] else float(tg[i]))
-                for i in range(len(self.t))]
+                       None if tg[i] != tg[i] else float(tg[i]), bool(mm[i]),
+                       inputs=u[i], outputs=y[i], predicted=yh[i], gammas=gs[i])
+                for i in range(n)]

@@ -33,7 +33,7 @@ from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, Mo
 from monitor.rig.spec import ProtectionSpec, Rig, SignalRef
 
 __all__ = ["build_decoder", "build_model", "builtin_difference", "check_rig", "is_builtin_bus",
-           "unit_factor"]
+           "signal_units", "unit_factor"]
 
 log = logging.getLogger(__name__)
 
@@ -554,3 +554,30 @@ def _default_fail(rig: Rig) -> Fail:
     return fail
 
 
+
+
+def signal_units(rig: Rig) -> tuple[tuple[str | None, ...], tuple[str | None, ...]]:
+    """The unit each model input and output is in (the decoder converts to it), as written:
+    the rig's, else its DBC signal's, else the one a dc_motor model fixes (V, A), else None
+    (a plain number). For naming what is exported (`monitor.sinks.samples`); the rig has
+    been checked by then, so its DBC loads and has every signal."""
+    fail = _default_fail(rig)
+    db = _load(rig, fail)
+    resolve, found = _resolver(rig, db, fail)
+    nodes = list(rig.nodes) if rig.nodes is not None else found
+
+    def dbc_unit(ref: SignalRef) -> str | None:
+        for n in nodes:
+            hit = resolve(ref.message, n)
+            if hit is not None:
+                sigs = {s.name: s for s in hit[0].signals}
+                sig = sigs.get(ref.signal)
+                return None if sig is None else _written(sig.unit)
+        return None
+
+    dc = rig.model.kind == "dc_motor"
+    ins = tuple(_written(r.unit) or dbc_unit(r) or (_DC_INPUT.unit if dc else None)
+                for r in rig.inputs)
+    outs = tuple(_written(r.unit) or dbc_unit(r) or (_DC_OUTPUT.unit if dc else None)
+                 for r in rig.outputs)
+    return ins, outs

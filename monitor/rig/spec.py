@@ -120,6 +120,7 @@ class DiagnosisSpec:
     silence_timeout_s: float = 0.5
     mismatch_window_s: float = 2.0
     mismatch_dwell_s: float = 3.0
+    withhold_alarms_on_mismatch: bool = False  # `monitor.diagnosis.reported_state`
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,8 @@ Entity layout (``<n>`` is the CAN node id)::
     /motor/<n>/gamma/F1           Scalars   diagnosis threshold F1 (step line)
     /motor/<n>/gamma/F2           Scalars   diagnosis threshold F2
     /motor/<n>/rules              Scalars   number of fuzzy rules of the estimator (step line)
-    /motor/<n>/health             Scalars   health state 0..4 (step line)
+    /motor/<n>/health             Scalars   health state 0..3 (step line)
+    /motor/<n>/model_mismatch     Scalars   model-mismatch flag 0/1, beside the state (step line)
     /motor/<n>/nis                Scalars   normalised innovation squared
     /motor/<n>/voltage            Scalars   supply voltage (own rate, own buffer)
     /motor/<n>/events             TextLog   state transitions etc.
@@ -48,7 +49,8 @@ STYLES: Final[tuple[tuple[str, str, Color, float, bool], ...]] = (
     ("gamma/F1", "F1", (230, 171, 2), 1.0, True),
     ("gamma/F2", "F2", (214, 39, 40), 1.0, True),
     ("rules", "fuzzy rules", (148, 103, 189), 1.5, True),
-    ("health", "health state (0..4)", (23, 190, 207), 2.0, True),
+    ("health", "health state (0..3)", (23, 190, 207), 2.0, True),
+    ("model_mismatch", "model mismatch", (227, 119, 194), 2.0, True),
     ("nis", "NIS", (127, 127, 127), 1.0, False),
     ("voltage", "supply voltage", (188, 189, 34), 1.0, False),
 )
@@ -80,7 +82,8 @@ BUS_EVENTS_PATH = "/monitor/events"
 
 
 def default_blueprint(nodes: Sequence[int]) -> rrb.Blueprint:
-    """One tab per node (current, gamma^ vs thresholds, rules, health, NIS, voltage, events)
+    """One tab per node (current, gamma^ vs thresholds, rules, health, model mismatch, NIS,
+    voltage, events)
     and one tab with the daemon counters."""
     tabs: list[rrb.Container | rrb.View] = []
     for n in nodes:
@@ -94,7 +97,12 @@ def default_blueprint(nodes: Sequence[int]) -> rrb.Blueprint:
                     rrb.TimeSeriesView(
                         origin=f"{m}/health",
                         name="health state",
-                        axis_y=rrb.ScalarAxis(range=(-0.25, 4.25), zoom_lock=True),
+                        axis_y=rrb.ScalarAxis(range=(-0.25, 3.25), zoom_lock=True),
+                    ),
+                    rrb.TimeSeriesView(
+                        origin=f"{m}/model_mismatch",
+                        name="model mismatch",
+                        axis_y=rrb.ScalarAxis(range=(-0.1, 1.1), zoom_lock=True),
                     ),
                     rrb.TimeSeriesView(
                         origin=f"{m}/nis",

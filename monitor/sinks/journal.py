@@ -50,7 +50,8 @@ class JournalSink(Sink):
                    priority=int(p.INFO if event.level == "INFO" else p.WARNING),
                    node=str(event.node), state=event.state, previous=event.previous,
                    gamma=f"{event.gamma:.4f}", fault=f"{event.fault_volts:.3f}",
-                   rules=str(event.rules), cause=event.cause)
+                   rules=str(event.rules), cause=event.cause, kind=event.kind,
+                   model_mismatch="1" if event.model_mismatch else "0")
 
     def on_bus_event(self, event: BusEvent) -> None:
         p = self._journal.Priority

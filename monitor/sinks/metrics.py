@@ -1,14 +1,16 @@
 """Bus and monitor health for operators: Prometheus / OpenMetrics text through
 node_exporter's textfile collector.
 
-`MetricsSink` keeps the latest figures it is handed (per node: health state, gamma^, the
-windowed NIS, estimation latency; the pipeline's counters; the bus statistics of
+`MetricsSink` keeps the latest figures it is handed (per node: health state, model-mismatch
+flag, gamma^, the windowed NIS, estimation latency; the pipeline's counters; the bus statistics of
 `monitor.bus.stats.BusStats`) and every `period_s` writes them to a ``.prom`` file with
 `prometheus_client.write_to_textfile` (a temporary file renamed over the old one, so
 node_exporter never reads half a file and the hardened unit needs no IP socket). The
 exposition is prometheus_client's; the names:
 
-    motor_monitor_node_health_state{node}          0 fault_free .. 4 model_mismatch
+    motor_monitor_node_health_state{node}          0 fault_free, 1 fault, 2 outage, 3 no_data
+    motor_monitor_node_model_mismatch{node}        1 while the node's model-mismatch flag is
+                                                   up (beside the state, which it keeps)
     motor_monitor_node_gamma{node}                 latest gamma^
     motor_monitor_node_nis{node}                   windowed NIS (p when the model fits)
     motor_monitor_node_samples_total{node}         from 0, for every node asked for (--nodes)
@@ -93,7 +95,10 @@ class _Figures(Collector):
             silent.add_metric([], 1.0 if self.watch.active else 0.0)
             yield silent
         state = GaugeMetricFamily(f"{PREFIX}_node_health_state", "0 fault_free, 1 fault, "
-                                  "2 outage, 3 no_data, 4 model_mismatch", labels=["node"])
+                                  "2 outage, 3 no_data", labels=["node"])
+        mismatch = GaugeMetricFamily(f"{PREFIX}_node_model_mismatch", "1 while the model "
+                                     "does not explain the plant (windowed NIS outside its "
+                                     "band), beside the health state", labels=["node"])
         gamma = GaugeMetricFamily(f"{PREFIX}_node_gamma", "estimated loss of effectiveness",
                                   labels=["node"])
         nis = GaugeMetricFamily(f"{PREFIX}_node_nis", "normalised innovation squared, "
@@ -102,12 +107,13 @@ class _Figures(Collector):
                                       labels=["node"])
         for n, s in sorted(self.nodes.items()):
             state.add_metric([str(n)], float(int(s.state)))
+            mismatch.add_metric([str(n)], 1.0 if s.model_mismatch else 0.0)
             gamma.add_metric([str(n)], s.gamma)
             nis.add_metric([str(n)], self.nis.get(n, math.nan))
         asked = self.watch.nodes if self.watch is not None and self.watch.nodes else ()
         for n in sorted({*self.nodes, *asked}):
             samples.add_metric([str(n)], float(self.samples.get(n, 0)))
-        yield from (state, gamma, nis, samples)
+        yield from (state, mismatch, gamma, nis, samples)
         bus = self.bus
         if bus is None:
             return

@@ -42,7 +42,8 @@ class BusPublisher(Sink):
         counter = self._alive.get(node, 0)
         try:
             data = self.db.encode_diagnosis(node, int(diagnosis.state), diagnosis.gamma, fault,
-                                            min(diagnosis.rules, 255), counter)
+                                            min(diagnosis.rules, 255), counter,
+                                            diagnosis.model_mismatch)
         except ValueError as exc:  # a value the DBC cannot carry: count, never crash
             self.counters.inc(C.PUBLISH_ENCODE_ERRORS)
             self._warn("encode", f"node {node}: cannot encode diagnosis: {exc}")

@@ -16,17 +16,18 @@ The thresholds go with every gamma batch, at its first and last time stamp, with
 interpolation, so each threshold line spans exactly the data and a `RerunSink.set_thresholds`
 change shows up as a step where it took effect.
 
-Piecewise-constant series (`RUNS`: the thresholds, the rule count, the health state, a
-simulator's true gamma) are recorded as their runs: of each batch only the rows that draw the
-line (`run_ends`: the first and the last row of every run of equal values) and the batch's
-last row, which extends the line to the end of the data -- while a run goes on, at most once
-a second (`_RUN_TAIL_S`; `close` and `switch_file` send the one held back, and a row that
-changes the value is never held; after a SIGKILL such a line may stop up to that much
-before the others, on a value that had not changed). The line through them, stepped or
-straight, is the line through every sample, the latest value at any time is the same, and
-the viewer draws them without its per-pixel averaging, which would slant a run's line
-between two changes (`_EXACT_LINE`). They were 3 of the 7 rows of every sample; the other
-series (measured and estimated current, gamma^, NIS, and the voltage) keep every sample.
+Piecewise-constant series (`RUNS`: the thresholds, the rule count, the health state, the
+model-mismatch flag, a simulator's true gamma) are recorded as their runs: of each batch
+only the rows that draw the line (`run_ends`: the first and the last row of every run of
+equal values) and the batch's last row, which extends the line to the end of the data --
+while a run goes on, at most once a second (`_RUN_TAIL_S`; `close` and `switch_file` send
+the one held back, and a row that changes the value is never held; after a SIGKILL such a
+line may stop up to that much before the others, on a value that had not changed). The line
+through them, stepped or straight, is the line through every sample, the latest value at any
+time is the same, and the viewer draws them without its per-pixel averaging, which would
+slant a run's line between two changes (`_EXACT_LINE`). They were 4 of the 8 rows of every
+sample; the other series (measured and estimated current, gamma^, NIS, and the voltage) keep
+every sample.
 
 All data goes on one timeline, ``time``: a timestamp timeline of the bus time in float seconds
 since the Unix epoch (CAN kernel time stamps), sent as ``rr.TimeColumn("time",
@@ -145,10 +146,10 @@ _LEVELS: Final[Mapping[str, str]] = {
     "TRACE": "TRACE",
 }
 
-RUNS: Final = ("gamma/true", "gamma/F1", "gamma/F2", "rules", "health")
+RUNS: Final = ("gamma/true", "gamma/F1", "gamma/F2", "rules", "health", "model_mismatch")
 """Series that are piecewise constant by nature (the truth a simulator sends, the thresholds,
-the estimator's rule count and the health state): recorded as their runs (`run_ends`), drawn
-without the viewer's zoom-dependent aggregation (`_EXACT_LINE`)."""
+the estimator's rule count, the health state and the model-mismatch flag): recorded as their
+runs (`run_ends`), drawn without the viewer's zoom-dependent aggregation (`_EXACT_LINE`)."""
 
 _RUN_TAIL_S: Final = 1.0
 """A `RUNS` series sends a row that only continues its run at most this often."""
@@ -190,7 +191,8 @@ class RecordingOutlet(Sink):
 
     def add_sample(self, node: int, t: float, measured_current: float,
                    estimated_current: float, gamma_hat: float, rule_count: int, health: int,
-                   nis: float, true_gamma: float | None = None) -> None:
+                   nis: float, true_gamma: float | None = None,
+                   model_mismatch: bool = False) -> None:
         raise NotImplementedError
 
     def add_voltage(self, node: int, t: float, volts: float) -> None:
@@ -204,7 +206,8 @@ class RecordingOutlet(Sink):
 
     def on_sample(self, sample: Sample) -> None:
         self.add_sample(sample.node, sample.t, sample.measured, sample.estimated, sample.gamma,
-                        sample.rules, int(sample.state), sample.nis, sample.true_gamma)
+                        sample.rules, int(sample.state), sample.nis, sample.true_gamma,
+                        sample.model_mismatch)
 
     def on_voltage(self, sample: VoltageSample) -> None:
         self.add_voltage(sample.node, sample.t, sample.volts)
@@ -228,6 +231,7 @@ class _Node:
         "health",
         "last",
         "measured",
+        "mismatch",
         "n",
         "nis",
         "nv",
@@ -253,6 +257,7 @@ class _Node:
         self.true_gamma: Array = np.zeros(batch_size)
         self.rules: Array = np.zeros(batch_size)
         self.health: Array = np.zeros(batch_size)
+        self.mismatch: Array = np.zeros(batch_size)
         self.nis: Array = np.zeros(batch_size)
         self.last: dict[str, float] = {}
         """The value of the last row of each series in `RUNS` so far (none yet: NaN)."""
@@ -364,6 +369,7 @@ class RerunSink(RecordingOutlet):
         health: int,
         nis: float,
         true_gamma: float | None = None,
+        model_mismatch: bool = False,
     ) -> None:
         """Buffer one estimator sample of ``node`` at bus time ``t`` (epoch seconds)."""
         if self._closed:
@@ -381,6 +387,7 @@ class RerunSink(RecordingOutlet):
         st.true_gamma[i] = math.nan if true_gamma is None else true_gamma
         st.rules[i] = rule_count
         st.health[i] = health
+        st.mismatch[i] = model_mismatch
         st.nis[i] = nis
         i += 1
         st.n = i
@@ -493,6 +500,7 @@ class RerunSink(RecordingOutlet):
             st.true_gamma[dst] = cols.true_gamma[src]
             st.rules[dst] = cols.rules[src]
             st.health[dst] = cols.state[src]
+            st.mismatch[dst] = cols.model_mismatch[src]
             st.nis[dst] = cols.nis[src]
             st.n = at + k
             i += k
@@ -709,6 +717,7 @@ class RerunSink(RecordingOutlet):
         self._send_runs(st, "gamma/F2", ends, np.full(len(ends), self._f2))
         self._send_runs(st, "rules", t, st.rules[:n])
         self._send_runs(st, "health", t, st.health[:n])
+        self._send_runs(st, "model_mismatch", t, st.mismatch[:n])
         send(path["nis"], indexes=index, columns=scalars(scalars=st.nis[:n]))
 
     def _send_runs(self, st: _Node, suffix: str, t: Array, v: Array) -> None:

@@ -161,11 +161,12 @@ class RotatingRerunSink(RecordingOutlet):
         health: int,
         nis: float,
         true_gamma: float | None = None,
+        model_mismatch: bool = False,
     ) -> None:
         """Buffer one estimator sample (see `RerunSink.add_sample`)."""
         for sink in self._sinks():
             sink.add_sample(node, t, measured_current, estimated_current, gamma_hat,
-                            rule_count, health, nis, true_gamma)
+                            rule_count, health, nis, true_gamma, model_mismatch)
 
     def add_voltage(self, node: int, t: float, volts: float) -> None:
         for sink in self._sinks():
