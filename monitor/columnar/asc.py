@@ -138,9 +138,7 @@ def _block(path: Path, text: bytes, base: int, base_name: str, encoding: str, li
                       c.length, c.data, c.is_fd, c.bitrate_switch, c.error_state_indicator)
         if n >= 0:
             if n:
-                yield FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
-                                 c.error[:n], c.length[:n], c.data[:n], c.is_fd[:n],
-                                 c.bitrate_switch[:n], c.error_state_indicator[:n])
+                yield c.head(n)
             return
     # python-can reads this block: its text as the file's text mode gives it (universal
     # newlines), after an empty line for the header python-can looks for first

@@ -155,10 +155,7 @@ def _scan_block(block: bytes, start: float) -> tuple[FrameChunk, bytes]:
     if n < 0:
         raise _Fallback
     width = FD_WIDTH if n and int(c.length[:n].max()) > CLASSIC_WIDTH else CLASSIC_WIDTH
-    return FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
-                      c.error[:n], c.length[:n], np.ascontiguousarray(c.data[:n, :width]),
-                      c.is_fd[:n], c.bitrate_switch[:n],
-                      c.error_state_indicator[:n]), block[consumed:]
+    return c.head(n, width), block[consumed:]
 
 
 @njit

@@ -115,6 +115,16 @@ class FrameChunk:
         assert self.error_state_indicator is not None  # __post_init__
         return self.error_state_indicator
 
+    def head(self, n: int, width: int | None = None) -> FrameChunk:
+        """The first `n` rows (views, no copy), the data cut to `width` bytes if given (then
+        copied contiguous): a scanner fills a chunk of capacity and keeps what it read."""
+        assert self.bitrate_switch is not None and self.error_state_indicator is not None
+        data = self.data[:n] if width is None else np.ascontiguousarray(self.data[:n, :width])
+        return FrameChunk(self.t[:n], self.arbitration_id[:n], self.extended[:n],
+                          self.remote[:n], self.error[:n], self.length[:n], data,
+                          self.is_fd[:n], self.bitrate_switch[:n],
+                          self.error_state_indicator[:n])
+
     def message(self, i: int) -> can.Message:
         """Row i as a python-can message (for the rare frames handled one by one)."""
         n = min(int(self.length[i]), self.data.shape[1])
@@ -322,9 +332,7 @@ def _parse_candump(path: Path, text: bytes, encoding: str, line: int,
                           c.data, c.is_fd, c.bitrate_switch, c.error_state_indicator)
         if n >= 0:
             if n:
-                yield FrameChunk(c.t[:n], c.arbitration_id[:n], c.extended[:n], c.remote[:n],
-                                 c.error[:n], c.length[:n], c.data[:n], c.is_fd[:n],
-                                 c.bitrate_switch[:n], c.error_state_indicator[:n])
+                yield c.head(n)
             return
     # a line the scanner does not take: python-can reads this block
     lines = text_block(text, encoding, line + 1)
