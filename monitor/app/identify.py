@@ -22,7 +22,6 @@ import argparse
 import json
 import logging
 import math
-import tomllib
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -44,12 +43,12 @@ from monitor.app.replay import read_log
 from monitor.bus.codec import Decoded, Rejected
 from monitor.errors import MonitorError, UsageError
 from monitor.estimation.model import DCMotorParameters
-from monitor.files import shown_path
+from monitor.files import read_user_toml, shown_path
 from monitor.identify import KINDS, Identification, IdentifyError, identify, validate
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
 from monitor.rig import Rig, RigError, build_decoder
-from monitor.rig.load import rate_problem
+from monitor.rig.load import RIG_FILE_LIMIT, rate_problem
 
 __all__ = ["NodeCapture", "add_command", "collect", "rig_document"]
 
@@ -216,8 +215,7 @@ def _matrix(a: np.ndarray) -> list[list[float]]:
 def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
     """The input rig's TOML document with the learned model, ready to write at `out`."""
     if rig.source is not None:
-        with open(rig.source, "rb") as fh:
-            doc = tomllib.load(fh)
+        doc = read_user_toml(rig.source, what="rig file", limit=RIG_FILE_LIMIT)
     else:
         doc = {"bus": {"layout": rig.layout.kind},
                "signals": {"inputs": [_ref(r) for r in rig.inputs],
