@@ -360,7 +360,9 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     options.add_rig_option(c)
     c.add_argument("--node", type=int, default=None, help="the node to identify")
     c.add_argument("--model", choices=KINDS, default="auto",
-                   help="dc_motor (physical parameters), state_space (black box) or auto")
+                   help="auto (the default): the DC motor where the rig's units say it applies "
+                   "(a voltage in, a current out), else or where that fit fails the black box; "
+                   "dc_motor (physical parameters); state_space (black box)")
     c.add_argument("--order", type=int, default=None,
                    help="states of a black-box model (default: chosen from the data)")
     c.add_argument("--out", required=True, metavar="RIG_OUT",
