@@ -690,7 +690,10 @@ def test_replay_bad_log_is_one_line_and_touches_no_output(
     rrd = tmp_path / "precious.rrd"
     rrd.write_bytes(b"an earlier recording that must survive")
     events = tmp_path / "events.jsonl"
-    cmd = [str(MONITOR_EXE), "replay", str(log_path), "--rrd", str(rrd), "--events", str(events)]
+    # --force: the recording is not one motor-monitor wrote, and may be replaced; the bad
+    # log must still be found before it is touched
+    cmd = [str(MONITOR_EXE), "replay", str(log_path), "--rrd", str(rrd), "--events", str(events),
+           "--force"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 2, (shlex.join(cmd), proc.stderr)
     lines = proc.stderr.splitlines()
