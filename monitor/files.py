@@ -257,14 +257,19 @@ def atomic_write_text(path: str | os.PathLike[str], text: str, *, mode: int | No
     _fsync_directory(directory)
 
 
+def _fsync_path(path: str | os.PathLike[str]) -> None:
+    """fsync the file or directory at `path` (raises OSError)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def _fsync_directory(directory: Path) -> None:
     """Make a rename in `directory` durable (best effort: some file systems refuse)."""
     with contextlib.suppress(OSError):
-        dfd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
+        _fsync_path(directory)
 
 
 @contextlib.contextmanager
@@ -292,11 +297,7 @@ def atomic_replace(path: str | os.PathLike[str]) -> Iterator[Path]:
         finally:
             os.close(fd)
         yield Path(tmp)
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        _fsync_path(tmp)
         os.replace(tmp, p)
     except BaseException:
         with contextlib.suppress(OSError):
