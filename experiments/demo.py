@@ -32,7 +32,7 @@ from monitor.estimation.model import DCMotorParameters
 from monitor.pipeline import Counters, DiagnosisEvent, MonitorPipeline, Sample
 from monitor.pipeline import counters as C
 from monitor.pipeline.events import HEALTH
-from monitor.rig import Rig
+from monitor.rig import Rig, model_of
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.jsonl import JsonLinesSink
 from monitor.sinks.log import LogSink
@@ -100,9 +100,10 @@ def _ecu(args: argparse.Namespace, rig: Rig, db: MotorDatabase | RigCodec, node:
          scenario: Scenario, bus: can.BusABC) -> VirtualECU | RigECU:
     """The rig's virtual ECU: ours on our bus (with the rig's motor), else its twin."""
     if isinstance(db, MotorDatabase):
-        motor = (replace(DCMotorParameters(), **rig.model.motor)
-                 if rig.model.kind == "dc_motor" else None)
-        return VirtualECU(bus, db, node, scenario, rate=rig.rate, seed=args.seed, motor=motor)
+        spec, rate = model_of(rig)
+        motor = (replace(DCMotorParameters(), **spec.motor)
+                 if spec.kind == "dc_motor" else None)
+        return VirtualECU(bus, db, node, scenario, rate=rate, seed=args.seed, motor=motor)
     return RigECU(bus, db, rig, node, scenario, seed=args.seed)
 
 

@@ -34,7 +34,7 @@ from monitor.bus.codec import N_NODES, MotorDatabase
 from monitor.bus.secoc import load_key
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
-from monitor.rig import Rig, build_decoder, builtin_rig, load_rig
+from monitor.rig import Rig, build_decoder, builtin_rig, load_rig, model_of
 from sim_ecu.ecu import DEFAULT_MAX_CATCH_UP, ECUStats, VirtualECU, load_motor_parameters
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import BUILTIN_SCENARIOS, load_scenario
@@ -148,9 +148,10 @@ def _check_args(args: argparse.Namespace) -> float | None:
 
 def _rig_motor(rig: Rig) -> DCMotorParameters | None:
     """The DC motor a rig on our own bus describes (None: the model is not a DC motor)."""
-    if rig.model.kind != "dc_motor":
+    spec, _ = model_of(rig)
+    if spec.kind != "dc_motor":
         return None
-    return replace(DCMotorParameters(), **rig.model.motor)
+    return replace(DCMotorParameters(), **spec.motor)
 
 
 def _run_in_worker(ecu: VirtualECU | RigECU, duration: float | None, stop: threading.Event,

@@ -23,7 +23,7 @@ import numpy as np
 from cantools.database.can import Message
 
 from monitor.bus.rigcodec import RigCodec
-from monitor.rig import Rig, build_model
+from monitor.rig import Rig, build_model, model_of
 from sim_ecu.ecu import DEFAULT_MAX_CATCH_UP, ECUError, ECUStats, run_paced
 from sim_ecu.plant import PlantSimulator, steady_state
 from sim_ecu.scenario import Scenario
@@ -48,7 +48,7 @@ class RigECU:
         self.bus, self.codec, self.rig, self.node = bus, codec, rig, node
         self.scenario = scenario
         self.seed = seed
-        self.rate = rig.rate
+        _, self.rate = model_of(rig)
         self.input_rate = min(self.rate, input_rate if input_rate else self.rate / 5.0)
         if not self.input_rate > 0:
             raise ECUError(f"input rate must be positive, got {input_rate!r}")

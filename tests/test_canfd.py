@@ -92,7 +92,7 @@ def test_fd_rig_frames_are_decoded_through_the_pipeline() -> None:
     c = pipe.counters
     assert c[C.FRAMES_FD] == c[C.FRAMES_RECEIVED] == len(frames)
     assert c.rejected_total() == 0
-    assert c[C.SAMPLES_ESTIMATED] >= 1590 and c[C.SAMPLES_VOLTAGE] > 0 and c[C.SAMPLES_TRUTH] > 0
+    assert c[C.SAMPLES_ESTIMATED] >= 1590 and c[C.SAMPLES_INPUT] > 0 and c[C.SAMPLES_TRUTH] > 0
     _balanced(c)
     states = [(e.state, round(e.t - 1000.0, 2)) for e in events]
     assert [s for s, _ in states] == ["fault_free", "fault", "outage", "fault", "fault_free"], \

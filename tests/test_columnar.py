@@ -36,7 +36,7 @@ from monitor.columnar.reader import read_chunks
 from monitor.columnar.replay import replay_file
 from monitor.columnar.signals import SignalExtractor, payload_integers
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, InputSample, Sample
 from monitor.rig import build_decoder, load_rig
 from monitor.sinks.base import Sink
 from sim_ecu.ecu import VirtualECU
@@ -155,7 +155,7 @@ class Recorder(Sink):
     diagnoses: list[Diagnosis] = field(default_factory=list)
     bus: list[BusEvent] = field(default_factory=list)
     samples: list[Sample] = field(default_factory=list)
-    volts: list[VoltageSample] = field(default_factory=list)
+    inputs: list[InputSample] = field(default_factory=list)
 
     def on_transition(self, event: DiagnosisEvent) -> None:
         self.transitions.append(event)
@@ -169,8 +169,8 @@ class Recorder(Sink):
     def on_sample(self, sample: Sample) -> None:
         self.samples.append(sample)
 
-    def on_voltage(self, sample: VoltageSample) -> None:
-        self.volts.append(sample)
+    def on_input(self, sample: InputSample) -> None:
+        self.inputs.append(sample)
 
 
 def _compare(path: Path, db: Any, db2: Any, cfg: MonitorConfig, chunk: int = 997) -> Any:
@@ -186,7 +186,7 @@ def _compare(path: Path, db: Any, db2: Any, cfg: MonitorConfig, chunk: int = 997
     assert b.diagnoses == a.diagnoses
     assert b.bus == a.bus
     # samples and voltages go to the sinks as columns, node by node: each node's in order
-    assert sorted(b.volts, key=lambda v: v.node) == sorted(a.volts, key=lambda v: v.node)
+    assert sorted(b.inputs, key=lambda v: v.node) == sorted(a.inputs, key=lambda v: v.node)
     assert len(b.samples) == len(a.samples)
     assert sorted(b.samples, key=lambda v: v.node) == sorted(a.samples, key=lambda v: v.node)
     assert res.nodes == pipe.summary()["nodes"]
@@ -301,21 +301,21 @@ def test_rerun_sink_gets_the_same_columns(tmp_path: Path) -> None:
     names = ("t", "measured", "estimated", "gamma", "rules", "health", "nis")
 
     def spy(sink: RerunSink) -> dict[str, list[np.ndarray]]:
-        rows: dict[str, list[np.ndarray]] = {k: [] for k in (*names, "tv", "volts")}
-        flush_s, flush_v = sink._flush_samples, sink._flush_voltage
+        rows: dict[str, list[np.ndarray]] = {k: [] for k in (*names, "tu", "u")}
+        flush_s, flush_u = sink._flush_samples, sink._flush_input
 
         def samples(st: Any) -> None:
             for k in names:
-                rows[k].append(getattr(st, k)[:st.n].copy())
+                rows[k].append(getattr(st, k)[..., :st.n].copy())  # outputs: 2-D
             flush_s(st)
 
-        def volts(st: Any) -> None:
-            rows["tv"].append(st.tv[:st.nv].copy())
-            rows["volts"].append(st.volts[:st.nv].copy())
-            flush_v(st)
+        def inputs(buf: Any) -> None:
+            rows["tu"].append(buf.t[:buf.n].copy())
+            rows["u"].append(buf.v[:buf.n].copy())
+            flush_u(buf)
 
         sink._flush_samples = samples  # type: ignore[method-assign]
-        sink._flush_voltage = volts  # type: ignore[method-assign]
+        sink._flush_input = inputs  # type: ignore[method-assign]
         return rows
 
     a = RerunSink(rrd_path=tmp_path / "a.rrd", nodes=(0,))
@@ -328,5 +328,6 @@ def test_rerun_sink_gets_the_same_columns(tmp_path: Path) -> None:
     replay_file(path, load_database(), MonitorConfig(nodes=(0,)), b, chunk_frames=1001)
     b.close()
     for k in rows_a:
-        assert np.array_equal(np.concatenate(rows_a[k]), np.concatenate(rows_b[k])), k
+        assert np.array_equal(np.concatenate(rows_a[k], axis=-1),
+                              np.concatenate(rows_b[k], axis=-1)), k
     assert len(np.concatenate(rows_a["t"])) == pipe.counters["samples/estimated"]

@@ -280,8 +280,9 @@ def _servo_run(seed: int = 1) -> tuple[ContinuousDescriptor, SimulatedRun]:
 
 @pytest.mark.parametrize("plant", ["table1", "servo"])
 def test_one_rule_is_the_augmented_kalman_filter(plant: str) -> None:
-    # One rule, no structure learning, no projection, no random walk: the consequent's
-    # RLS with the two-stage coupling x^ += V dgamma is the augmented KF's gamma update.
+    # One rule, no structure learning, no projection, no random walk, the model's R: the
+    # consequent's RLS with the two-stage coupling x^ += V dgamma is the augmented KF's
+    # gamma update.
     if plant == "servo":
         model, run = _servo_run()
         T = 1e-3
@@ -291,7 +292,7 @@ def test_one_rule_is_the_augmented_kalman_filter(plant: str) -> None:
         T = 0.01
     cfg = FuzzyUKFConfig(q_gamma=0.0, var0=0.1, var_rule=0.0, nis_threshold=math.inf,
                          fuzzy=FuzzyConfig(initial_mf=((0.0,), (0.0,)), max_mf=1,
-                                           lower=-10.0, upper=10.0))
+                                           lower=-10.0, upper=10.0), adaptive_noise=False)
     md = model.discretize(T)
     fz = FuzzyUKF(md, cfg, x0=run.x[0])
     akf = AugmentedKalmanFilter(md, AugmentedKFConfig(q_gamma=0.0, P0_gamma=0.1), x0=run.x[0])

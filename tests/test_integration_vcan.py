@@ -478,7 +478,7 @@ def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_p
 
     # The recording: closed cleanly on SIGTERM, gamma^ over the run.
     rrd_verify(rrd)
-    t_bus, v = rrd_series(rrd, "/motor/0/gamma/estimate")
+    t_bus, v = rrd_series(rrd, "/node/0/gamma/estimate")
     assert len(v) == summary["estimated"] >= 300, len(v)
     assert t_bus[-1] - t_bus[0] == pytest.approx(truth[-1][0] - t_start, abs=0.05)
     # the windows in scenario time, from the SimTruth frame sent with each sample (an ECU held
@@ -666,7 +666,7 @@ def test_replay_log_asc_blf(
         assert got["gamma"] == pytest.approx(exp.gamma, abs=1e-6)
 
     rrd_verify(rrd)
-    t, v = rrd_series(rrd, "/motor/0/gamma/estimate")
+    t, v = rrd_series(rrd, "/node/0/gamma/estimate")
     n_current = sum(1 for m in fault_run if m.arbitration_id == 0x110)
     assert len(v) == n_current - 1  # the first current frame precedes the first voltage
     t = t - t[0]

@@ -376,10 +376,17 @@ def test_calibrate_help_shows_where_it_writes(capsys: pytest.CaptureFixture[str]
 
 def test_own_event_lines_are_recognised_by_their_first_and_last_line(tmp_path: Path) -> None:
     line = json.dumps({"t": 1.0, "node": 0, "state": "fault", "previous": "fault_free",
-                       "gamma": 0.5, "fault_volts": 1.0, "rules": 3, "cause": "estimate"})
+                       "gamma": 0.5, "fault_input": 1.0, "rules": 3, "cause": "estimate",
+                       "model_mismatch": False, "kind": "health", "fault_input_unit": "A"})
     ev = tmp_path / "ev.jsonl"
     ev.write_text("")
     assert is_own_file(ev, "events")  # nothing to lose
+    # an older monitor's lines: the fault as `fault_volts`, with and without the flag
+    older = {"t": 1.0, "node": 0, "state": "fault", "previous": "fault_free", "gamma": 0.5,
+             "fault_volts": 1.0, "rules": 3, "cause": "estimate"}
+    for doc in (older, {**older, "model_mismatch": False, "kind": "health"}):
+        ev.write_text(f"{json.dumps(doc)}\n{line}\n")
+        assert is_own_file(ev, "events")
     ev.write_text(f"{line}\n{line}\n")
     assert is_own_file(ev, "events")
     ev.write_text(f"{line}\n{line}\n{line[:20]}")  # a last line cut short by a kill

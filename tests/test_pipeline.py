@@ -115,7 +115,7 @@ def test_time_going_backwards_and_missing_voltage(db: MotorDatabase,
     pipe, _, _ = _pipe(db)
     currents = [m for m in frames if m.arbitration_id == 0x110]
     pipe.feed(currents[0])
-    assert pipe.counters["samples/no_voltage"] == 1
+    assert pipe.counters["samples/no_input"] == 1
     pipe.feed(next(m for m in frames if m.arbitration_id == 0x120))
     pipe.feed(currents[1])
     late = currents[2]

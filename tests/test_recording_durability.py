@@ -103,7 +103,7 @@ def _gamma(path: Path, node: int = 0) -> tuple[NDArray[np.float64], NDArray[np.f
         except ValueError:  # no recording in it: killed right after it was created
             return np.zeros(0), np.zeros(0)
         for chunk in chunks:
-            if chunk.is_static or chunk.entity_path != f"/motor/{node}/gamma/estimate":
+            if chunk.is_static or chunk.entity_path != f"/node/{node}/gamma/estimate":
                 continue
             rb = chunk.to_record_batch()
             ts.append(rb.column("time").cast(pa.int64()).to_numpy() / 1e9)
@@ -312,7 +312,7 @@ def _feed(
         sink.add_sample(0, t, 1.0, 2.0, float(k), 1 + k % 3, k % 4, 1.0, true_gamma=0.5)
         sink.add_sample(1, t, 1.0, 2.0, float(k), 1, 0, 1.0)
         if k % 50 == 0:
-            sink.add_voltage(0, t, 24.0)
+            sink.add_input(0, t, 24.0)
         if k % flush_every == flush_every - 1:
             sink.log_counters(t, {"frames/ok": k})
             if settle:
@@ -376,10 +376,10 @@ def test_rotation_by_size_keeps_everything_contiguous_and_verified(tmp_path: Pat
         (rec,) = RrdReader(p).recordings()
         assert rec.recording_id == "size-run"
         static = _static_entities(p)
-        assert {"/motor/0/gamma/F1", "/motor/1/nis", "/motor/0/gamma/true"} <= static, p
-        assert {"motor 0", "motor 1", "daemon counters"} <= _blueprint_views(p), p
+        assert {"/node/0/gamma/F1", "/node/1/nis", "/node/0/gamma/true"} <= static, p
+        assert {"node 0", "node 1", "daemon counters"} <= _blueprint_views(p), p
     # the thresholds in the last file are the current ones
-    last = [c for c in RrdReader(files[-1]).stream() if c.entity_path == "/motor/0/gamma/F1"]
+    last = [c for c in RrdReader(files[-1]).stream() if c.entity_path == "/node/0/gamma/F1"]
     f1 = np.concatenate(
         [
             c.to_record_batch().column("Scalars:scalars").flatten().to_numpy()

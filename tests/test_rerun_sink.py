@@ -31,9 +31,9 @@ from monitor.pipeline.events import (
     BusEvent,
     Diagnosis,
     DiagnosisEvent,
+    InputSample,
     Sample,
     SampleColumns,
-    VoltageSample,
 )
 from monitor.sinks.base import Sink
 from monitor.sinks.rerun import (
@@ -97,14 +97,14 @@ def _series(chunks: list[Chunk]) -> tuple[NDArray[np.float64], NDArray[np.float6
 
 
 def _write_run(sink: RerunSink) -> None:
-    """2 nodes x N samples, voltages, events, counters and a threshold change."""
+    """2 nodes x N samples, inputs, events, counters and a threshold change."""
     for k in range(N):
         t = T0 + k * DT
         for node in (0, 1):
             m, e, g, r, h, nis = _values(k, node)
             sink.add_sample(node, t, m, e, g, r, h, nis, true_gamma=0.5 if node == 0 else None)
         if k % 20 == 0:
-            sink.add_voltage(0, t, 24.0 + k / N)
+            sink.add_input(0, t, 24.0 + k / N)
         if k == 1200:
             sink.log_event(1, t, "node 1: health 1 -> 2 (degraded)", level="warning")
         if k == 1000:
@@ -148,9 +148,10 @@ def test_recording_and_blueprint_stores(recorded: Path) -> None:
             if col.endswith("Blueprint:display_name"):
                 names.update(x for row in rb.column(col).to_pylist() if row for x in row)
     assert {
-        "motor 0",
-        "motor 1",
-        "measured vs estimated current",
+        "node 0",
+        "node 1",
+        "ArmatureCurrent: measured vs estimated",
+        "VoltageCommand (V)",
         "gamma^ vs thresholds",
         "rule count",
         "health state",
@@ -173,11 +174,12 @@ def test_samples_read_back_exactly(recorded: Path) -> None:
     expected_t = T0 + k * DT
     for node in (0, 1):
         vals = np.array([_values(i, node) for i in range(N)], dtype=np.float64)
-        t_samples, _ = _series(ents[f"/motor/{node}/gamma/estimate"])
+        t_samples, _ = _series(ents[f"/node/{node}/gamma/estimate"])
         for col, suffix in enumerate(
-            ["current/measured", "current/estimated", "gamma/estimate", "rules", "health", "nis"]
+            ["ArmatureCurrent/measured", "ArmatureCurrent/estimated", "gamma/estimate", "rules",
+             "health", "nis"]
         ):
-            t, v = _series(ents[f"/motor/{node}/{suffix}"])
+            t, v = _series(ents[f"/node/{node}/{suffix}"])
             if suffix in RUNS:
                 # piecewise constant: recorded as its runs; the same latest value at every
                 # sample, the same line (straight or stepped), first and last sample included
@@ -189,14 +191,14 @@ def test_samples_read_back_exactly(recorded: Path) -> None:
             assert len(v) == N, suffix
             np.testing.assert_array_equal(v, vals[:, col], err_msg=suffix)
             np.testing.assert_allclose(t, expected_t, rtol=0, atol=1e-6)
-    t, v = _series(ents["/motor/0/gamma/estimate"])
+    t, v = _series(ents["/node/0/gamma/estimate"])
     assert v[-1] == _values(N - 1, 0)[2] == (N - 1) / N
     # the true gamma exists only where it was given; constant, so a few rows span it
-    t, v = _series(ents["/motor/0/gamma/true"])
+    t, v = _series(ents["/node/0/gamma/true"])
     assert np.all(v == 0.5) and len(v) < N // 10
     np.testing.assert_allclose(t[[0, -1]], expected_t[[0, -1]], rtol=0, atol=1e-6)
-    assert "/motor/1/gamma/true" not in ents
-    assert "/motor/1/gamma/true" not in _static_entities(recorded)
+    assert "/node/1/gamma/true" not in ents
+    assert "/node/1/gamma/true" not in _static_entities(recorded)
 
 
 def test_run_ends_keep_the_line() -> None:
@@ -233,28 +235,28 @@ def test_run_ends_keep_the_line() -> None:
 
 def test_thresholds_span_the_data_and_step(recorded: Path) -> None:
     ents = _read(recorded)
-    t_est, _ = _series(ents["/motor/0/gamma/estimate"])
+    t_est, _ = _series(ents["/node/0/gamma/estimate"])
     t_change = T0 + 1000 * DT
     for suffix, old, new in (("F1", 0.15, 0.2), ("F2", 0.85, 0.9)):
-        t, v = _series(ents[f"/motor/0/gamma/{suffix}"])
+        t, v = _series(ents[f"/node/0/gamma/{suffix}"])
         assert t[0] == t_est[0] and t[-1] == t_est[-1]
         np.testing.assert_array_equal(v[t < t_change - 1e-7], old)
         np.testing.assert_array_equal(v[t > t_change - 1e-7], new)
-    assert "/motor/0/gamma/F1" in _static_entities(recorded)  # styled
+    assert "/node/0/gamma/F1" in _static_entities(recorded)  # styled
 
 
-def test_voltage_counters_and_event(recorded: Path) -> None:
+def test_inputs_counters_and_event(recorded: Path) -> None:
     ents = _read(recorded)
-    _, v = _series(ents["/motor/0/voltage"])
+    _, v = _series(ents["/node/0/VoltageCommand"])
     assert len(v) == N // 20 and v[-1] == 24.0 + (N - 20) / N
-    assert "/motor/1/voltage" not in ents
+    assert "/node/1/VoltageCommand" not in ents
 
     _, v = _series(ents["/monitor/counters/frames_ok"])
     np.testing.assert_array_equal(v, [500, 1000, 1500, 2000])
     _, v = _series(ents["/monitor/counters/rejected/crc"])
     np.testing.assert_array_equal(v, [0, 1, 2, 3])
 
-    (event,) = ents["/motor/1/events"]
+    (event,) = ents["/node/1/events"]
     rb = event.to_record_batch()
     assert rb.column("TextLog:text").flatten().to_pylist() == ["node 1: health 1 -> 2 (degraded)"]
     assert rb.column("TextLog:level").flatten().to_pylist() == ["WARN"]
@@ -267,9 +269,9 @@ def test_event_comes_after_the_samples_before_it(recorded: Path) -> None:
     in file order, every sample of node 1 up to the event time is written before the event
     (and the event is not a chunk of its own per call: see the batching test below)."""
     chunks = [c for c in RrdReader(recorded).stream() if not c.is_static]
-    i_event = next(i for i, c in enumerate(chunks) if c.entity_path == "/motor/1/events")
+    i_event = next(i for i, c in enumerate(chunks) if c.entity_path == "/node/1/events")
     t_event = T0 + 1200 * DT
-    before, _ = _series([c for c in chunks[:i_event] if c.entity_path == "/motor/1/gamma/estimate"])
+    before, _ = _series([c for c in chunks[:i_event] if c.entity_path == "/node/1/gamma/estimate"])
     assert len(before) >= 1201
     np.testing.assert_allclose(before[:1201], T0 + DT * np.arange(1201), atol=1e-6)
     assert (before <= t_event + 1e-6).sum() == 1201
@@ -287,7 +289,7 @@ def test_events_between_flushes_are_one_chunk(tmp_path: Path) -> None:
     sink.log_event(-1, T0, "bus: error frame", "ERROR")
     sink.close()
     chunks = [c for c in RrdReader(path).stream() if not c.is_static]
-    (events,) = [c for c in chunks if c.entity_path == "/motor/0/events"]
+    (events,) = [c for c in chunks if c.entity_path == "/node/0/events"]
     rb = events.to_record_batch()
     assert rb.column("TextLog:text").flatten().to_pylist() == [
         f"event {k}" for k in range(0, 300, 3)]
@@ -305,10 +307,10 @@ def test_maybe_flush_makes_data_visible_while_open(tmp_path: Path) -> None:
     now = time.monotonic()
     sink.maybe_flush(now)  # < flush_interval since construction: keeps buffering
     sink.recording.flush(timeout_sec=10)
-    assert "/motor/0/gamma/estimate" not in _read(path)
+    assert "/node/0/gamma/estimate" not in _read(path)
     sink.maybe_flush(now + 0.25)
     sink.recording.flush(timeout_sec=10)
-    _, v = _series(_read(path)["/motor/0/gamma/estimate"])
+    _, v = _series(_read(path)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(v, 0.1 * np.arange(10))
     sink.close()
 
@@ -322,7 +324,7 @@ def test_close_twice_and_use_after_close(tmp_path: Path) -> None:
     sink.add_sample(3, T0 + 1, 1.0, 1.0, 0.5, 1, 0, 1.0)  # ignored, no error
     sink.log_event(3, T0 + 1, "late")
     sink.flush()
-    _, v = _series(_read(path)["/motor/3/gamma/estimate"])
+    _, v = _series(_read(path)["/node/3/gamma/estimate"])
     assert list(v) == [0.5]
 
 
@@ -330,7 +332,7 @@ def test_unannounced_node_is_added(tmp_path: Path) -> None:
     path = tmp_path / "n.rrd"
     with RerunSink(rrd_path=path, nodes=(0,)) as sink:
         sink.add_sample(7, T0, 1.0, 1.0, 0.25, 1, 0, 1.0)
-    _, v = _series(_read(path)["/motor/7/gamma/estimate"])
+    _, v = _series(_read(path)["/node/7/gamma/estimate"])
     assert list(v) == [0.25]
 
 
@@ -343,7 +345,7 @@ def test_null_sink_and_protocol(tmp_path: Path) -> None:
     null = Sink()
     with null as s:
         s.on_sample(Sample(0, T0, 1.0, 1.0, 0.5, 1, HealthState.FAULT_FREE, 1.0, 0.5))
-        s.on_voltage(VoltageSample(0, T0, 24.0))
+        s.on_input(InputSample(0, T0, 24.0))
         s.on_transition(DiagnosisEvent(T0, 0, "fault", "fault_free", 0.5, 12.0, 2, "estimate"))
         s.on_diagnosis(Diagnosis(0, T0, HealthState.FAULT, 0.5, 12.0, 2))
         s.on_bus_event(BusEvent(T0, "x", "ERROR"))
@@ -382,7 +384,7 @@ def test_memory_bounded_and_buffers_reused(tmp_path: Path) -> None:
         tracemalloc.stop()
     sink.close()
     assert [id(b) for b in (node.t, node.gamma, node.measured, node.health)] == ids
-    assert all(len(b) == 64 for b in buffers)
+    assert all(b.shape[-1] == 64 for b in buffers)  # the outputs' one row per output
     # 10^5 samples of 8 float64 would be 6.4 MB if they were kept
     assert after - before < 256 * 1024, (before, after)
 
@@ -408,11 +410,11 @@ def test_runs_in_small_batches_cost_about_a_row_a_second(tmp_path: Path) -> None
     sink.close()
     for path, part in ((first, slice(0, n)), (second, slice(n, 2 * n))):
         ents = _read(path)
-        t_samples, _ = _series(ents["/motor/0/gamma/estimate"])
+        t_samples, _ = _series(ents["/node/0/gamma/estimate"])
         assert len(t_samples) == n
         for suffix, full in (("health", health[part]), ("gamma/true", truth[part]),
                              ("rules", np.full(n, 2.0)), ("gamma/F1", np.full(n, 0.15))):
-            t, v = _series(ents[f"/motor/0/{suffix}"])
+            t, v = _series(ents[f"/node/0/{suffix}"])
             assert len(v) <= 10 + 2 + 2 * len(changes), (suffix, len(v))
             np.testing.assert_array_equal(t[[0, -1]], t_samples[[0, -1]])
             np.testing.assert_array_equal(_latest_at(t, v, t_samples), full, err_msg=suffix)
@@ -481,13 +483,13 @@ def test_live_stream_to_headless_server_and_file_at_once(tmp_path: Path) -> None
             with contextlib.suppress(Exception):  # the file may end in a partial message
                 if received.exists():
                     ents = _read(received)
-                    _, got = _series(ents.get("/motor/0/gamma/estimate", []))
-                    if len(got) == n and "/motor/0/events" in ents:
+                    _, got = _series(ents.get("/node/0/gamma/estimate", []))
+                    if len(got) == n and "/node/0/events" in ents:
                         break
             time.sleep(0.1)
     assert len(got) == n
     np.testing.assert_array_equal(got, np.arange(n) / n)
-    _, v_local = _series(_read(local)["/motor/0/gamma/estimate"])
+    _, v_local = _series(_read(local)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(v_local, got)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -511,7 +513,7 @@ def test_maybe_flush_reaches_the_disk_without_waiting(tmp_path: Path) -> None:
     got: NDArray[np.float64] = np.zeros(0)
     while time.monotonic() - sent < 0.1 and len(got) < 5:
         with contextlib.suppress(Exception):  # maybe in the middle of a write
-            _, got = _series(_read(path).get("/motor/0/gamma/estimate", []))
+            _, got = _series(_read(path).get("/node/0/gamma/estimate", []))
         time.sleep(0.002)
     latency = time.monotonic() - sent
     sink.close()
@@ -555,8 +557,8 @@ def test_a_recording_split_into_parts_holds_every_row_once(tmp_path: Path) -> No
     for p in parts:
         (rec,) = RrdReader(p).recordings()
         assert rec.recording_id == "parts"
-        assert "/motor/0/gamma/estimate" in _read(p)
-        gammas.append(_series(_read(p)["/motor/0/gamma/estimate"])[1])
+        assert "/node/0/gamma/estimate" in _read(p)
+        gammas.append(_series(_read(p)["/node/0/gamma/estimate"])[1])
     np.testing.assert_array_equal(np.concatenate(gammas), k)
     with pytest.raises(ValueError, match="part_bytes"):
         RerunSink(connect_url="rerun+http://127.0.0.1:1/proxy", part_bytes=1)
@@ -579,8 +581,8 @@ def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: P
         sink.add_sample(0, T0 + k * DT, 1.0, 1.0, float(k), 1, 0, 1.0, true_gamma=0.5)
     sink.log_counters(T0 + 1, {"frames_ok": 2})
     sink.close()
-    _, a = _series(_read(first)["/motor/0/gamma/estimate"])
-    _, b = _series(_read(second)["/motor/0/gamma/estimate"])
+    _, a = _series(_read(first)["/node/0/gamma/estimate"])
+    _, b = _series(_read(second)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(a, np.arange(300))  # everything before the switch
     np.testing.assert_array_equal(b, np.arange(301, 400))  # everything after
     # self-contained: recording, start time, styles, blueprint with every node, thresholds
@@ -589,9 +591,9 @@ def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: P
     assert rec.recording_id == "sw"
     assert {
         "/__properties",
-        "/motor/0/gamma/F1",
-        "/motor/0/gamma/true",
-        "/motor/5/nis",
+        "/node/0/gamma/F1",
+        "/node/0/gamma/true",
+        "/node/5/nis",
         "/monitor/counters/frames_ok",
     } <= _static_entities(second)
     (bp,) = reader.blueprints()
@@ -604,8 +606,8 @@ def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: P
         if row
         for x in row
     }
-    assert {"motor 0", "motor 5"} <= names
-    _, f1 = _series(_read(second)["/motor/0/gamma/F1"])
+    assert {"node 0", "node 5"} <= names
+    _, f1 = _series(_read(second)["/node/0/gamma/F1"])
     assert np.all(f1 == 0.2)
 
 
@@ -661,14 +663,14 @@ def test_rotating_sink_streams_live_across_rotations(tmp_path: Path) -> None:
         while time.monotonic() < deadline and len(got) < n:
             with contextlib.suppress(Exception):  # the file may end in a partial message
                 if received.exists():
-                    _, got = _series(_read(received).get("/motor/0/gamma/estimate", []))
+                    _, got = _series(_read(received).get("/node/0/gamma/estimate", []))
             time.sleep(0.1)
     np.testing.assert_array_equal(got, np.arange(n))  # one connection, nothing lost
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert {r.recording_id for r in RrdReader(received).recordings()} == {sink.recording_id}
     files = sink.files()
-    parts = [_series(_read(p)["/motor/0/gamma/estimate"])[1] for p in files]
+    parts = [_series(_read(p)["/node/0/gamma/estimate"])[1] for p in files]
     np.testing.assert_array_equal(np.concatenate(parts), np.arange(n))
     assert {RrdReader(p).recordings()[0].recording_id for p in files} == {sink.recording_id}
 
@@ -678,7 +680,7 @@ def test_rotating_sink_streams_live_across_rotations(tmp_path: Path) -> None:
 
 def _gamma_rows(path: Path) -> int:
     with contextlib.suppress(Exception):  # maybe in the middle of a write
-        return len(_series(_read(path).get("/motor/0/gamma/estimate", []))[1])
+        return len(_series(_read(path).get("/node/0/gamma/estimate", []))[1])
     return -1
 
 
@@ -708,7 +710,7 @@ def test_a_larger_flush_interval_is_honoured(tmp_path: Path, kind: str) -> None:
         sink.recording.flush(timeout_sec=10)
         assert _gamma_rows(path) == 150 * (batch + 1)
     sink.close()
-    _, v = _series(_read(path)["/motor/0/gamma/estimate"])
+    _, v = _series(_read(path)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(v, np.arange(300))
 
 
@@ -823,6 +825,6 @@ def test_compact_rrd_keeps_every_row(tmp_path: Path) -> None:
     n_after = sum(1 for _ in RrdReader(path).stream())
     assert n_after < n_before / 3, (n_before, n_after)
     assert rows(path) == rows(before)
-    assert {k[0] for k in rows(path)} >= {"/motor/0/gamma/estimate", "/motor/1/events",
+    assert {k[0] for k in rows(path)} >= {"/node/0/gamma/estimate", "/node/1/events",
                                           "/monitor/counters/frames_ok"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["before.rrd", "run.rrd"]

@@ -139,7 +139,7 @@ def _check_against_events(rows: list[dict[str, Any]], events: list[dict[str, Any
         r = by_time[(e["node"], e["t"])]
         assert r["state"] == e["state"]
         assert max(r[g] for g in gammas) == pytest.approx(e["gamma"], abs=1e-12)
-        assert max(r[f] for f in fs) == pytest.approx(e["fault_volts"], rel=1e-12, abs=1e-12) \
+        assert max(r[f] for f in fs) == pytest.approx(e["fault_input"], rel=1e-12, abs=1e-12) \
             or len(fs) > 1  # f^ of the worst input; with several, the largest gamma^'s
     assert changes >= 1
 

@@ -911,7 +911,7 @@ def test_restart_with_saved_state(tmp_path: Path) -> None:
     feed_all(slow, (m for m in frames if 450 <= _k(m) < 500))
     # 200 current frames on: unsynced; 40 voltage frames on: still in the window
     assert _rejected(slow) == {"rejected/unsynced": 50} and _current(slow) == 0
-    assert slow.counters["samples/voltage"] == 10
+    assert slow.counters["samples/input"] == 10
     feed_all(slow, (m for m in frames if _k(m) >= 500))
     assert _rejected(slow) == {"rejected/unsynced": 50}
     assert _current(slow) == 100
@@ -981,7 +981,7 @@ def test_more_than_a_window_of_lost_frames_recovers_at_the_next_sync() -> None:
     # 8 freshness bits place the frames exactly: authentic, but too far ahead)
     rejected = _rejected(pipe)
     assert rejected == {"rejected/stale_freshness": 50}  # samples 250..299
-    assert pipe.counters["samples/voltage"] == 40  # 20 voltage frames lost: in the window
+    assert pipe.counters["samples/input"] == 40  # 20 voltage frames lost: in the window
     feed_all(pipe, (m for m in frames if _k(m) >= 300))
     assert _rejected(pipe) == rejected  # recovered at the sync
     assert pipe.db.secoc is not None and pipe.db.secoc.rx_freshness(("current", 0)) == 500

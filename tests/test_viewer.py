@@ -72,12 +72,12 @@ def test_viewer_renders_the_recording(tmp_path: Path) -> None:
         os.killpg(viewer.pid, signal.SIGTERM)
         viewer.wait(timeout=30)
     # the viewer holds what the monitor logged, laid out by our default blueprint
-    for path in ("/motor/0/current/measured", "/motor/0/current/estimated",
-                 "/motor/0/gamma/estimate", "/motor/0/gamma/F1", "/motor/0/gamma/true",
-                 "/motor/0/health", "/motor/0/rules", "/motor/0/events",
+    for path in ("/node/0/ArmatureCurrent/measured", "/node/0/ArmatureCurrent/estimated",
+                 "/node/0/gamma/estimate", "/node/0/gamma/F1", "/node/0/gamma/true",
+                 "/node/0/health", "/node/0/rules", "/node/0/events",
                  "/monitor/counters/samples/estimated"):
         assert path in entities, (path, sorted(entities))
-    for name in ("motor 0", "daemon"):
+    for name in ("node 0", "daemon"):
         assert f"'display_name': '{name}'" in blueprint, blueprint[:500]
     import matplotlib.image
 

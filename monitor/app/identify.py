@@ -3,17 +3,23 @@ capture, and write a rig file that `run --rig RIG_OUT` uses at once.
 
 The captures are decoded with the input rig (its DBC, node layout, signals, protection);
 per node, every output sample becomes one row of (u, y) with the inputs held from their
-latest frame. Rejected frames are left out and counted; lost output samples split the
-capture into segments and the longest one is fitted (`monitor.identify` needs a regular
-sampling). The sample period is the capture's own (the median spacing of the output
-samples). The fit and its report come from `monitor.identify.identify`; RIG_OUT is the
-input rig with the learned model (DC-motor parameters or state-space matrices), noise
-(process_noise / Q and R) and rate; the report is written beside it as JSON (and PNG when
-matplotlib is installed) and summarised on standard output.
+latest frame (the monitor's rule, `monitor.pipeline.samples`). Rejected frames are left
+out and counted; lost output samples split the capture into segments and the longest one
+is fitted (`monitor.identify` needs a regular sampling). The sample period is the
+capture's own (the median spacing of the output samples). The fit and its report come
+from `monitor.identify.identify`; RIG_OUT is the input rig with the learned model (DC-motor
+parameters or state-space matrices), noise (process_noise / Q and R), rate and input delay
+(estimated: samples from an input to its first effect); the report is written beside it
+as JSON (and PNG when matplotlib is installed) and summarised on standard output.
 
 The three files are checked before the captures are read (`monitor.app.paths`): none is an
 input, and a file identify did not write is replaced only with --force. Each is written
-atomically, the rig only once it loads.
+atomically, the rig only once it loads and once the monitor, replaying the captures with
+it, keeps the fitted stretch fault-free, unflagged and with a consistent NIS
+(`monitor.app.identify_check`; every check is in the report and the summary). A model that
+fails there is not written: exit status 1, one line on standard error; the report is still
+written (it says why). With --force it is written, its header naming the failed checks.
+The input rig may have no [model]: identify learns it (rate: the capture's).
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import argparse
 import json
 import logging
 import math
+import sys
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -31,6 +38,7 @@ import numpy as np
 import tomli_w
 
 from monitor.app import options
+from monitor.app.identify_check import Check, gating_failures, replay_capture, report_checks
 from monitor.app.paths import (
     RIG_HEADER,
     Output,
@@ -41,14 +49,16 @@ from monitor.app.paths import (
 )
 from monitor.app.replay import read_log
 from monitor.bus.codec import Decoded, Rejected
-from monitor.errors import MonitorError, UsageError
+from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.files import read_user_toml, shown_path
 from monitor.identify import KINDS, Identification, IdentifyError, identify, validate
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
+from monitor.pipeline.samples import hold
 from monitor.rig import Rig, RigError, build_decoder
 from monitor.rig.load import RIG_FILE_LIMIT, rate_problem
+from monitor.rig.spec import ModelSpec
 
 __all__ = ["NodeCapture", "add_command", "collect", "rig_document"]
 
@@ -58,13 +68,14 @@ GAP_PERIODS = 1.5  # an output spacing above this many periods is a lost sample
 
 @dataclass
 class NodeCapture:
-    """The (t, u, y) rows of one node, in capture order."""
+    """The (t, u, y) rows of one node, in capture order: u the inputs held at each output
+    sample (`monitor.pipeline.samples`, the monitor's rule)."""
 
     t: list[float] = field(default_factory=list)
     u: list[list[float]] = field(default_factory=list)
     y: list[tuple[float, ...]] = field(default_factory=list)
-    inputs: list[float] | None = None
-    seen: list[bool] = field(default_factory=list)
+    inputs: np.ndarray | None = None  # held so far
+    seen: np.ndarray = field(default_factory=lambda: np.zeros(0, np.bool_))
     where: list[tuple[int, int]] = field(default_factory=list)  # (file index, frame number)
 
 
@@ -92,14 +103,12 @@ def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
 def _row(nc: NodeCapture, d: Decoded, m: int, counts: dict[str, int],
          where: tuple[int, int] = (0, 0)) -> None:
     if nc.inputs is None:
-        nc.inputs, nc.seen = [0.0] * m, [False] * m
-    for i, v in d.inputs:
-        nc.inputs[i] = v
-        nc.seen[i] = True
+        nc.inputs, nc.seen = np.zeros(m), np.zeros(m, np.bool_)
+    hold(nc.inputs, nc.seen, d.inputs)
     if d.outputs:
-        if all(nc.seen):
+        if nc.seen.all():
             nc.t.append(d.timestamp)
-            nc.u.append(list(nc.inputs))
+            nc.u.append(nc.inputs.tolist())
             nc.y.append(d.outputs)
             nc.where.append(where)
             counts["samples"] += 1
@@ -111,7 +120,7 @@ def _as_counters(counts: dict[str, int]) -> dict[str, int]:
     """`collect`'s counts under the pipeline's counter names (`nothing_decoded` reads
     them): the same outcomes, as replay counts them."""
     names = {"frames": C.FRAMES_RECEIVED, "error_frames": C.BUS_ERROR_FRAMES,
-             "samples": C.SAMPLES_ESTIMATED, "before_inputs": C.SAMPLES_NO_VOLTAGE}
+             "samples": C.SAMPLES_ESTIMATED, "before_inputs": C.SAMPLES_NO_INPUT}
     return {names.get(k, k): v for k, v in counts.items()}
 
 
@@ -131,6 +140,7 @@ class Series(NamedTuple):
     y: np.ndarray
     segment: slice  # of the finite rows
     dropped: int  # rows with a non-finite input or output, left out
+    span: tuple[float, float]  # the stretch's first and last timestamps
 
 
 def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, int]
@@ -185,7 +195,7 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
             f"{'; '.join(why)}; identify "
             f"needs {validate.MIN_SAMPLES} regular samples in a row: record without gaps or "
             "cut the capture to a gap-free stretch")
-    return Series(T, u[seg], y[seg], seg, dropped)
+    return Series(T, u[seg], y[seg], seg, dropped, (float(t[seg][0]), float(t[seg][-1])))
 
 
 def model_kind(rig: Rig, requested: str) -> str:
@@ -193,12 +203,13 @@ def model_kind(rig: Rig, requested: str) -> str:
     current out (the rig check's rule, asked of the rig with kind dc_motor): on a rig whose
     signals are other quantities (a current in, a speed out: issue 16) auto is the black
     box, and --model dc_motor is refused. A dc_motor fit of such a capture is physically
-    meaningless even where its numbers fit, and the rig written from it would not load."""
-    if requested == "state_space" or rig.model.kind == "dc_motor" or \
-            (len(rig.inputs), len(rig.outputs)) != (1, 1):
+    meaningless even where its numbers fit, and the rig written from it would not load.
+    A rig without a model yet is asked the same."""
+    if requested == "state_space" or (rig.model is not None and rig.model.kind == "dc_motor") \
+            or (len(rig.inputs), len(rig.outputs)) != (1, 1):
         return requested  # a dc_motor rig passed that rule; core refuses other shapes
     try:
-        build_decoder(replace(rig, model=replace(rig.model, kind="dc_motor")))
+        build_decoder(replace(rig, model=ModelSpec("dc_motor")))
     except RigError as exc:
         if requested == "dc_motor":
             raise UsageError(f"--model dc_motor: {str(exc).split(': ', 1)[-1]}; use "
@@ -227,7 +238,8 @@ def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
                "diagnosis": {}}
     base = out.resolve().parent
     doc["bus"]["dbc"] = [_relative(p.resolve(), base) for p in rig.dbc]
-    model: dict[str, Any] = {"rate": 1.0 / ident.T}
+    # the delay the model was fitted for: the monitor must pair inputs and outputs so
+    model: dict[str, Any] = {"rate": 1.0 / ident.T, "input_delay": ident.input_delay}
     if ident.motor is not None:
         mp: DCMotorParameters = ident.motor
         model.update(kind="dc_motor", J=mp.J, b=mp.b, Ke=mp.Ke, Ki=mp.Ki, Ra=mp.Ra, La=mp.La,
@@ -241,6 +253,10 @@ def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
                      R=_matrix(md.R), states=list(md.state_names))
         if np.any(md.D):
             model["D"] = _matrix(md.D)
+    # the user's choices about the estimator, not learned: kept as the input rig has them
+    if rig.model is not None:
+        model.update(adaptive_noise=rig.model.adaptive_noise,
+                     noise_window_s=rig.model.noise_window_s)
     doc["model"] = model
     return doc
 
@@ -260,7 +276,7 @@ def _relative(p: Path, base: Path) -> str:
 
 
 def _cmd_identify(args: argparse.Namespace) -> int:
-    rig = options.rig(args)
+    rig = options.rig(args, model_optional=True)
     paths = [Path(p) for p in args.captures]
     out = Path(args.out)
     report_path, png = _report_paths(out)
@@ -283,9 +299,9 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         raise UsageError(f"the capture holds nodes {', '.join(map(str, sorted(usable)))}: "
                          "choose one with --node (each node gets its own rig file)")
     node, nc = next(iter(usable.items()))
-    T, u, y, seg, dropped = fit_series(nc, node, paths, counts)
-    template = DCMotorParameters(**rig.model.motor) if rig.model.kind == "dc_motor" \
-        else DCMotorParameters()
+    T, u, y, seg, dropped, span = fit_series(nc, node, paths, counts)
+    template = DCMotorParameters(**rig.model.motor) \
+        if rig.model is not None and rig.model.kind == "dc_motor" else DCMotorParameters()
     ident = identify(u, y, T, kind=model_kind(rig, args.model), order=args.order,
                      template=template,
                      input_names=[r.signal for r in rig.inputs],
@@ -294,11 +310,27 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                                "frames": counts, "period_s": T,
                                "segment": [seg.start, seg.stop], "samples": int(u.shape[0]),
                                "non_finite_dropped": dropped}
-    doc = rig_document(rig, ident, out)
-    with atomic_output("--out", out) as tmp:
-        tmp.write_text(f"{RIG_HEADER} from {', '.join(p.name for p in paths)} (node {node})\n"
-                       + tomli_w.dumps(doc), encoding="utf-8")
-        _check_rig(tmp, out)
+    header = f"{RIG_HEADER} from {', '.join(p.name for p in paths)} (node {node})\n"
+    body = tomli_w.dumps(rig_document(rig, ident, out))
+    failed: list[Check] = []
+    try:
+        with atomic_output("--out", out) as tmp:
+            tmp.write_text(header + body, encoding="utf-8")
+            # the monitor replays the capture with the rig as it loads from this very file
+            figures = replay_capture(_check_rig(tmp, out), paths, node, span)
+            checks = report_checks(ident.report, figures)
+            ident.report["replay"] = figures.as_dict()
+            ident.report["checks"] = [c.as_dict() for c in checks]
+            failed = gating_failures(checks)
+            if failed and not args.force:
+                raise _NotWritten  # the temporary file goes, RIG_OUT stays as it was
+            if failed:  # the model is the same; the file says what it failed
+                tmp.write_text(header + f"# written with --force though it fails "
+                               f"{', '.join(c.check for c in failed)} (see the "
+                               ".identify.json report beside it)\n" + body, encoding="utf-8")
+    except _NotWritten:
+        pass
+    # The report is written even for a model that is not: it is where the user sees why.
     write_text("--out", report_path, ident.to_json() + "\n")
     try:
         with atomic_output("--out", png) as tmp:
@@ -308,8 +340,28 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         log.warning("no PNG: %s", exc)
         wrote_png = False
     print(_summary(ident, node, T, u.shape[0]))
-    print(f"wrote {out}, {report_path}" + (f", {png}" if wrote_png else ""))
+    reports = f"{report_path}" + (f", {png}" if wrote_png else "")
+    if failed:
+        why = (f"node {node}'s learned model fails the replay of its own capture: "
+               + "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})"
+                           for c in failed) + f": {failed[0].advice}")
+        if not args.force:
+            print(f"wrote {reports}")
+            # what to record or try comes last: a line cut at the limit loses only advice
+            line = (f"{out}: not written (every check is in {report_path}; --force writes "
+                    f"it anyway): {why}")
+            print(f"motor-monitor: error: {one_line(line, limit=ERROR_LINE_LIMIT)}",
+                  file=sys.stderr)
+            return 1
+        line = f"{out}: written with --force though {why}"
+        print(f"motor-monitor: warning: {one_line(line, limit=ERROR_LINE_LIMIT)}",
+              file=sys.stderr)
+    print(f"wrote {out}, {reports}")
     return 0
+
+
+class _NotWritten(Exception):
+    """The learned model fails a gating check: its temporary rig file is dropped."""
 
 
 def _report_paths(out: Path) -> tuple[Path, Path]:
@@ -320,13 +372,13 @@ def _report_paths(out: Path) -> tuple[Path, Path]:
         return out / ".identify.json", out / ".identify.png"
 
 
-def _check_rig(written: Path, out: Path) -> None:
+def _check_rig(written: Path, out: Path) -> Rig:
     """The rig file written at `written` (beside `out`, the file it is about to replace)
-    must load, every key checked, before it replaces `out`."""
+    must load, every key checked, before it replaces `out`; returns it as loaded."""
     from monitor.rig import load_rig
 
     try:
-        load_rig(written)
+        return load_rig(written)
     except MonitorError as exc:  # named as the user will find it
         text = str(exc)
         for name in (str(written), shown_path(written)):
@@ -349,7 +401,30 @@ def _summary(ident: Identification, node: int, T: float, n: int) -> str:
     if "identifiable" in rep:
         lines.append(f"  identifiable: {rep['identifiable']}")
     lines.append(f"  R = {json.dumps(np.asarray(ident.R).tolist())}, q = {ident.q:.4g}")
+    if "replay" in rep:
+        r = rep["replay"]
+        states = ", ".join(f"{k} {v:.1f} s" for k, v in r["state_seconds"].items()) or "none"
+        lines.append(f"  replay of the fitted stretch after its first {r['start_s']:.2f} s: "
+                     f"{states}; "
+                     f"model mismatch {r['mismatch_seconds']:.1f} s; mean NIS "
+                     f"{_shown(r['mean_nis'])} (band {_shown(r['nis_band'])})")
+    if rep.get("checks"):
+        lines.append("  checks (the replay's gate: a model that fails one is not written):")
+        for c in rep["checks"]:
+            lines.append(f"    {'PASS' if c['passed'] else 'FAIL'} {c['check']}: "
+                         f"{_shown(c['value'])} (limit {_shown(c['limit'])}"
+                         f"{'' if c['gating'] else ', advice only'})"
+                         + (f": {c['advice']}" if c["advice"] else ""))
     return "\n".join(lines)
+
+
+def _shown(v: Any) -> str:
+    """A check's value or limit as the summary prints it."""
+    if v is None:
+        return "n/a"
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_shown(x) for x in v) + "]"
+    return f"{v:.3g}" if isinstance(v, float) else str(v)
 
 
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
@@ -357,7 +432,7 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                        "write a rig file for it")
     c.add_argument("captures", nargs="+", metavar="CAPTURE",
                    help="healthy bus captures (.log, .asc, .blf) with the input varying")
-    options.add_rig_option(c)
+    options.add_rig_option(c, model_optional=True)
     c.add_argument("--node", type=int, default=None, help="the node to identify")
     c.add_argument("--model", choices=KINDS, default="auto",
                    help="auto (the default): the DC motor where the rig's units say it applies "
@@ -370,5 +445,8 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    "never one of the inputs")
     c.add_argument("--force", action="store_true",
                    help="replace RIG_OUT and its report files even if motor-monitor did not "
-                   "write them (without it, only files identify wrote are replaced)")
+                   "write them (without it, only files identify wrote are replaced), and "
+                   "write the model even if it fails a check of the replay of its capture "
+                   "(without it: exit 1, RIG_OUT left as it was; the rig file then names the "
+                   "failed checks in its header)")
     c.set_defaults(func=_cmd_identify, dbc=None, key=None)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from monitor.errors import MonitorError, UsageError
-from monitor.pipeline import MonitorConfig
+from monitor.pipeline import MonitorConfig, PlantSignals
 from monitor.sinks.base import Sink
 from monitor.sinks.compact import Compactor
 from monitor.sinks.jsonl import JsonLinesSink
@@ -26,8 +26,8 @@ from monitor.sinks.rotation import RotatingRerunSink
 if TYPE_CHECKING:
     from monitor.rig import Rig
 
-__all__ = ["MAX_UNBACKED_FLUSH_S", "count_compactions", "event_lines", "record_flush_s",
-           "rerun_sink", "samples_sink"]
+__all__ = ["MAX_UNBACKED_FLUSH_S", "count_compactions", "event_lines", "fault_unit",
+           "plant_signals", "record_flush_s", "rerun_sink", "samples_sink"]
 
 MAX_UNBACKED_FLUSH_S = 0.25
 """The longest recording flush interval without the raw bus log: what a SIGKILL may lose."""
@@ -63,12 +63,32 @@ def count_compactions(recording: Sink | None, counters: MutableMapping[str, int]
             counters[name] = value
 
 
+def plant_signals(rig: Rig | None) -> PlantSignals:
+    """The names and units of the rig's inputs and outputs, as the outlets name them (units
+    by `monitor.rig.check.signal_units`); our bus's without a rig."""
+    if rig is None:
+        return PlantSignals()
+    from monitor.rig.check import signal_units
+
+    units_in, units_out = signal_units(rig)
+    return PlantSignals(
+        inputs=tuple((r.signal, u) for r, u in zip(rig.inputs, units_in, strict=True)),
+        outputs=tuple((r.signal, u) for r, u in zip(rig.outputs, units_out, strict=True)))
+
+
+def fault_unit(rig: Rig | None, cfg: MonitorConfig) -> str | None:
+    """The unit of the events' `fault_input` (`PlantSignals.fault_unit` of the model's
+    fault inputs)."""
+    return plant_signals(rig).fault_unit(cfg.plant().faults)
+
+
 def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig, *,
-               replay: bool = False) -> Sink | None:
+               replay: bool = False, rig: Rig | None = None) -> Sink | None:
     """Rotating files (--record-dir), one file (--rrd) and/or a live viewer (--connect), or
-    None when none is asked for. Rotated files are compacted in the background
-    (`monitor.sinks.compact`). A `replay` records in chunks of `REPLAY_BATCH_SIZE` rows, into
-    parts of `REPLAY_PART_BYTES`."""
+    None when none is asked for, its entities named after `rig`'s signals (our bus's
+    without one). Rotated files are compacted in the background (`monitor.sinks.compact`).
+    A `replay` records in chunks of `REPLAY_BATCH_SIZE` rows, into parts of
+    `REPLAY_PART_BYTES`."""
     record_dir = getattr(args, "record_dir", None)
     if args.rrd and record_dir:
         raise UsageError("--rrd and --record-dir exclude each other (one file, or rotating files)")
@@ -81,7 +101,8 @@ def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig, *,
             raise UsageError(f"--rrd: directory {parent} does not exist")
     common: dict[str, Any] = {"nodes": cfg.nodes or (), "f1": cfg.thresholds.f1,
                               "f2": cfg.thresholds.f2, "connect_url": args.connect,
-                              "flush_interval_s": flush_interval_s}
+                              "flush_interval_s": flush_interval_s,
+                              "signals": plant_signals(rig)}
     if replay:
         common["batch_size"] = REPLAY_BATCH_SIZE
         if args.rrd and not args.connect:
@@ -99,25 +120,25 @@ def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig, *,
         raise MonitorError(f"cannot start the Rerun recording: {exc}") from None
 
 
-def event_lines(path: str | None, *, to_stdout: bool, append: bool = True) -> Sink | None:
+def event_lines(path: str | None, *, to_stdout: bool, append: bool = True,
+                fault_unit: str | None = None) -> Sink | None:
     """JSON lines of the diagnosis events to `path` (appended to it, or with `append`
-    False replacing it), else to standard output if `to_stdout`, else none. The caller has
-    checked `path` (`monitor.app.paths.check_outputs`)."""
+    False replacing it), else to standard output if `to_stdout`, else none; `fault_unit`
+    the unit of their `fault_input` (`fault_unit`). The caller has checked `path`
+    (`monitor.app.paths.check_outputs`)."""
     if path:
-        return JsonLinesSink(open(path, "a" if append else "w", encoding="utf-8"), owned=True)
-    return JsonLinesSink(sys.stdout) if to_stdout else None
+        return JsonLinesSink(open(path, "a" if append else "w", encoding="utf-8"), owned=True,
+                             fault_unit=fault_unit)
+    return JsonLinesSink(sys.stdout, fault_unit=fault_unit) if to_stdout else None
 
 
 def samples_sink(path: str | Path, rig: Rig, cfg: MonitorConfig) -> Sink:
     """Every estimated sample to `path` (.parquet or .csv: `monitor.sinks.samples`), its
     columns named after the rig's signals and units. The caller has checked `path`
     (`monitor.app.paths.check_outputs`) and its suffix."""
-    from monitor.rig.check import signal_units
     from monitor.sinks.samples import SamplesFileSink, SampleTable
 
-    units_in, units_out = signal_units(rig)
-    table = SampleTable(
-        inputs=tuple((r.signal, u) for r, u in zip(rig.inputs, units_in, strict=True)),
-        outputs=tuple((r.signal, u) for r, u in zip(rig.outputs, units_out, strict=True)),
-        fault_inputs=cfg.plant().faults)
+    signals = plant_signals(rig)
+    table = SampleTable(inputs=signals.inputs, outputs=signals.outputs,
+                        fault_inputs=cfg.plant().faults)
     return SamplesFileSink(path, table)

@@ -295,9 +295,12 @@ def _is_event(line: bytes) -> bool:
     except (UnicodeDecodeError, ValueError, RecursionError):
         return False
     fields = {f.name for f in dataclasses.fields(DiagnosisEvent)}
-    # also the lines of a monitor from before the model-mismatch flag: `run --events` goes
-    # on appending to such a file
-    return isinstance(doc, dict) and set(doc) in (fields, fields - {"model_mismatch", "kind"})
+    # also the lines of an older monitor (the fault named `fault_volts`, without its unit;
+    # before that without the model-mismatch flag): `run --events` goes on appending to
+    # such a file
+    older = fields - {"fault_input", "fault_input_unit"} | {"fault_volts"}
+    return isinstance(doc, dict) and set(doc) in (fields, older,
+                                                  older - {"model_mismatch", "kind"})
 
 
 def _events(p: _Probe) -> bool:

@@ -105,8 +105,9 @@ def _replay_one_log(args: argparse.Namespace) -> int:
 
     def open_sinks() -> list[Sink]:
         sinks: list[Sink] = [LogSink()]
-        recording = outputs.rerun_sink(args, setup.cfg, replay=True)
-        events = outputs.event_lines(args.events, to_stdout=True, append=False)
+        recording = outputs.rerun_sink(args, setup.cfg, replay=True, rig=setup.rig)
+        events = outputs.event_lines(args.events, to_stdout=True, append=False,
+                                     fault_unit=outputs.fault_unit(setup.rig, setup.cfg))
         table = (None if samples is None
                  else outputs.samples_sink(samples, setup.rig, setup.cfg))
         return sinks + [s for s in (recording, events, table) if s is not None]

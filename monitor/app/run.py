@@ -158,8 +158,9 @@ def run_live(args: argparse.Namespace) -> int:
         live = _LiveBus(args)
         try:
             raw = _raw_log(args)
-            recording = outputs.rerun_sink(args, cfg)
-            events = outputs.event_lines(args.events, to_stdout=False)
+            recording = outputs.rerun_sink(args, cfg, rig=rig)
+            events = outputs.event_lines(args.events, to_stdout=False,
+                                         fault_unit=outputs.fault_unit(rig, cfg))
         except BaseException:
             live.drop()
             raise

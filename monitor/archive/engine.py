@@ -191,9 +191,9 @@ class RunRecorder(Sink):
         if len(nis) and not float(nis.max()) <= stats.worst_nis:
             stats.worst_nis = float(nis.max())
 
-    def on_voltage_columns(self, node: int, t: NDArray[np.float64],
-                           volts: NDArray[np.float64]) -> None:
-        """Voltages are not part of the summary."""
+    def on_input_columns(self, node: int, t: NDArray[np.float64], values: NDArray[np.float64],
+                         index: NDArray[np.int64]) -> None:
+        """The inputs' own-rate rows are not part of the summary."""
 
 
 _T = TypeVar("_T")

@@ -28,6 +28,7 @@ from pathlib import Path
 from monitor.app import outputs
 from monitor.archive.engine import (
     FrameProgress,
+    MonitorSetup,
     PerFileEngine,
     ReplaySettings,
     columnar_engine,
@@ -38,7 +39,6 @@ from monitor.archive.progress import EXTRA_HINT, ProgressBar, progress_bar
 from monitor.archive.result import LogResult, failed_result, log_result
 from monitor.archive.summary import summary_rows, write_csv, write_parquet
 from monitor.errors import MonitorError, UsageError, one_line
-from monitor.pipeline import MonitorConfig
 from monitor.sinks.base import Sink
 from monitor.sinks.rerun import recording_parts
 
@@ -58,7 +58,7 @@ WORKER_TIMEOUT_S = 60.0
 
 
 def _open_outputs(events: Path | None, rrd: Path | None,
-                  cfg: MonitorConfig) -> Callable[[], list[Sink]]:
+                  setup: MonitorSetup) -> Callable[[], list[Sink]]:
     """The engine's `open_sinks`: the log's JSON lines and recording, each if asked for."""
     def open_sinks() -> list[Sink]:
         sinks: list[Sink] = []
@@ -66,13 +66,14 @@ def _open_outputs(events: Path | None, rrd: Path | None,
             if events is not None:
                 events.parent.mkdir(parents=True, exist_ok=True)
                 events.unlink(missing_ok=True)  # event_lines appends: start this run's file
-                sink = outputs.event_lines(str(events), to_stdout=False)
+                sink = outputs.event_lines(str(events), to_stdout=False,
+                                           fault_unit=outputs.fault_unit(setup.rig, setup.cfg))
                 if sink is not None:
                     sinks.append(sink)
             if rrd is not None:
                 rrd.parent.mkdir(parents=True, exist_ok=True)
                 recording = outputs.rerun_sink(argparse.Namespace(rrd=str(rrd), connect=None),
-                                               cfg, replay=True)
+                                               setup.cfg, replay=True, rig=setup.rig)
                 if recording is not None:
                     sinks.append(recording)
         except BaseException:
@@ -96,7 +97,7 @@ def replay_one(path: Path, settings: ReplaySettings, *, events: Path | None = No
     t0 = time.perf_counter()
     try:
         setup = monitor_setup(settings)
-        run = engine(path, setup, _open_outputs(events, rrd, setup.cfg), progress)
+        run = engine(path, setup, _open_outputs(events, rrd, setup), progress)
     except Exception as exc:
         for p in (events, *(recording_parts(rrd) if rrd is not None else ())):
             if p is not None:

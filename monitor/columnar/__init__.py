@@ -23,13 +23,13 @@ python-can's readers):
    (`monitor.estimation.fuzzy_ukf.step_many`: the same kernel as `FuzzyUKF.step`), then
    classification, model-mismatch detection, silence ticks and due diagnoses in one
    compiled loop (`kernels.classify`);
-4. samples and voltages go to the sinks as columns (`sinks.SinkRouter`; `RerunSink` takes
+4. samples and inputs go to the sinks as columns (`sinks.SinkRouter`; `RerunSink` takes
    them with `on_sample_columns` and sends them with ``rr.send_columns``), transitions, due
    diagnoses and bus events in their order.
 
 The same transitions, due diagnoses, bus events, samples and counters as
 ``feed_log(MonitorPipeline(db, cfg, sink), read_log(path))`` (tests/test_columnar.py). What
-differs: samples and voltages reach a sink node by node per chunk (each node's in order),
+differs: samples and inputs reach a sink node by node per chunk (each node's in order),
 before that chunk's events; the counters reach the sink once per chunk (at its last frame's
 time) rather than about once a second of bus time; rejected frames are logged once per
 reason per file rather than rate-limited. SecOC needs per-frame freshness state: with a

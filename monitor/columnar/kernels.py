@@ -5,7 +5,7 @@ results on every test log.
 
 * `ticks`: where `feed_log` calls ``pipe.tick`` (every `TICK_S` of bus time).
 * `admit`: `MonitorPipeline._check_counter`'s judgement of a repeated counter and
-  `MonitorPipeline._on_output` up to the estimator step: no voltage yet, non-monotonic
+  `MonitorPipeline._on_output` up to the estimator step: no input yet, non-monotonic
   time, a gap that restarts the estimator, the sample periods k
   (`MonitorPipeline._periods`, `monitor.pipeline.periods`) and late samples.
 * `classify`: per node, samples and ticks in order: `OnlineClassifier.update` and
@@ -64,7 +64,7 @@ _wrapped = njit(periods.wrapped)
 def admit(t: F8, lost: I8, wrap: B1, seen: B1, last: F8, rate: float, max_gap: float,
           silence: float, jitter_fraction: float, status: I8, k_out: I8, restart: B1,
           jitter: B1) -> None:
-    """Per output sample: status 0 admitted, 1 no voltage yet, 2 time does not advance,
+    """Per output sample: status 0 admitted, 1 no input yet, 2 time does not advance,
     3 a repeated counter (`wrap`: one that may be 16 m - 1 lost samples) that is a repeat;
     k sample periods since the previous one; restart after a gap over max_gap; jitter (late
     sample without a counter). last[0]: the node's last admitted time (NaN: none)."""

@@ -39,6 +39,7 @@ from monitor.pipeline.events import (
     DiagnosisEvent,
     SampleColumns,
 )
+from monitor.pipeline.samples import delayed, held_column, no_past
 from monitor.sinks.base import Sink
 
 __all__ = ["ReplayResult", "columnar_obstacle", "replay_chunks", "replay_file"]
@@ -78,8 +79,9 @@ class _Node:
         self.cfg = cfg
         self.T = 1.0 / cfg.rate
         self.est = FuzzyUKF(model, cfg.estimator)
-        self.u = np.zeros(model.m)
+        self.u = np.zeros(model.m)  # the held inputs (`monitor.pipeline.samples`)
         self.u_seen = np.zeros(model.m, np.bool_)
+        self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
         self.truth = math.nan
         self.has_truth = False
         self.last_admit = np.array([math.nan])
@@ -106,16 +108,6 @@ def _cls_params(cfg: MonitorConfig, p: int) -> NDArray[np.float64]:
     return np.array([c._f1, c._f2, c._f1_up, c._f1_down, c._f2_up, c._f2_down, c._dwell,
                      mm._a, lo, hi, mm.dwell_s, float(p), cfg.publish_period_s,
                      cfg.silence_timeout_s, float(cfg.withhold_alarms_on_mismatch)])
-
-
-def _held(has: NDArray[np.bool_], values: NDArray[np.float64], carried: float,
-          seen: bool) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """The latest value at every row (this row's if it has one), and whether there is one."""
-    idx = np.where(has, np.arange(len(has)), -1)
-    np.maximum.accumulate(idx, out=idx)
-    got = idx >= 0
-    val = np.where(got, values[np.maximum(idx, 0)], carried)
-    return val, got | seen
 
 
 class _Replay:
@@ -297,29 +289,27 @@ class _Replay:
         cnt = self.counters
         cfg = self.cfg
         m = self.model.m
-        routes = self.table.routes
         t_fr = c.t[fr]
         u_fr = dec.u[fr]
         has_u = ~np.isnan(u_fr)
         any_u = has_u.any(axis=1)
         if any_u.any():
-            cnt.inc(C.SAMPLES_VOLTAGE, int(any_u.sum()))
-            first_in = np.array([r.inputs[0][0] if r.inputs else 0 for r in routes], np.int64)
-            vi = np.flatnonzero(any_u)
-            volts = u_fr[vi, first_in[ra[vi]]]
-            self.router.voltages(nm.node, t_fr[vi], volts)
+            cnt.inc(C.SAMPLES_INPUT, int(any_u.sum()))
+            # every input each frame carries, frame by frame, by index (as the per-frame engine)
+            rows, cols = np.nonzero(has_u)
+            self.router.inputs(nm.node, t_fr[rows], u_fr[rows, cols], cols.astype(np.int64))
         held_u = np.empty_like(u_fr)
         seen = np.ones(len(fr), np.bool_)
         for a in range(m):
-            v, s = _held(has_u[:, a], u_fr[:, a], float(nm.u[a]), bool(nm.u_seen[a]))
+            v, s = held_column(has_u[:, a], u_fr[:, a], float(nm.u[a]), bool(nm.u_seen[a]))
             held_u[:, a] = v
             seen &= s
         tr = dec.truth[fr]
         has_t = ~np.isnan(tr)
         if has_t.any():
             cnt.inc(C.SAMPLES_TRUTH, int(has_t.sum()))
-        held_t, got_t = _held(has_t, tr, nm.truth, nm.has_truth)
-        n_out = np.array([len(r.outputs) for r in routes], np.int64)
+        held_t, got_t = held_column(has_t, tr, nm.truth, nm.has_truth)
+        n_out = np.array([len(r.outputs) for r in self.table.routes], np.int64)
         is_out = n_out[ra] > 0
         oi = np.flatnonzero(is_out)
         # everything held at this chunk's end, and at every frame (for ticks)
@@ -348,7 +338,7 @@ class _Replay:
                 cnt.inc(C.E2E_COUNTER_JUMPS, n_wrap)
                 cnt.inc(C.E2E_LOST_FRAMES, 15 * n_wrap)
         if (status == 1).any():
-            cnt.inc(C.SAMPLES_NO_VOLTAGE, int((status == 1).sum()))
+            cnt.inc(C.SAMPLES_NO_INPUT, int((status == 1).sum()))
         if (status == 2).any():
             cnt.inc(C.TIME_NON_MONOTONIC, int((status == 2).sum()))
         if jitter.any():
@@ -362,7 +352,8 @@ class _Replay:
         pt = kA[~rA] - 1
         if (pt > 0).any():
             cnt.inc(C.SAMPLES_PREDICTED_THROUGH, int(pt[pt > 0].sum()))
-        U = held_u[oA]
+        H = held_u[oA]
+        U, nm.u_past = delayed(H, cfg.input_delay, nm.u_past, rA)
         Y = np.nan_to_num(dec.y[fr[oA]], nan=0.0)
         dts: NDArray[np.float64] = (kA * nm.T).astype(np.float64)
         nA = len(A)
@@ -450,7 +441,7 @@ class _Replay:
         for item in np.flatnonzero(ev).tolist():
             if not is_tick[item]:
                 s_i = int(sample_idx[item])
-                g_vec, rl, u_vec = gam[s_i], int(rules[s_i]), U[s_i]
+                g_vec, rl, u_vec = gam[s_i], int(rules[s_i]), H[s_i]
             else:
                 ls = int(last_sample[item])
                 if ls >= 0:
@@ -475,14 +466,14 @@ class _Replay:
             if fev[item]:  # the flag's event first (`MonitorPipeline._report`)
                 events.append((key, order, len(events), DiagnosisEvent(
                     t=t_ev, node=nm.node, state=p_state.label, previous=p_state.label,
-                    gamma=g, fault_volts=fv, rules=rl,
+                    gamma=g, fault_input=fv, rules=rl,
                     cause=("nis", "restart", "silence")[int(fev[item]) - 1],
                     model_mismatch=mm, kind=MODEL_MISMATCH)))
             if ev[item] == 1 and state != p_state:
                 why = ("estimate", "model", "silence")[int(cause[item])]
                 events.append((key, order, len(events), DiagnosisEvent(
                     t=t_ev, node=nm.node, state=state.label, previous=p_state.label, gamma=g,
-                    fault_volts=fv, rules=rl, cause=why, model_mismatch=mm)))
+                    fault_input=fv, rules=rl, cause=why, model_mismatch=mm)))
             if self.router.wants_diagnosis:
                 events.append((key, order, len(events),
                                Diagnosis(nm.node, t_ev, state, g, fv, rl, mm)))

@@ -1,11 +1,11 @@
 """Samples handed to the pipeline's sinks as columns.
 
 A sink may take a node's samples as columns (`on_sample_columns(node, SampleColumns)`,
-`on_voltage_columns(node, t, volts)`; `monitor.sinks.rerun.RerunSink` does, and sends them
-with ``rr.send_columns``). `SinkRouter` walks a `FanOut` and gives each sink what it takes:
-columns where it has those methods; one `Sample` at a time to any other sink that overrides
-`on_sample` / `on_voltage`; nothing to a sink that ignores samples (the JSON events, the
-log).
+`on_input_columns(node, t, values, index)`; `monitor.sinks.rerun.RerunSink` does, and sends
+them with ``rr.send_columns``). `SinkRouter` walks a `FanOut` and gives each sink what it
+takes: columns where it has those methods; one `Sample` / `InputSample` at a time to any
+other sink that overrides `on_sample` / `on_input`; nothing to a sink that ignores samples
+(the JSON events, the log).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.pipeline.events import SampleColumns, VoltageSample
+from monitor.pipeline.events import InputSample, SampleColumns
 from monitor.sinks.base import FanOut, Sink
 
 __all__ = ["SampleColumns", "SinkRouter"]
@@ -36,7 +36,7 @@ class SinkRouter:
     def __init__(self, sink: Sink) -> None:
         self.columns: list[Any] = []
         self.rows: list[Sink] = []
-        self.volt_rows: list[Sink] = []
+        self.input_rows: list[Sink] = []
         leaves = _leaves(sink)
         self.wants_diagnosis = any(type(s).on_diagnosis is not Sink.on_diagnosis for s in leaves)
         """Whether any sink takes the due `Diagnosis` (else they are not even built)."""
@@ -46,8 +46,8 @@ class SinkRouter:
             else:
                 if type(s).on_sample is not Sink.on_sample:
                     self.rows.append(s)
-                if type(s).on_voltage is not Sink.on_voltage:
-                    self.volt_rows.append(s)
+                if type(s).on_input is not Sink.on_input:
+                    self.input_rows.append(s)
 
     def samples(self, node: int, cols: SampleColumns) -> None:
         for s in self.columns:
@@ -58,9 +58,12 @@ class SinkRouter:
                 for r in rows:
                     s.on_sample(r)
 
-    def voltages(self, node: int, t: NDArray[np.float64], volts: NDArray[np.float64]) -> None:
+    def inputs(self, node: int, t: NDArray[np.float64], values: NDArray[np.float64],
+               index: NDArray[np.int64]) -> None:
+        """A node's inputs as its frames carried them: row i is input `index[i]` at `t[i]`,
+        every input of every frame in bus order (as `InputSample`)."""
         for s in self.columns:
-            s.on_voltage_columns(node, t, volts)
-        for s in self.volt_rows:
+            s.on_input_columns(node, t, values, index)
+        for s in self.input_rows:
             for i in range(len(t)):
-                s.on_voltage(VoltageSample(node, float(t[i]), float(volts[i])))
+                s.on_input(InputSample(node, float(t[i]), float(values[i]), int(index[i])))

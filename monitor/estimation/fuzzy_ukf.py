@@ -26,6 +26,25 @@ Per sample k (the paper's order, made sound where NOTES.md says it must be):
    sample rate) must exceed a threshold, with a dwell time between two events. Keeping
    the sign makes a persistent bias -- what a changed fault produces -- far more visible
    than the squared NIS would. What an event does is below (b).
+5b. Adaptive output noise (`adaptive_noise`): a real sensor is noisier than the model's R
+   (the NIS then sits near the ratio and the model-mismatch flag stays up). The measurement
+   update uses R + diag(rx), rx learnt by innovation-based covariance matching (the
+   Sage-Husa estimator as adaptive UKFs use it; Mohamed and Schwarz, J. Geodesy 1999):
+
+       rx_r <- max(0, rx_r + d min(nu_r^2 - S_rr, 8 (R + diag(rx))_rr)),
+       d = 1 - exp(-T / noise_window)
+
+   which drives E[nu_r^2] = S_tot,rr (S_rr - rx_r = C P^- C' + R + M pg M' on the diagonal:
+   the same as R <- (1 - d) R + d (nu nu' - C P^- C' - M pg M')). rx >= 0 keeps R positive
+   definite and never below the model's. A fault must not be learnt as noise: it is a mean
+   shift in the innovations for gamma^ to explain, so a sample the mean-shift test (20)
+   rejects (stat > nis_threshold) or a structure event's onset does not adapt, the cap
+   bounds what a sample the test has not yet caught can add (R grows at most by 8 d a
+   sample), and noise_window (2 s) is far longer than the
+   classifier's dwell and the onset window. A persistent bias too small for the test (a
+   small unmodelled load) is partly learnt as noise; a large one stays visible to the
+   mismatch detector. Q is not adapted. rx is part of the onset ring: a structure event
+   re-processes from the learnt noise of its onset.
 6. Consequent adaptation (28) per sample, a_j <- clip(a_j + r e, u_L, u_U), with e = nu
    and the gain r of a recursive least squares on nu = M (gamma - gamma^) + noise: every
    consequent is a_j = c + d_j, a part c common to all rules (variance vc, gain
@@ -172,7 +191,13 @@ _log = logging.getLogger(__name__)
 # changes (2: per-actuator bounds in prm; 3: structure events in the kernel, the onset
 # ring and the consequents' common variance in st). An ahead-of-time build of another
 # layout has the same signature but would misread the buffers, so select_kernel refuses it.
-KERNEL_LAYOUT = 3
+# 4: the adapted output-noise excess in st and in every ring slot, its weight in prm.
+KERNEL_LAYOUT = 4
+
+# The adaptive output noise (step 5b) lets a sample raise the output noise by at most
+# (this - 1) times itself, times the forgetting weight: a burst the mean-shift test has not
+# caught yet moves R by a bounded step, and a fitting model loses < 1 % to the cap.
+_NOISE_CLIP = 9.0
 
 
 def kernel_layout() -> int:
@@ -213,6 +238,11 @@ class FuzzyUKFConfig:
         own units); a number, that value on the diagonal. Without an x0 the filter starts
         from what its first output says (`start_state`), this covariance being the floor
         of the start's.
+    adaptive_noise: learn the output noise from the innovations (step 5b of the module
+        docstring): R + diag(rx), rx >= 0, so never below the model's R.
+    noise_window: time constant of that learning, seconds (per received sample, like
+        nis_window): much longer than the classifier's dwell and the onset window, so a
+        fault -- a mean shift that gamma^ explains within them -- moves R little.
     """
 
     alpha: float = 1e-4
@@ -231,6 +261,8 @@ class FuzzyUKFConfig:
     min_jump: float = 0.01
     max_onsets: int = 24
     P0: float | None = None
+    adaptive_noise: bool = True
+    noise_window: float = 2.0
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
 
 
@@ -280,12 +312,13 @@ def _fuzzy_ukf_step(
     """One sample of the fuzzy UKF on flat buffers (see FuzzyUKF for the layout).
 
     prm = [dt, delta, wi, q_gamma, var_max, nis_coef, var_reopen, nis_threshold, mode,
-    growth_share, slot, var_rule, lower[0..m), upper[0..m)]: lower/upper are the
-    per-actuator bounds of (28), lower[a] == upper[a] marks a known actuator. mode 0: no
+    growth_share, slot, var_rule, lower[0..m), upper[0..m), noise_coef]: lower/upper are the
+    per-actuator bounds of (28), lower[a] == upper[a] marks a known actuator; noise_coef
+    the forgetting weight of the adaptive output noise (0: the model's R). mode 0: no
     structure test (dwell time), 1: test (stats[3] = 1 when it fires), 2: a structure event
     at the start of this sample (the caller re-processes from the onset of a change).
-    slot: this sample's place in the onset ring (st after x, P, V, z and the common
-    variance of the consequents).
+    slot: this sample's place in the onset ring (st after x, P, V, z, the common
+    variance of the consequents and the adapted output-noise excess).
     """
     # ---- views into the flat buffers (slices and reshapes allocate nothing)
     o = 0
@@ -310,13 +343,15 @@ def _fuzzy_ukf_step(
     # loss of effectiveness): its consequents are fixed, carry no variance, never adapt
     lo = prm[12:12 + m]
     hi = prm[12 + m:12 + 2 * m]
+    noise_coef = prm[12 + 2 * m]
     o = 0
     x = st[o:o + n]; o += n
     P = st[o:o + n * n].reshape((n, n)); o += n * n
     V = st[o:o + n * m].reshape((n, m)); o += n * m
     z = st[o:o + n]; o += n
     vc = st[o:o + m]; o += m
-    o += int(prm[10]) * (2 * n + n * n + n * m + 3 * p + 3 * m + 1 + n * p + p * p)
+    rx = st[o:o + p]; o += p
+    o += int(prm[10]) * (2 * n + n * n + n * m + 4 * p + 3 * m + 1 + n * p + p * p)
     r_x = st[o:o + n]; o += n
     r_P = st[o:o + n * n].reshape((n, n)); o += n * n
     r_V = st[o:o + n * m].reshape((n, m)); o += n * m
@@ -329,7 +364,8 @@ def _fuzzy_ukf_step(
     r_dt = st[o:o + 1]; o += 1
     r_K = st[o:o + n * p].reshape((n, p)); o += n * p
     r_Sti = st[o:o + p * p].reshape((p, p)); o += p * p
-    r_nu = st[o:o + p]
+    r_nu = st[o:o + p]; o += p
+    r_rx = st[o:o + p]
     o = 0
     gamma = out[o:o + m]; o += m
     fhat = out[o:o + n]; o += n
@@ -365,7 +401,8 @@ def _fuzzy_ukf_step(
     Pxy = wk[o:o + n * p].reshape((n, p)); o += n * p
     K = wk[o:o + n * p].reshape((n, p)); o += n * p
     Vp = wk[o:o + n * m].reshape((n, m)); o += n * m
-    M = wk[o:o + p * m].reshape((p, m))
+    M = wk[o:o + p * m].reshape((p, m)); o += p * m
+    Ra = wk[o:o + p * p].reshape((p, p))
 
     # 0. the state before this sample, in the onset ring (a structure event re-processes
     # the samples since the onset of the change from there)
@@ -379,6 +416,7 @@ def _fuzzy_ukf_step(
     for r in range(p):
         r_ebar[r] = ebar[r]
         r_y[r] = y[r]
+        r_rx[r] = rx[r]
     for a in range(m):
         r_gamma[a] = gamma[a]
         r_vc[a] = vc[a]
@@ -459,8 +497,13 @@ def _fuzzy_ukf_step(
     rep = ukf_predict(x, P, A, b, Q, delta, wi, L, d, xp, Pp)
     for r in range(n):
         xtilde[r] = xp[r]  # fault-model state (52)
-    # 3. measurement update (44)-(49) into (xq, Pq)
-    rep += ukf_update(xp, Pp, C, yoff, R, y, delta, wi, L, Ls, s, dy, Pyy, Pyy_inv, Pxy, K, nu,
+    # 3. measurement update (44)-(49) into (xq, Pq), with the output noise the innovations
+    # have shown: R + diag(rx) (step 5b), never below the model's R
+    for r in range(p):
+        for c in range(p):
+            Ra[r, c] = R[r, c]
+        Ra[r, r] += rx[r]
+    rep += ukf_update(xp, Pp, C, yoff, Ra, y, delta, wi, L, Ls, s, dy, Pyy, Pyy_inv, Pxy, K, nu,
                       xq, Pq, IKC, T1)
     for r in range(p):
         acc = yoff[r]
@@ -523,6 +566,19 @@ def _fuzzy_ukf_step(
         chi += ebar[r] * ebar[r]
     stat = chi * (2.0 - nis_coef) / nis_coef
     stats[3] = 1.0 if (mode == 1.0 and stat > threshold) else 0.0
+    # 5b. adaptive output noise, innovation-based covariance matching (Sage-Husa; Mohamed
+    # and Schwarz 1999): rx <- max(0, rx + d (min(nu_r^2, c S_rr) - S_rr)), which drives
+    # E[nu nu'] = S_tot on the diagonal. Not from a sample the mean-shift test (20) rejects:
+    # a fault is a mean shift for gamma^ to explain, not noise to learn
+    if noise_coef > 0.0 and stat <= threshold and mode < 2.0:
+        for r in range(p):
+            # the excess is capped in units of the output noise itself, not of S_tot: at a
+            # structure event S_tot is mostly gamma's uncertainty (M pg M'), and a cap in
+            # S_tot let one sample raise a stiff servo's R 125-fold
+            inc = nu[r] * nu[r] - St[r, r]
+            cap = (_NOISE_CLIP - 1.0) * Ra[r, r]
+            v = rx[r] + noise_coef * (inc if inc < cap else cap)
+            rx[r] = v if v > 0.0 else 0.0
     # the sample as the filter saw it, for locating the onset of a change
     for r in range(n):
         for c in range(p):
@@ -918,7 +974,7 @@ def start_state(model: DiscreteModel, u: Array, y: Array, P_base: Array) -> Star
 
 
 def _work_size(n: int, m: int, p: int) -> int:
-    return 3 * m + 5 * n + 3 * p + 5 * n * n + 5 * p * p + 2 * n * p + n * m + p * m
+    return 3 * m + 5 * n + 3 * p + 5 * n * n + 6 * p * p + 2 * n * p + n * m + p * m
 
 
 class FuzzyUKF:
@@ -964,26 +1020,31 @@ class FuzzyUKF:
         lower[self._known] = 0.0
         upper[self._known] = 0.0
         self.fuzzy.var[:, self._known] = 0.0
+        # one weight per received sample, as the innovation average's (`_block`)
+        noise_coef = (1.0 - math.exp(-model.T / cfg.noise_window)) if cfg.adaptive_noise \
+            else 0.0
         self._prm = np.concatenate([[0.0, w.delta, w.wi, cfg.q_gamma, cfg.var_max, 0.0,
                                      cfg.var_reopen, cfg.nis_threshold, 0.0, cfg.growth_share,
-                                     0.0, cfg.var_rule], lower, upper])
-        # state: x, P, V, z, the common variance of the consequents (per actuator), then
-        # the onset ring (one slot per sample, see ring_slot_size)
-        head = 2 * n + n * n + n * m + m
+                                     0.0, cfg.var_rule], lower, upper, [noise_coef]])
+        # state: x, P, V, z, the common variance of the consequents (per actuator), the
+        # adapted output-noise excess (per output), then the onset ring (one slot per
+        # sample, see ring_slot_size)
+        head = 2 * n + n * n + n * m + m + p
         self._ring_len = max(2, math.ceil(cfg.onset_window / model.T) + 1)
         slot = ring_slot_size(n, m, p)
         self._st = np.zeros(head + self._ring_len * slot)
         self.x = self._st[:n]
         self.P = self._st[n:n + n * n].reshape(n, n)
         self.V = self._st[n + n * n:n + n * n + n * m].reshape(n, m)
-        self.z = self._st[n + n * n + n * m:head - m]
-        self.common_var = self._st[head - m:head]
+        self.z = self._st[n + n * n + n * m:head - m - p]
+        self.common_var = self._st[head - m - p:head - p]
+        self.noise_excess = self._st[head - p:head]  # rx: R + diag(rx) is the output noise
         self.common_var[self._faulty] = cfg.var0
         self._ring = self._st[head:].reshape(self._ring_len, slot)
-        offs = np.cumsum([0, n, n * n, n * m, n, p, m, m, m, p, 1, n * p, p * p, p])
+        offs = np.cumsum([0, n, n * n, n * m, n, p, m, m, m, p, 1, n * p, p * p, p, p])
         assert offs[-1] == slot
         self._rf = dict(zip(("x", "P", "V", "z", "ebar", "gamma", "vc", "u", "y", "dt", "K",
-                             "Sti", "nu"), itertools.pairwise(offs), strict=True))
+                             "Sti", "nu", "rx"), itertools.pairwise(offs), strict=True))
         if x0 is not None:
             x0a = np.asarray(x0, dtype=float)
             if x0a.shape == (model.n_full,):
@@ -1288,6 +1349,7 @@ class FuzzyUKF:
         self._ebar[:] = self._field(j, "ebar")
         self.out.gamma[:] = self._field(j, "gamma")
         self.common_var[:] = self._field(j, "vc")
+        self.noise_excess[:] = self._field(j, "rx")
         # the event re-opens every consequent at that output: do it before the rules fire,
         # so that what the samples since taught them under the old fault is forgotten
         self.fuzzy.cons[:, self._faulty] = self.out.gamma[self._faulty]

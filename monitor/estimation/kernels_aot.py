@@ -21,9 +21,9 @@ __all__ = ["MODULE", "SIGNATURE", "build"]
 
 MODULE = "_fuzzy_ukf_aot"
 # (mdl, u, y, prm, st, centres, counts, cons, var, rule_idx, rule_w, wk, out, n, m, p, max_mf)
-# prm = [dt, delta, wi, q_gamma, var_max, nis_coef, lower[m], upper[m]] (layout 2, see
-# fuzzy_ukf.KERNEL_LAYOUT): the per-actuator bounds travel in prm, so the signature is
-# that of layout 1 and a stale build is told apart by its exported kernel_layout().
+# prm, st and wk are flat buffers whose layout (fuzzy_ukf.KERNEL_LAYOUT, see
+# _fuzzy_ukf_step) changes without changing the signature: a stale build is told apart by
+# its exported kernel_layout().
 SIGNATURE = (
     "void(f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[:, ::1], i8[::1], f8[:, ::1], "
     "f8[:, ::1], i8[::1], f8[::1], f8[::1], f8[::1], i8, i8, i8, i8)"

@@ -25,11 +25,13 @@ from monitor.estimation.model import (
     dc_motor,
 )
 from monitor.identify import validate as V
-from monitor.identify.blackbox import fit_state_space, subspace_model
+from monitor.identify.blackbox import ORDER_MARGIN, fit_state_space, subspace_model
 from monitor.identify.dcmotor import fit_dc_motor, oe_refit
+from monitor.identify.delay import MAX_ESTIMATED_DELAY, estimate_input_delay
 from monitor.identify.errors import IdentifyError
 from monitor.identify.excitation import RECORDING_ADVICE
-from monitor.identify.lti import dsim, kalman, predict, steady_state_x0
+from monitor.identify.lti import dsim, integrating, kalman, predict, steady_state_x0
+from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, fit_rows, no_past
 
 Array = NDArray[np.float64]
 
@@ -56,6 +58,9 @@ class Identification:
     motor: the fitted DC-motor parameters (kind "dc_motor"); J is the template's (fixed),
         La, Ra, b and Ke = Ki are fitted (report["identifiable"] says which combinations).
     report: plain JSON-serialisable dict (see `identify`).
+    input_delay: the rig's `[model] input_delay` the model was fitted for: the estimator's
+        step for output sample k applies the input held at sample k - input_delay
+        (`monitor.pipeline.samples`).
     """
 
     model: ContinuousDescriptor
@@ -68,6 +73,7 @@ class Identification:
     motor: DCMotorParameters | None
     report: dict[str, Any]
     traces: dict[str, Array] = field(default_factory=dict, repr=False)
+    input_delay: int = 0
 
     def to_json(self) -> str:
         return json.dumps(self.report, indent=2, sort_keys=True)
@@ -163,12 +169,13 @@ def _fit_motor(u: Array, y: Array, T: float, template: DCMotorParameters,
     return _Candidate("dc_motor", model, fit.q, 2, prm, params, extra)
 
 
-def _fit_black_box(u: Array, y: Array, T: float, order: int | None,
+def _fit_black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
                    names: tuple[tuple[str, ...], tuple[str, ...]]) -> _Candidate:
+    """The black box fitted on the first ntr rows; the rest chooses its order."""
     advice = ("the black-box fit found no usable model: record a longer capture with the "
               "input varying more (steps or a PRBS), or give --order")
     try:
-        fit = fit_state_space(u, y, T, order)
+        fit = fit_state_space(u, y, T, order, ntr)
         n = fit.order
         model = ContinuousDescriptor(
             E=np.eye(n), A=fit.Ac, B=fit.Bc, C=fit.C, Qc=0.5 * (fit.Qc + fit.Qc.T), R=fit.R,
@@ -179,9 +186,13 @@ def _fit_black_box(u: Array, y: Array, T: float, order: int | None,
     except NUMERIC_FAILURES as exc:  # ModelError (a NaN noise intensity, say) included
         raise IdentifyError(f"{advice} ({one_line(exc, 100)})") from None
     extra = {
-        "order_selection": {"bic": {str(k): v for k, v in fit.bic.items()},
+        "order_selection": {"holdout_fit_pct": {str(k): v for k, v in fit.holdout_fit.items()},
+                            "bic": {str(k): v for k, v in fit.bic.items()},
                             "subspace_singular_values": fit.singular_values,
-                            "selected": n, "given": order is not None},
+                            "selected": n, "given": order is not None,
+                            "rule": "the lowest order whose hold-out simulation fit is "
+                                    f"within {ORDER_MARGIN} points of the best"},
+        "form": fit.form,
         "function_evaluations": fit.nfev,
     }
     return _Candidate("state_space", model, fit.q, n, None, dict(fit.invariants), extra)
@@ -198,14 +209,17 @@ def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
     try:
         dm = model.discretize(T)
     except ModelError as exc:
-        raise IdentifyError(f"the fitted model cannot serve the estimator ({one_line(exc, 150)}): "
+        # The model's own message whole: cut, it hides why (a fault that does not show).
+        raise IdentifyError(f"the fitted model cannot serve the estimator ({one_line(exc, 400)}): "
                             f"{advice}") from exc
     A, B, Qd = dm.at(T)
     C, R = dm.C, dm.R
     kf = kalman(A, C, Qd, R)
     utr, ytr, uva, yva = u[:ntr], y[:ntr], u[ntr:], y[ntr:]
+    # From the initial state that fits the training part best: a capture need not start at
+    # rest (an integrator's has no rest), and the state is fitted on training samples only.
+    ysim_tr = V.fitted_x0_sim(A, B, C, utr, ytr)
     x0 = steady_state_x0(A, B, C, utr[0], ytr[0])
-    ysim_tr = dsim(A, B, C, utr, x0)
     Ap = A - kf.K @ C
     n = A.shape[0]
     X = dsim(Ap, np.hstack([B, kf.K]), np.eye(n), np.hstack([utr, ytr]), x0)
@@ -213,8 +227,11 @@ def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
     ysim_va = dsim(A, B, C, uva, xs)
     e = predict(A, B, C, kf.K, uva, yva, xs)
     w = e @ np.linalg.inv(np.linalg.cholesky(kf.S)).T
-    lam = np.linalg.eigvals(dm.Wobs @ dm.standard.A @ dm.Wobs.T)
-    stable = lam[lam.real < -1e-12]
+    lam = _poles(dm)
+    # An integrator's pole (fitted a hair off s = 0) is no time constant the capture must
+    # span.
+    integ = integrating(lam, ntr * T)
+    stable = lam[(lam.real < -1e-12) & ~integ]
     tau = float(1.0 / np.min(-stable.real)) if stable.size else math.inf
     res: dict[str, Any] = {
         "fit": {"nrmse_holdout_pct": V.nrmse(yva, ysim_va),
@@ -227,11 +244,16 @@ def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
         "innovation_std": _floats(np.sqrt(np.diag(kf.S))),
         "slowest_time_constant_s": tau,
         "poles_continuous": [[float(z.real), float(z.imag)] for z in np.sort_complex(lam)],
-        "dc_gain": _dc_gain(dm),
+        "dc_gain": None if integ.any() else _dc_gain(dm),
     }
     t_va = np.asarray((ntr + np.arange(yva.shape[0])) * T, dtype=float)
     traces: dict[str, Array] = {"t_holdout": t_va, "y_holdout": yva, "y_sim": ysim_va}
     return res, traces
+
+
+def _poles(dm: DiscreteModel) -> Array:
+    """Continuous poles of the part of the model the outputs see."""
+    return np.asarray(np.linalg.eigvals(dm.Wobs @ dm.standard.A @ dm.Wobs.T))
 
 
 def _dc_gain(dm: DiscreteModel) -> list[Any] | None:
@@ -242,18 +264,18 @@ def _dc_gain(dm: DiscreteModel) -> list[Any] | None:
         return None
 
 
-def _fuzzy_ukf(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
-               T: float) -> dict[str, Any]:
-    """The monitor's own filter on the capture: mean NIS and gamma^ on the hold-out."""
+def _fuzzy_ukf(model: ContinuousDescriptor, held: Array, y: Array, ntr: int,
+               T: float, delay: int) -> dict[str, Any]:
+    """The monitor's own filter on the capture's rows (held inputs, outputs), paired as the
+    monitor pairs them with input delay `delay`: mean NIS and gamma^ on the hold-out (the
+    rows from `ntr`)."""
     est = FuzzyUKF(model.discretize(T))
-    N = u.shape[0]
+    N = held.shape[0]
+    u, _ = delayed(held, delay, no_past(held.shape[1]))
     nis = np.empty(N)
     gam = np.empty((N, u.shape[1]))
     for k in range(N):
-        # The filter applies the input it is given over the interval that ends at the
-        # sample (35); the capture's u(k) is applied from t(k) (zero-order hold, as the
-        # fit and sim_ecu.plant): the input held before y(k) is u(k-1).
-        out = est.step(u[max(k - 1, 0)], y[k], T)
+        out = est.step(u[k], y[k], T)
         nis[k] = out.nis
         gam[k] = out.gamma
     return {"mean_nis_holdout": float(np.mean(nis[ntr:])),
@@ -263,7 +285,10 @@ def _fuzzy_ukf(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
 
 
 def _consistency(cand: _Candidate, u: Array, y: Array, T: float) -> list[float]:
+    """`validate.consistency_drop` of the candidate's structure fitted on each half; for a
+    model with an integrator the simulations are compared without offset and ramp."""
     N = u.shape[0]
+    trend = bool(np.any(integrating(_poles(cand.model.discretize(T)), N * T / 2)))
     h = N // 2
     halves = ((u[:h], y[:h]), (u[h:], y[h:]))
     fits = []
@@ -273,7 +298,7 @@ def _consistency(cand: _Candidate, u: Array, y: Array, T: float) -> list[float]:
         else:
             sub, _ = subspace_model(uu, yy, cand.order)
             fits.append((sub.A, sub.B, sub.C))
-    return V.consistency_drop(fits[0], fits[1], halves)
+    return V.consistency_drop(fits[0], fits[1], halves, trend)
 
 
 def identify(
@@ -288,15 +313,25 @@ def identify(
     input_names: Sequence[str] | None = None,
     output_names: Sequence[str] | None = None,
     run_filter: bool = True,
+    input_delay: int | None = None,
 ) -> Identification:
     """Identify a model of one node from a healthy capture of inputs u (N, m) and outputs
     y (N, p) sampled every T seconds.
 
+    Row k is an output sample with the inputs held at it (`monitor.pipeline.samples`: the
+    latest of each received before, or with, the output). `input_delay` is the monitor's
+    delay d, None to estimate it (`monitor.identify.delay`, 0..MAX_ESTIMATED_DELAY, on the
+    training part); the model is fitted for the monitor's rule with that d: the state
+    equation's input v(j) is the held input of row j + 1 - d (`fit_rows`, rows without a
+    partner dropped), so the estimator's step for sample k, which applies v(k-1), gets the
+    held input of sample k - d, as the monitor gives it.
+
     kind: "dc_motor" (the Table-1 structure, m = p = 1), "state_space" (black box of
-    `order` states, or the BIC-selected one of 1..6) or "auto" (the DC motor when m = p = 1
-    and its residuals are independent of the input, else the better hold-out fit of the
-    two; the black box for other shapes). The last `holdout` fraction of the capture is not
-    used for fitting: the fit, whiteness and cross-correlation figures are measured on it.
+    `order` states, or the lowest of 1..6 that simulates the hold-out about as well as
+    the best) or "auto" (the DC motor when m = p = 1 and its residuals are independent of
+    the input, else the better hold-out fit of the two; the black box for other shapes).
+    The last `holdout` fraction of the capture is not used for fitting: the fit,
+    whiteness and cross-correlation figures are measured on it.
     `template` gives J (not identifiable from current) and the fallback initial guess.
     `run_filter` runs the FuzzyUKF over the capture for the report (about 10 us a sample).
 
@@ -305,7 +340,8 @@ def identify(
     joint chi-square p), parameters (value and std; black box: DC gain and poles with std),
     identifiable / fixed (motor), noise (q, Qc, R), mean_nis_kalman_holdout, fuzzy_ukf (its
     mean NIS and gamma^ on the hold-out), consistency (halves NRMSE drop), excitation,
-    order_selection (black box), dc_gain, poles_continuous, auto, seconds, timing_s.
+    order_selection (black box), dc_gain, poles_continuous, auto, seconds, timing_s,
+    input_delay (samples, given or estimated, with each candidate's ARX loss and F-test p).
 
     Raises IdentifyError (one line: what to record instead) for a capture that is too
     short, not exciting enough, contains non-finite samples or shows a fault or outage.
@@ -317,7 +353,7 @@ def identify(
                                                                    invalid="ignore"):
         try:
             ident = _identify(u, y, T, kind, order, holdout, template or DCMotorParameters(),
-                              input_names, output_names, run_filter)
+                              input_names, output_names, run_filter, input_delay)
         except IdentifyError:
             raise
         except NUMERIC_FAILURES as exc:  # a degenerate record no check above foresaw
@@ -331,14 +367,17 @@ def identify(
 
 def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int | None,
               holdout: float, template: DCMotorParameters, input_names: Sequence[str] | None,
-              output_names: Sequence[str] | None, run_filter: bool) -> Identification:
+              output_names: Sequence[str] | None, run_filter: bool,
+              input_delay: int | None = None) -> Identification:
     requested = kind
     if kind not in KINDS:
         raise IdentifyError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
     if order is not None and not (isinstance(order, int) and 1 <= order <= MAX_ORDER):
         raise IdentifyError(f"order must be an integer from 1 to {MAX_ORDER} (the estimator's "
                             f"fuzzy rule base spans the state: 5^n rules), got {order!r}")
-    u, y = V.check_capture(np.asarray(u_in), np.asarray(y_in), T, holdout)
+    held, y_held = V.check_capture(np.asarray(u_in), np.asarray(y_in), T, holdout)
+    delay = _input_delay(held, y_held, holdout, input_delay)
+    u, y, rows = fit_rows(held, y_held, delay["samples"])
     N, m = u.shape
     p = y.shape[1]
     siso = m == 1 and p == 1
@@ -346,9 +385,9 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         raise IdentifyError(f"the DC-motor model has one input (voltage) and one output "
                             f"(current), the capture has {m} and {p}: use kind state_space")
     names = (tuple(input_names) if input_names else
-             (("voltage",) if siso else tuple(f"u{j + 1}" for j in range(m))),
+             (("u1",) if siso else tuple(f"u{j + 1}" for j in range(m))),
              tuple(output_names) if output_names else
-             (("current",) if siso else tuple(f"y{i + 1}" for i in range(p))))
+             (("y1",) if siso else tuple(f"y{i + 1}" for i in range(p))))
     if len(names[0]) != m or len(names[1]) != p:
         raise IdentifyError(f"{len(names[0])} input and {len(names[1])} output names for "
                             f"{m} inputs and {p} outputs")
@@ -383,7 +422,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                 kind = "dc_motor"
     if kind == "state_space" or kind == "auto":
         try:
-            c = _fit_black_box(utr, ytr, T, order, names)
+            c = _fit_black_box(u, y, ntr, T, order, names)
             ev, tr = _evaluate(c.model, u, y, ntr, T)
         except IdentifyError as exc:
             if motor_failed is None:
@@ -428,7 +467,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         need = V.MIN_TIME_CONSTANTS * tau / (1.0 - holdout)
         raise IdentifyError(
             f"capture too short for this plant (slowest time constant {tau:.3g} s): record "
-            f"at least {need:.3g} s with the voltage command varying")
+            f"at least {need:.3g} s with the input varying")
     if fit_tr < V.MIN_FIT:
         raise IdentifyError(
             f"not exciting enough: the input moves the output too little against its noise "
@@ -453,15 +492,39 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         **ev,
         **cand.extra,
     }
+    report["input_delay"] = delay
     if requested == "auto":
         report["auto"] = auto_note
     if run_filter:
         t = time.perf_counter()
-        report["fuzzy_ukf"] = _fuzzy_ukf(cand.model, u, y, ntr, T)
+        report["fuzzy_ukf"] = _fuzzy_ukf(cand.model, held, y_held, rows.start + ntr, T,
+                                         delay["samples"])
         timing["fuzzy_ukf"] = time.perf_counter() - t
     report["timing_s"] = timing
     if motor_failed is not None:
         _log.warning("auto: %s; the black box is used", motor_failed)
     return Identification(model=cand.model, q=cand.q, Qc=cand.model.Qc, R=cand.model.R, T=T,
                           kind=cand.kind, order=cand.order, motor=cand.motor, report=report,
-                          traces=traces)
+                          traces=traces, input_delay=delay["samples"])
+
+
+def _input_delay(held: Array, y: Array, holdout: float, given: int | None) -> dict[str, Any]:
+    """The input delay to fit for, `given` or estimated on the training rows, as the
+    report gives it."""
+    if given is not None:
+        if isinstance(given, bool) or not isinstance(given, int) or \
+                not 0 <= given <= MAX_INPUT_DELAY:
+            raise IdentifyError(f"input_delay must be a whole number of samples from 0 to "
+                                f"{MAX_INPUT_DELAY}, got {given!r}")
+        return {"samples": given, "given": True}
+    ntr = held.shape[0] - round(holdout * held.shape[0])
+    try:
+        est = estimate_input_delay(held[:ntr], y[:ntr], MAX_ESTIMATED_DELAY)
+    except ValueError as exc:
+        raise IdentifyError(f"{exc}: {RECORDING_ADVICE}") from None
+    return {"samples": est.delay, "given": False,
+            "arx_loss": {str(d): v for d, v in est.loss.items()},
+            "p_value": {str(d): v for d, v in est.p_value.items()},
+            "method": "ARX models of every candidate delay on the training rows, nested "
+                      "(the same last input tap); the largest delay whose dropped input "
+                      "taps an F-test does not find"}

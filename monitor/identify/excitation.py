@@ -1,6 +1,6 @@
 """What to record: an input that identification can use.
 
-A healthy capture for `identify` moves the input (the voltage command) around its
+A healthy capture for `identify` moves the input (a motor's voltage command, say) around its
 operating point, so the output shows the plant's dynamics above the noise: steps or a
 pseudo-random binary sequence (PRBS) of a few per cent of the operating point, switching
 on a clock of about the plant's main time constant, for about a minute.
@@ -16,8 +16,8 @@ Array = NDArray[np.float64]
 __all__ = ["RECORDING_ADVICE", "prbs"]
 
 RECORDING_ADVICE = (
-    "record with the voltage command varying: steps or a PRBS of +-5 to 10 % around the "
-    "operating point, switching every 1 to 3 time constants of the motor, for 60 s"
+    "record with the input varying: steps or a PRBS of +-5 to 10 % around the "
+    "operating point, switching every 1 to 3 time constants of the plant, for 60 s"
 )
 
 

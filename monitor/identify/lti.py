@@ -11,6 +11,7 @@
 * `predict`: its one-step innovations e(k) = y(k) - C x^(k|k-1) on a record.
 * `d2c`: the inverse of the zero-order hold, logm([[A, B], [0, I]]) / T (scipy.linalg.logm).
 * `c2d`: the zero-order hold itself (scipy.signal.cont2discrete).
+* `integrating`: which continuous poles a record cannot tell from s = 0.
 """
 
 from __future__ import annotations
@@ -27,7 +28,12 @@ from monitor.identify.errors import IdentifyError
 
 Array = NDArray[np.float64]
 
-__all__ = ["Kalman", "c2d", "d2c", "dsim", "kalman", "predict", "steady_state_x0"]
+__all__ = ["Kalman", "c2d", "d2c", "dsim", "integrating", "kalman", "predict",
+           "steady_state_x0"]
+
+# A pole whose time constant exceeds this many records is an integrator as far as the
+# record tells (a position from a speed, a speed from a torque without friction).
+INTEGRATING_RECORDS = 10.0
 
 
 def dsim(A: Array, B: Array, C: Array, u: Array, x0: Array | None = None) -> Array:
@@ -54,6 +60,13 @@ def c2d(Ac: Array, Bc: Array, T: float) -> tuple[Array, Array]:
     Ad, Bd, *_ = scipy.signal.cont2discrete((Ac, Bc, np.zeros((1, n)), np.zeros((1, m))), T,
                                             method="zoh")
     return np.asarray(Ad), np.asarray(Bd)
+
+
+def integrating(poles: NDArray[np.complex128] | Array, duration: float) -> NDArray[np.bool_]:
+    """Mask of the continuous poles that act as integrators over a record of `duration`
+    seconds: |s| below 1 / (INTEGRATING_RECORDS duration). Such a model has no DC gain,
+    and its slowest time constant says nothing about how long a capture must be."""
+    return np.asarray(np.abs(np.asarray(poles)) * duration * INTEGRATING_RECORDS < 1.0)
 
 
 def d2c(A: Array, B: Array, T: float) -> tuple[Array, Array]:

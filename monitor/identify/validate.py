@@ -19,7 +19,9 @@ Refusals (each an IdentifyError with one line saying what to record instead):
   simulation fit (NRMSE, each model with its own best initial state) of the other half's
   model may be at most CONSISTENCY_DROP points below the half's own (a healthy capture
   gives 0 to 4 points, whatever the noise, as the fit is relative to the output's
-  variation; a 10 % loss of effectiveness in the middle gives well over 100). Also a
+  variation; a 10 % loss of effectiveness in the middle gives well over 100). For a model
+  with an integrator each simulation is compared after removing an offset and a ramp
+  (a small gain error of an integrator drifts without any change in the plant). Also a
   hold-out fit more than HOLDOUT_DROP points below the training fit (a change inside the
   hold-out tail);
 * a structure that does not fit: a training fit below MIN_FIT with residuals correlated
@@ -49,6 +51,8 @@ __all__ = [
     "check_outputs",
     "consistency_drop",
     "cross_correlation_test",
+    "fitted_x0_sim",
+    "holdout_sim",
     "nrmse",
     "whiteness_test",
 ]
@@ -64,6 +68,7 @@ STRUCTURE_DROP = 50.0
 HOLDOUT_DROP = 25.0
 CONFIDENCE = 0.99
 LAGS = 25
+MIN_PE_RATIO = 1e-7  # smallest/largest singular value of the input's Hankel matrix
 
 
 def check_capture(u: Array, y: Array, T: float, holdout: float) -> tuple[Array, Array]:
@@ -91,7 +96,7 @@ def check_capture(u: Array, y: Array, T: float, holdout: float) -> tuple[Array, 
     if need > N:
         raise IdentifyError(
             f"capture too short: {N * T:.3g} s ({N} samples at {1 / T:.4g} Hz); record at "
-            f"least {need * T:.3g} s, better 60 s, with the voltage command varying")
+            f"least {need * T:.3g} s, better 60 s, with the input varying")
     return ua, ya
 
 
@@ -115,8 +120,8 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
     H = np.lib.stride_tricks.sliding_window_view(uc, L, axis=0).reshape(N - L + 1, m * L)
     s = np.linalg.svd(H / math.sqrt(H.shape[0]), compute_uv=False)
     ratio = float(s[-1] / s[0])
-    pe = int(np.sum(s > 1e-7 * s[0]))
-    if ratio < 1e-7:
+    pe = int(np.sum(s > MIN_PE_RATIO * s[0]))
+    if ratio < MIN_PE_RATIO:
         raise IdentifyError(
             f"the input is persistently exciting of order {pe // m} only, a {order}-state "
             f"model needs {L} (a sine gives 2): {RECORDING_ADVICE}")
@@ -235,25 +240,45 @@ def cross_correlation_test(w: Array, u: Array, lags: int = LAGS) -> dict[str, ob
     }
 
 
-def fitted_x0_sim(A: Array, B: Array, C: Array, u: Array, y: Array) -> Array:
-    """Simulated output of (A, B, C) on a record from its best (least-squares) initial
-    state."""
+def fitted_x0_sim(A: Array, B: Array, C: Array, u: Array, y: Array, rows: int | None = None,
+                  trend: bool = False) -> Array:
+    """Simulated output of (A, B, C) on a record from the initial state that fits the first
+    `rows` samples best (least squares; all samples by default). `trend` also removes an
+    offset and a ramp per output: a model with an integrator drifts by the integral of a
+    small gain error, which says nothing about whether the plant changed."""
     n = A.shape[0]
     N, p = y.shape
+    k = N if rows is None else rows
     ys = dsim(A, B, C, u)
-    Phi = np.column_stack([dsim(A, np.zeros((n, 1)), C, np.zeros((N, 1)), np.eye(n)[i]).ravel()
-                           for i in range(n)])
-    coef, *_ = np.linalg.lstsq(Phi, (y - ys).ravel(), rcond=None)
+    cols = [dsim(A, np.zeros((n, 1)), C, np.zeros((N, 1)), np.eye(n)[i]) for i in range(n)]
+    if trend:
+        t = np.linspace(-1.0, 1.0, N)
+        for i in range(p):
+            for f in (np.ones(N), t):
+                col = np.zeros((N, p))
+                col[:, i] = f
+                cols.append(col)
+    Phi = np.column_stack([c.ravel() for c in cols])
+    coef, *_ = np.linalg.lstsq(Phi[:k * p], (y[:k] - ys[:k]).ravel(), rcond=None)
     return np.asarray(ys + (Phi @ coef).reshape(N, p))
 
 
+def holdout_sim(A: Array, B: Array, C: Array, u: Array, y: Array, ntr: int) -> Array:
+    """Simulated output (N - ntr, p) of (A, B, C) on the hold-out u[ntr:], from the state
+    that fits the last stretch of the training part (so the hold-out samples are not
+    used): the simulation fit that chooses a black box's order."""
+    w = min(ntr, max(200, ntr // 10))
+    return fitted_x0_sim(A, B, C, u[ntr - w:], y[ntr - w:], rows=w)[w:]
+
+
 def consistency_drop(first: tuple[Array, Array, Array], second: tuple[Array, Array, Array],
-                     halves: tuple[tuple[Array, Array], tuple[Array, Array]]) -> list[float]:
+                     halves: tuple[tuple[Array, Array], tuple[Array, Array]],
+                     trend: bool = False) -> list[float]:
     """Per half: how many NRMSE points the other half's model fits it worse than its own
-    (the largest over the outputs)."""
+    (the largest over the outputs); `trend` as `fitted_x0_sim` (for integrating plants)."""
     out = []
     for own, other, (u, y) in ((first, second, halves[0]), (second, first, halves[1])):
-        f_own = nrmse(y, fitted_x0_sim(*own, u, y))
-        f_other = nrmse(y, fitted_x0_sim(*other, u, y))
+        f_own = nrmse(y, fitted_x0_sim(*own, u, y, trend=trend))
+        f_other = nrmse(y, fitted_x0_sim(*other, u, y, trend=trend))
         out.append(max(a - b for a, b in zip(f_own, f_other, strict=True)))
     return out

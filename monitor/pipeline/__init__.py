@@ -4,7 +4,14 @@ names (`counters`)."""
 
 from monitor.pipeline.core import MonitorConfig, MonitorPipeline, NodeMonitor
 from monitor.pipeline.counters import Counters
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.pipeline.events import (
+    BusEvent,
+    Diagnosis,
+    DiagnosisEvent,
+    InputSample,
+    PlantSignals,
+    Sample,
+)
 
-__all__ = ["BusEvent", "Counters", "Diagnosis", "DiagnosisEvent", "MonitorConfig",
-           "MonitorPipeline", "NodeMonitor", "Sample", "VoltageSample"]
+__all__ = ["BusEvent", "Counters", "Diagnosis", "DiagnosisEvent", "InputSample", "MonitorConfig",
+           "MonitorPipeline", "NodeMonitor", "PlantSignals", "Sample"]

@@ -16,23 +16,25 @@ indicator is set, `frames/fd_esi`): sub-counts of `frames/received`, not outcome
   Counter jump (lost frames): counted `e2e/lost_frames` by the number lost; the sample is
   used and the estimator predicts through the gap (dt = k T from the timestamps).
 * A timestamp that does not advance: counted `time/non_monotonic`, dropped.
-* A current sample before any voltage command of its node: `samples/no_voltage`, dropped.
+* An output sample before any input of its node: `samples/no_input`, dropped.
 * Frames of nodes not monitored: `ignored/node`. Our own or another monitor's
   MonitorDiagnosis frames: `ignored/diagnosis`.
 * SocketCAN error frames: `bus/error_frames` and one `bus/errors/<condition>` per
   condition they report (bus_off, controller/rx_overflow, controller/rx_error_passive,
   restarted, ...), logged and recorded as bus events.
 
-Voltage and current are aligned by taking, for each current sample, the latest voltage
-command of its node received before it (the ECU holds the command between its 20 Hz
-frames). Timestamps are the frames' own (kernel timestamps on SocketCAN). The number k of
-sample periods since the previous current sample comes from the alive counter (lost + 1),
-so bus or queue jitter cannot fake a missed sample; the timestamps only decide how many
-times the 4-bit counter wrapped in a long gap: the whole wraps that fit, so a frame up to
+Inputs and outputs are aligned by taking, for each output sample, the latest value of each
+input of its node received before it or in its frame (an ECU holds a command between its
+frames, which may come at another rate), and the estimator steps the held input of
+`input_delay` samples before (`monitor.pipeline.samples`, the rule `identify` fits by).
+Timestamps are the frames' own (kernel timestamps on SocketCAN). The number k of sample
+periods since the previous output sample comes from the alive counter (lost + 1), so bus
+or queue jitter cannot fake a missed sample; the timestamps only decide how many times the
+4-bit counter wrapped in a long gap: the whole wraps that fit, so a frame up to
 15 periods late is not taken for 16 lost (`monitor.pipeline.periods`). k > 1 means missed
 samples that the estimator predicts through.
 
-A node whose current frames stop for `silence_timeout_s` turns to `no_data` (see `tick`).
+A node whose output frames stop for `silence_timeout_s` turns to `no_data` (see `tick`).
 A node's `Diagnosis` is due on every change of its state or of its model-mismatch flag
 (`MismatchDetector`, a flag beside the state, never replacing it; `DiagnosisEvent` says how
 both are reported) and at a steady rate (the bus publisher sink turns it into a
@@ -81,10 +83,11 @@ from monitor.pipeline.events import (
     BusEvent,
     Diagnosis,
     DiagnosisEvent,
+    InputSample,
     Sample,
-    VoltageSample,
 )
 from monitor.pipeline.periods import counter_periods, wrapped
+from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, hold, no_past
 from monitor.sinks import base as sinks
 
 if TYPE_CHECKING:
@@ -93,6 +96,7 @@ if TYPE_CHECKING:
 __all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 
 log = logging.getLogger("motor_monitor")
+_RESTART = np.ones(1, np.bool_)  # `delayed`'s restart flag of one sample
 
 
 class FrameDecoder(Protocol):
@@ -115,6 +119,8 @@ class MonitorConfig:
     withhold_alarms_on_mismatch: while a node's model-mismatch flag is up, hold a change
     to fault or outage until the flag falls (`monitor.diagnosis.reported_state`); off by
     default: a fault the estimator sees is reported, mismatch or not.
+    input_delay: the estimator's step for output sample k applies the input held at
+    output sample k - input_delay (`monitor.pipeline.samples`; the rig's `[model]`).
     """
 
     nodes: tuple[int, ...] | None = None
@@ -135,6 +141,13 @@ class MonitorConfig:
     mismatch_dwell_s: float = 3.0
     withhold_alarms_on_mismatch: bool = False  # see `monitor.diagnosis.reported_state`
     jitter_fraction: float = 0.25  # of a period: counted as time/jitter (no counter)
+    input_delay: int = 0
+
+    def __post_init__(self) -> None:
+        d = self.input_delay
+        if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= MAX_INPUT_DELAY:
+            raise ValueError(f"input_delay must be a whole number of samples from 0 to "
+                             f"{MAX_INPUT_DELAY}, got {d!r}")
 
     def plant(self) -> ContinuousDescriptor:
         """The continuous model of every node."""
@@ -175,8 +188,9 @@ class NodeMonitor:
                                            hysteresis=cfg.hysteresis)
         self.mismatch = MismatchDetector(model.p, cfg.rate, window_s=cfg.mismatch_window_s,
                                          dwell_s=cfg.mismatch_dwell_s)
-        self.u = np.zeros(model.m)
+        self.u = np.zeros(model.m)  # the held inputs (`monitor.pipeline.samples`)
         self.u_seen = np.zeros(model.m, dtype=bool)
+        self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
         self.y = np.zeros(model.p)
         self.last_t: float | None = None
         self.last_publish: float = -math.inf
@@ -185,8 +199,8 @@ class NodeMonitor:
         self.reported = HealthState.NO_DATA
 
     @property
-    def voltage(self) -> float | None:
-        """The first input (the voltage command of a motor), None before any."""
+    def first_input(self) -> float | None:
+        """The first input (the voltage command of our bus's motor), None before any."""
         return float(self.u[0]) if self.u_seen[0] else None
 
     def restart(self) -> None:
@@ -213,8 +227,9 @@ class NodeMonitor:
         return float(self.estimator.out.gamma.max())
 
     @property
-    def fault_volts(self) -> float:
-        """gamma^ times its input: the input the fault takes away, in the input's unit."""
+    def fault_input(self) -> float:
+        """gamma^ times its held input (the latest, `monitor.pipeline.samples`): the input
+        the fault takes away, in the input's unit."""
         g = self.estimator.out.gamma
         j = int(np.argmax(g))
         return float(g[j] * self.u[j])
@@ -304,11 +319,10 @@ class MonitorPipeline:
         if lost is None:
             return
         if d.inputs:
-            for i, v in d.inputs:
-                nm.u[i] = v
-                nm.u_seen[i] = True
-            self.counters.inc(C.SAMPLES_VOLTAGE)
-            self.sink.on_voltage(VoltageSample(d.node, d.timestamp, d.inputs[0][1]))
+            hold(nm.u, nm.u_seen, d.inputs)
+            self.counters.inc(C.SAMPLES_INPUT)
+            for i, v in sorted(d.inputs):  # every input the frame carries, by index
+                self.sink.on_input(InputSample(d.node, d.timestamp, v, i))
         if d.truth is not None:  # shown beside the estimate, never read by the estimator
             nm.truth_gamma = d.truth
             self.counters.inc(C.SAMPLES_TRUTH)
@@ -346,11 +360,12 @@ class MonitorPipeline:
         """One output sample; `lost` frames before it by the alive counter (None: the
         message has no counter, the timestamps tell)."""
         if not nm.u_seen.all():
-            self.counters.inc(C.SAMPLES_NO_VOLTAGE)
+            self.counters.inc(C.SAMPLES_NO_INPUT)
             return
         last = nm.last_t
         was_flagged = nm.mismatch.flagged
         flag_cause = "nis"
+        restart = None
         if last is None:
             k = 1
         else:
@@ -362,6 +377,7 @@ class MonitorPipeline:
                 self.counters.inc(C.ESTIMATOR_RESTARTS)
                 nm.restart()
                 flag_cause = "restart"
+                restart = _RESTART
                 k = 1
             else:
                 k = self._periods(dt, lost)
@@ -371,7 +387,9 @@ class MonitorPipeline:
         y = nm.y
         for i, v in enumerate(outputs):
             y[i] = v
-        out = nm.estimator.step(nm.u, y, k * nm.T)
+        applied, nm.u_past = delayed(nm.u[None], self.cfg.input_delay, nm.u_past, restart)
+        u = applied[0]
+        out = nm.estimator.step(u, y, k * nm.T)
         nm.samples += 1
         self.counters.inc(C.SAMPLES_ESTIMATED)
         g = nm.gamma
@@ -389,7 +407,7 @@ class MonitorPipeline:
         self.sink.on_sample(Sample(nm.node, t, float(outputs[0]), float(out.y_est[0]), g,
                                    out.rules, new, float(out.nis), nm.truth_gamma,
                                    nm.mismatch.flagged,
-                                   inputs=tuple(nm.u.tolist()), outputs=tuple(y.tolist()),
+                                   inputs=tuple(u.tolist()), outputs=tuple(y.tolist()),
                                    predicted=tuple(out.y_est.tolist()),
                                    gammas=tuple(out.gamma.tolist())))
         if t - self._last_counters_t >= self.cfg.counters_period_s:
@@ -445,7 +463,7 @@ class MonitorPipeline:
     def _event(self, nm: NodeMonitor, t: float, prev: HealthState, new: HealthState,
                cause: str, kind: str) -> None:
         ev = DiagnosisEvent(t=t, node=nm.node, state=new.label, previous=prev.label,
-                            gamma=nm.gamma, fault_volts=nm.fault_volts,
+                            gamma=nm.gamma, fault_input=nm.fault_input,
                             rules=nm.estimator.out.rules, cause=cause,
                             model_mismatch=nm.mismatch.flagged, kind=kind)
         if kind == HEALTH:
@@ -454,7 +472,7 @@ class MonitorPipeline:
 
     def _diagnosis_due(self, nm: NodeMonitor, t: float) -> None:
         nm.last_publish = t
-        self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.state, nm.gamma, nm.fault_volts,
+        self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.state, nm.gamma, nm.fault_input,
                                          nm.estimator.out.rules, nm.mismatch.flagged))
 
     def tick(self, now: float) -> None:

@@ -33,10 +33,10 @@ E2E_LOST_FRAMES: Final = "e2e/lost_frames"
 TIME_NON_MONOTONIC: Final = "time/non_monotonic"
 TIME_JITTER: Final = "time/jitter"
 SAMPLES_ESTIMATED: Final = "samples/estimated"
-SAMPLES_VOLTAGE: Final = "samples/voltage"
+SAMPLES_INPUT: Final = "samples/input"
 SAMPLES_TRUTH: Final = "samples/truth"
 SAMPLES_SECOC_SYNC: Final = "samples/secoc_sync"
-SAMPLES_NO_VOLTAGE: Final = "samples/no_voltage"
+SAMPLES_NO_INPUT: Final = "samples/no_input"
 SAMPLES_PREDICTED_THROUGH: Final = "samples/predicted_through"
 ESTIMATOR_RESTARTS: Final = "estimator/restarts"
 ESTIMATOR_NAN: Final = "estimator/nan"
@@ -102,8 +102,8 @@ _CAUSES: Final[Mapping[str, str]] = {
     BUS_ERROR_FRAMES: "only error frames: the bus itself is failing",
     IGNORED_NODE: "the frames are of other nodes: check the nodes asked for and [bus] node_bits",
     IGNORED_DIAGNOSIS: "only diagnosis frames (a monitor's output): check the rig",
-    SAMPLES_NO_VOLTAGE: "the outputs never follow an input frame: check [signals] inputs",
-    SAMPLES_VOLTAGE: "inputs but no output decoded: check [signals] outputs",
+    SAMPLES_NO_INPUT: "the outputs never follow an input frame: check [signals] inputs",
+    SAMPLES_INPUT: "inputs but no output decoded: check [signals] outputs",
     SAMPLES_TRUTH: "no output decoded: check [signals] outputs",
     E2E_REPEATED: "the alive counters never advance: check [protection] counter",
     TIME_NON_MONOTONIC: "the time stamps go backwards",

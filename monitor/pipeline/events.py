@@ -13,8 +13,36 @@ from numpy.typing import NDArray
 
 from monitor.diagnosis.classifier import HealthState
 
-__all__ = ["HEALTH", "MODEL_MISMATCH", "BusEvent", "Diagnosis", "DiagnosisEvent", "Sample",
-           "SampleColumns", "VoltageSample"]
+__all__ = ["HEALTH", "MODEL_MISMATCH", "BusEvent", "Diagnosis", "DiagnosisEvent", "InputSample",
+           "PlantSignals", "Sample", "SampleColumns"]
+
+
+@dataclass(frozen=True)
+class PlantSignals:
+    """The names and units of a node's inputs and outputs, in the model's order: the rig's
+    DBC signal names, each with its unit (None: a plain number). What the tuples of `Sample`
+    and the index of `InputSample` refer to, for the outlets that name them (the recording's
+    entities, the samples file's columns). The default is the built-in rig's, our bus (a test
+    keeps the two equal)."""
+
+    inputs: tuple[tuple[str, str | None], ...] = (("VoltageCommand", "V"),)
+    outputs: tuple[tuple[str, str | None], ...] = (("ArmatureCurrent", "A"),)
+
+    def input(self, i: int) -> tuple[str, str | None]:
+        """Input `i`'s (name, unit); ``u<i+1>`` without a unit beyond the names given, so
+        that a producer with more inputs than names still has every one named."""
+        return self.inputs[i] if i < len(self.inputs) else (f"u{i + 1}", None)
+
+    def output(self, j: int) -> tuple[str, str | None]:
+        """Output `j`'s (name, unit); ``y<j+1>`` beyond the names given."""
+        return self.outputs[j] if j < len(self.outputs) else (f"y{j + 1}", None)
+
+    def fault_unit(self, fault_inputs: tuple[int, ...]) -> str | None:
+        """The unit of the fault (`Diagnosis.fault_input`): the one unit of the inputs that
+        may lose effectiveness, None if they have none or differ (the fault is the worst
+        one's, which an event does not name)."""
+        units = {self.input(i)[1] for i in fault_inputs}
+        return units.pop() if len(units) == 1 else None
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,12 +74,15 @@ class Sample:
 
 
 @dataclass(frozen=True, slots=True)
-class VoltageSample:
-    """A voltage command (the estimator's input) of a node."""
+class InputSample:
+    """An input of a node as a frame carries it (the first input of the frame), at the
+    frame's own rate: `index` says which input (`PlantSignals.inputs`), `value` is in its
+    unit."""
 
     node: int
     t: float
-    volts: float
+    value: float
+    index: int = 0
 
 
 HEALTH: Final = "health"
@@ -78,6 +109,10 @@ class DiagnosisEvent:
       after a gap or a numerical failure; the detector forgets its history with it).
 
     When both change at one sample, the flag's event comes first.
+
+    `fault_input` is what `Diagnosis.fault_input` is, in `fault_input_unit`. A reader of
+    an events file also takes the line of an older monitor, which names it ``fault_volts``
+    and has no unit (`monitor.app.paths`).
     """
 
     t: float
@@ -85,11 +120,13 @@ class DiagnosisEvent:
     state: str
     previous: str
     gamma: float
-    fault_volts: float
+    fault_input: float
     rules: int
     cause: str
     model_mismatch: bool = False
     kind: str = HEALTH
+    fault_input_unit: str | None = None
+    """The unit of `fault_input` where the outlet knows it (`PlantSignals.fault_unit`)."""
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), separators=(",", ":"))
@@ -118,14 +155,15 @@ class Diagnosis:
     """What the monitor reports about a node now: due on every state change and at the
     publication rate (the bus publisher turns it into a MonitorDiagnosis frame).
 
-    `fault_volts` is gamma^ times the voltage command: the estimated lost input, in V.
+    `fault_input` is the largest gamma^ times its input: the estimated part of that input
+    the fault takes away, in the input's unit.
     """
 
     node: int
     t: float
     state: HealthState
     gamma: float
-    fault_volts: float
+    fault_input: float
     rules: int
     model_mismatch: bool = False  # the flag beside the state (`DiagnosisEvent`)
 

@@ -5,8 +5,8 @@ checks a file, `builtin_rig` is our own bus and the paper's motor (rigs/motor.to
 `build_decoder` and `build_model` make what the monitor runs with."""
 
 from monitor.rig.check import build_decoder, build_model, is_builtin_bus
-from monitor.rig.load import RigError, builtin_rig, load_rig, parse_rig
+from monitor.rig.load import RigError, builtin_rig, load_rig, model_of, parse_rig
 from monitor.rig.spec import Rig
 
 __all__ = ["Rig", "RigError", "build_decoder", "build_model", "builtin_rig", "is_builtin_bus",
-           "load_rig", "parse_rig"]
+           "load_rig", "model_of", "parse_rig"]

@@ -298,7 +298,7 @@ def _rig_messages(rig: Rig, sample: Callable[[str], Message],
                            f"{', '.join(sorted(sigs))})")
             return _signal_factor(rig, m, sigs[ref.signal], ref, key, want, fail)
 
-        dc = rig.model.kind == "dc_motor"
+        dc = rig.model is not None and rig.model.kind == "dc_motor"
         inputs = tuple((i, r.signal, factor(r, f"signals.inputs[{i}]", _DC_INPUT if dc else None))
                        for i, r in enumerate(rig.inputs) if r.message == name)
         outputs = tuple((r.signal, factor(r, f"signals.outputs[{i}]",
@@ -506,9 +506,12 @@ def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
 
 
 def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
-    """The rig's continuous model (`model.discretize(1 / rig.rate)` for the estimator)."""
+    """The rig's continuous model (`model.discretize(1 / rig.rate)` for the estimator); a
+    rig without one is refused (`model_of`)."""
+    from monitor.rig.load import model_of
+
     fail = fail or _default_fail(rig)
-    spec = rig.model
+    spec, rate = model_of(rig)
     try:
         if spec.kind == "dc_motor":
             params = replace(DCMotorParameters(), **spec.motor)
@@ -517,7 +520,7 @@ def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
         from monitor.estimation.model import model_from_matrices
 
         return model_from_matrices(
-            domain=spec.domain, T=1.0 / rig.rate, fault_inputs=spec.fault_inputs,
+            domain=spec.domain, T=1.0 / rate, fault_inputs=spec.fault_inputs,
             state_names=spec.state_names or None,
             input_names=tuple(r.signal for r in rig.inputs),
             output_names=tuple(r.signal for r in rig.outputs),
@@ -529,8 +532,11 @@ def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
 
 def check_rig(rig: Rig, fail: Fail) -> Rig:
     """Everything checked that can be before the bus opens; returns the rig (unit factors
-    are recomputed by the decoder)."""
+    are recomputed by the decoder). A rig without a model (identify's input) has its bus
+    checked; its model is checked once identify has learned it."""
     build_decoder(rig, fail=fail)
+    if rig.model is None or rig.rate is None:
+        return rig
     model = build_model(rig, fail)
     try:
         model.discretize(1.0 / rig.rate)
@@ -575,7 +581,7 @@ def signal_units(rig: Rig) -> tuple[tuple[str | None, ...], tuple[str | None, ..
                 return None if sig is None else _written(sig.unit)
         return None
 
-    dc = rig.model.kind == "dc_motor"
+    dc = rig.model is not None and rig.model.kind == "dc_motor"
     ins = tuple(_written(r.unit) or dbc_unit(r) or (_DC_INPUT.unit if dc else None)
                 for r in rig.inputs)
     outs = tuple(_written(r.unit) or dbc_unit(r) or (_DC_OUTPUT.unit if dc else None)

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
 from monitor.errors import MonitorError
 from monitor.files import MIB, UserFileError, read_user_toml, shown_path, user_file_problem
+from monitor.pipeline.samples import MAX_INPUT_DELAY
 from monitor.rig.spec import (
     DiagnosisSpec,
     LayoutSpec,
@@ -27,8 +29,8 @@ from monitor.rig.spec import (
     SyncSpec,
 )
 
-__all__ = ["MAX_RATE_HZ", "MIN_RATE_HZ", "RigError", "builtin_rig", "load_rig", "parse_rig",
-           "rate_problem"]
+__all__ = ["MAX_RATE_HZ", "MIN_RATE_HZ", "NO_MODEL", "RigError", "builtin_rig", "load_rig",
+           "model_of", "parse_rig", "rate_problem"]
 
 T = TypeVar("T")
 
@@ -99,14 +101,32 @@ def _names(kinds: tuple[type, ...]) -> str:
     return " or ".join(words.get(k, k.__name__) for k in kinds)
 
 
-def load_rig(path: str | Path) -> Rig:
-    """Read and check a rig file (DBC paths are relative to it)."""
+def load_rig(path: str | Path, *, model_optional: bool = False) -> Rig:
+    """Read and check a rig file (DBC paths are relative to it). `model_optional`: a file
+    without [model] is a rig whose model is still to be learned (`identify`'s input; its
+    `Rig.model` and `Rig.rate` are None); without it such a file is refused in one line
+    that says to run identify first."""
     p = Path(path)
     try:
         doc = read_user_toml(p, what="rig file", limit=RIG_FILE_LIMIT)
     except UserFileError as exc:
         raise RigError(str(exc)) from None
-    return parse_rig(doc, source=p)
+    return parse_rig(doc, source=p, model_optional=model_optional)
+
+
+NO_MODEL = ("missing: the rig has no model yet; learn it from a healthy capture with "
+            "motor-monitor identify CAPTURE --rig RIG --out LEARNED.toml, then give "
+            "--rig LEARNED.toml")
+"""What is wrong with a rig without [model] wherever a model is needed."""
+
+
+def model_of(rig: Rig) -> tuple[ModelSpec, float]:
+    """The rig's model and rate; one `RigError` line (`NO_MODEL`) for a rig whose model is
+    still to be learned (`load_rig(model_optional=True)`)."""
+    if rig.model is None or rig.rate is None:
+        shown = str(rig.source) if rig.source is not None else "<rig>"
+        raise RigError(f"rig file {shown}: model: {NO_MODEL}")
+    return rig.model, rig.rate
 
 
 def builtin_rig() -> Rig:
@@ -128,9 +148,10 @@ def builtin_rig() -> Rig:
     )
 
 
-def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None) -> Rig:
+def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None,
+              model_optional: bool = False) -> Rig:
     """A `Rig` from a parsed TOML document; `source` names the file in errors and anchors
-    relative DBC paths."""
+    relative DBC paths; `model_optional` as `load_rig`'s."""
     shown = str(source) if source is not None else "<rig>"
 
     def fail(key: str, problem: str) -> RigError:
@@ -170,14 +191,20 @@ def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None) -> Rig:
     prot_t.done()
     secoc = _sync(top.take("secoc", dict, None), protection, fail)
 
-    model_t = top.table("model", required=True)
-    model, rate = _model(model_t, len(inputs), len(outputs), fail)
-    model_t.done()
+    model: ModelSpec | None = None
+    rate: float | None = None
+    if "model" in top.data or not model_optional:
+        if "model" not in top.data:
+            raise fail("model", NO_MODEL)
+        model_t = top.table("model", required=True)
+        model, rate = _model(model_t, len(inputs), len(outputs), fail)
+        model_t.done()
 
     diag_t = top.table("diagnosis")
     diagnosis = _diagnosis(diag_t, fail)
     diag_t.done()
-    if diagnosis.silence_timeout_s <= SILENT_PERIODS / rate:
+    # without a model there is no rate yet: identify's rig is checked once it has one
+    if rate is not None and diagnosis.silence_timeout_s <= SILENT_PERIODS / rate:
         # Otherwise the node would be declared silent (no_data) between two samples.
         raise fail("diagnosis.silence_timeout_s", f"{diagnosis.silence_timeout_s:g} s is not "
                    f"longer than {SILENT_PERIODS} sample periods at model.rate = {rate:g} Hz "
@@ -355,6 +382,19 @@ def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
     problem = rate_problem(rate)
     if problem is not None:
         raise fail("model.rate", problem)
+    spec, rate = _model_kind(t, kind, rate, m, p, fail)
+    delay = t.take("input_delay", int, 0)
+    if not 0 <= delay <= MAX_INPUT_DELAY:
+        raise fail("model.input_delay", f"must be a whole number of samples from 0 to "
+                   f"{MAX_INPUT_DELAY}, got {delay!r}")
+    adaptive = t.take("adaptive_noise", bool, True)
+    window = t.number("noise_window_s", 2.0, positive=True)
+    return replace(spec, input_delay=delay, adaptive_noise=adaptive,
+                   noise_window_s=window), rate
+
+
+def _model_kind(t: _Table, kind: str, rate: float, m: int, p: int,
+                fail: Callable[[str, str], RigError]) -> tuple[ModelSpec, float]:
     if kind == "dc_motor":
         if (m, p) != (1, 1):
             raise fail("model.kind", f"dc_motor has one input and one output; the rig "

@@ -96,7 +96,10 @@ class ProtectionSpec:
 @dataclass(frozen=True)
 class ModelSpec:
     """The plant model of every node: the DC motor's physical parameters (`dc_motor`), or
-    matrices (`state_space`, continuous or discrete, descriptor E optional)."""
+    matrices (`state_space`, continuous or discrete, descriptor E optional); `input_delay`:
+    the estimator's step for output sample k takes the input held at sample k - input_delay
+    (`monitor.pipeline.samples`); `adaptive_noise`: the estimator learns output noise above
+    R from its innovations over `noise_window_s` (`monitor.estimation.fuzzy_ukf`, step 5b)."""
 
     kind: ModelKind = "dc_motor"
     motor: Mapping[str, float] = field(default_factory=dict)  # J, b, Ke, Ki, Ra, La
@@ -107,6 +110,9 @@ class ModelSpec:
     matrices: Mapping[str, tuple[tuple[float, ...], ...]] = field(default_factory=dict)
     fault_inputs: tuple[int, ...] | None = None  # None: every input
     state_names: tuple[str, ...] = ()
+    input_delay: int = 0
+    adaptive_noise: bool = True
+    noise_window_s: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -125,7 +131,9 @@ class DiagnosisSpec:
 
 @dataclass(frozen=True)
 class Rig:
-    """A whole rig; `source` is the file it came from (None: the built-in default)."""
+    """A whole rig; `source` is the file it came from (None: the built-in default); `model`
+    and `rate` are None for a rig whose model is still to be learned (`identify`'s input,
+    `load_rig(model_optional=True)`; `monitor.rig.load.model_of` refuses it elsewhere)."""
 
     dbc: tuple[Path, ...]
     layout: LayoutSpec
@@ -133,8 +141,8 @@ class Rig:
     outputs: tuple[SignalRef, ...]
     truth: SignalRef | None
     protection: Mapping[str, ProtectionSpec]
-    model: ModelSpec
-    rate: float
+    model: ModelSpec | None
+    rate: float | None
     diagnosis: DiagnosisSpec
     nodes: tuple[int, ...] | None = None
     source: Path | None = None

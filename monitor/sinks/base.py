@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping
 from types import TracebackType
 from typing import Self
 
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, Sample, VoltageSample
+from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, InputSample, Sample
 
 __all__ = ["FanOut", "Sink"]
 
@@ -24,8 +24,8 @@ class Sink:
     def on_sample(self, sample: Sample) -> None:
         """One estimator step of a node."""
 
-    def on_voltage(self, sample: VoltageSample) -> None:
-        """One voltage command of a node."""
+    def on_input(self, sample: InputSample) -> None:
+        """An input of a node, as a frame carried it."""
 
     def on_transition(self, event: DiagnosisEvent) -> None:
         """A node's health state changed."""
@@ -66,9 +66,9 @@ class FanOut(Sink):
         for s in self.sinks:
             s.on_sample(sample)
 
-    def on_voltage(self, sample: VoltageSample) -> None:
+    def on_input(self, sample: InputSample) -> None:
         for s in self.sinks:
-            s.on_voltage(sample)
+            s.on_input(sample)
 
     def on_transition(self, event: DiagnosisEvent) -> None:
         for s in self.sinks:

@@ -2,23 +2,29 @@
 default blueprint (one tab per node, one for the daemon), and a blueprint sender that does
 not leak SDK threads.
 
-Entity layout (``<n>`` is the CAN node id)::
+Entity layout (``<n>`` is the CAN node id; ``<Output>`` and ``<Input>`` are the rig's DBC
+signal names, `PlantSignals`: ``ArmatureCurrent`` and ``VoltageCommand`` on our bus)::
 
-    /motor/<n>/current/measured   Scalars   measured armature current
-    /motor/<n>/current/estimated  Scalars   UKF output estimate
-    /motor/<n>/gamma/estimate     Scalars   actuator loss of effectiveness gamma^
-    /motor/<n>/gamma/true         Scalars   true gamma (only rows where it is given: sim/HIL)
-    /motor/<n>/gamma/F1           Scalars   diagnosis threshold F1 (step line)
-    /motor/<n>/gamma/F2           Scalars   diagnosis threshold F2
-    /motor/<n>/rules              Scalars   number of fuzzy rules of the estimator (step line)
-    /motor/<n>/health             Scalars   health state 0..3 (step line)
-    /motor/<n>/model_mismatch     Scalars   model-mismatch flag 0/1, beside the state (step line)
-    /motor/<n>/nis                Scalars   normalised innovation squared
-    /motor/<n>/voltage            Scalars   supply voltage (own rate, own buffer)
-    /motor/<n>/events             TextLog   state transitions etc.
+    /node/<n>/<Output>/measured   Scalars   each output as measured
+    /node/<n>/<Output>/estimated  Scalars   its UKF estimate
+    /node/<n>/gamma/estimate      Scalars   actuator loss of effectiveness gamma^
+    /node/<n>/gamma/true          Scalars   true gamma (only rows where it is given: sim/HIL)
+    /node/<n>/gamma/F1            Scalars   diagnosis threshold F1 (step line)
+    /node/<n>/gamma/F2            Scalars   diagnosis threshold F2
+    /node/<n>/rules               Scalars   number of fuzzy rules of the estimator (step line)
+    /node/<n>/health              Scalars   health state 0..3 (step line)
+    /node/<n>/model_mismatch      Scalars   model-mismatch flag 0/1, beside the state (step line)
+    /node/<n>/nis                 Scalars   normalised innovation squared
+    /node/<n>/<Input>             Scalars   each input as its frames carry it (own rate, own
+                                            buffer)
+    /node/<n>/events              TextLog   state transitions etc.
     /monitor/counters/<name>      Scalars   daemon health counters (frames ok, rejected, ...);
                                             a ``/`` in a counter name nests the entity
     /monitor/events               TextLog   bus events (error frames, interface outages)
+
+A signal's legend is its name and unit ("ArmatureCurrent measured (A)"). A signal name is
+escaped as one entity path part; one that is the name of a series above (``gamma``,
+``rules``...) or of another signal gets ``_signal``, ``_2``... appended (`signal_parts`).
 """
 
 from __future__ import annotations
@@ -31,8 +37,11 @@ import rerun as rr
 import rerun.blueprint as rrb
 import rerun_bindings
 
-__all__ = ["BUS_EVENTS_PATH", "STYLES", "BlueprintSender", "counter_path", "default_blueprint",
-           "node_path", "series_style"]
+from monitor.pipeline.events import PlantSignals
+
+__all__ = ["BUS_EVENTS_PATH", "ESTIMATED_COLOR", "INPUT_COLOR", "MEASURED_COLOR", "STYLES",
+           "BlueprintSender", "counter_path", "default_blueprint", "node_path", "series_style",
+           "signal_legend", "signal_parts"]
 
 _log = logging.getLogger(__name__)
 
@@ -40,10 +49,9 @@ Color = tuple[int, int, int]
 
 _STEP: Final = rr.components.InterpolationMode.StepAfter
 
-# (entity suffix, legend name, colour, line width, stepped)
+# (entity suffix, legend name, colour, line width, stepped) of the series every plant has;
+# the inputs' and outputs' series are named after the rig's signals (`signal_parts`)
 STYLES: Final[tuple[tuple[str, str, Color, float, bool], ...]] = (
-    ("current/measured", "measured current", (120, 144, 156), 1.0, False),
-    ("current/estimated", "estimated current", (255, 127, 14), 1.5, False),
     ("gamma/estimate", "gamma^ (estimate)", (31, 119, 180), 2.0, False),
     ("gamma/true", "gamma (true)", (44, 160, 44), 1.5, False),
     ("gamma/F1", "F1", (230, 171, 2), 1.0, True),
@@ -52,14 +60,55 @@ STYLES: Final[tuple[tuple[str, str, Color, float, bool], ...]] = (
     ("health", "health state (0..3)", (23, 190, 207), 2.0, True),
     ("model_mismatch", "model mismatch", (227, 119, 194), 2.0, True),
     ("nis", "NIS", (127, 127, 127), 1.0, False),
-    ("voltage", "supply voltage", (188, 189, 34), 1.0, False),
 )
+MEASURED_COLOR: Final[Color] = (120, 144, 156)
+"""An output as measured (line width 1)."""
+ESTIMATED_COLOR: Final[Color] = (255, 127, 14)
+"""An output's estimate (line width 1.5)."""
+INPUT_COLOR: Final[Color] = (188, 189, 34)
+"""An input (line width 1)."""
 COUNTER_COLOR: Final[Color] = (140, 86, 75)
+
+_RESERVED: Final = frozenset(s[0].split("/")[0] for s in STYLES) | {"events"}
+"""The top-level parts of a node's own series: no signal's entity may take one."""
 
 
 def node_path(node: int, suffix: str) -> str:
-    """The entity of series `suffix` (e.g. "gamma/estimate", "events") of `node`."""
-    return f"/motor/{node}/{suffix}"
+    """The entity of series `suffix` (e.g. "gamma/estimate", "events", a signal's part from
+    `signal_parts`) of `node`."""
+    return f"/node/{node}/{suffix}"
+
+
+def signal_parts(signals: PlantSignals, m: int = 0,
+                 p: int = 0) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The entity path part of each input and of each output under a node (at least `m`
+    inputs and `p` outputs, beyond the names given ``u3``, ``y2``...): the signal name,
+    escaped; a name a node's own series has gets ``_signal``, one taken already ``_2``,
+    ``_3``..., so that every series has an entity of its own."""
+    taken = set(_RESERVED)
+
+    def part(name: str) -> str:
+        base = rr.escape_entity_path_part(name) or "signal"
+        if base in _RESERVED:
+            base += "_signal"
+        out, k = base, 1
+        while out in taken:
+            k += 1
+            out = f"{base}_{k}"
+        taken.add(out)
+        return out
+
+    ins = tuple(part(signals.input(i)[0]) for i in range(max(m, len(signals.inputs))))
+    outs = tuple(part(signals.output(j)[0]) for j in range(max(p, len(signals.outputs))))
+    return ins, outs
+
+
+def signal_legend(signal: tuple[str, str | None], what: str = "") -> str:
+    """A signal's legend: its name, what the series is of it, its unit ("ArmatureCurrent
+    measured (A)")."""
+    name, unit = signal
+    text = f"{name} {what}" if what else name
+    return f"{text} ({unit})" if unit else text
 
 
 def counter_path(name: str) -> str:
@@ -81,16 +130,24 @@ def series_style(name: str, color: Color, width: float, stepped: bool) -> rr.Ser
 BUS_EVENTS_PATH = "/monitor/events"
 
 
-def default_blueprint(nodes: Sequence[int]) -> rrb.Blueprint:
-    """One tab per node (current, gamma^ vs thresholds, rules, health, model mismatch, NIS,
-    voltage, events)
-    and one tab with the daemon counters."""
+def default_blueprint(nodes: Sequence[int],
+                      signals: PlantSignals | None = None) -> rrb.Blueprint:
+    """One tab per node (each output measured vs estimated, gamma^ vs thresholds, rules,
+    health, model mismatch, NIS, each input, events) and one tab with the daemon counters;
+    the signals named as `signals` (default: our bus's) name them."""
+    sig = signals if signals is not None else PlantSignals()
+    ins, outs = signal_parts(sig)
     tabs: list[rrb.Container | rrb.View] = []
     for n in nodes:
-        m = f"/motor/{n}"
+        m = f"/node/{n}"
+        out_views = [rrb.TimeSeriesView(origin=f"{m}/{part}",
+                                        name=f"{sig.output(j)[0]}: measured vs estimated")
+                     for j, part in enumerate(outs)]
+        in_views = [rrb.TimeSeriesView(origin=f"{m}/{part}", name=signal_legend(sig.input(i)))
+                    for i, part in enumerate(ins)]
         tabs.append(
             rrb.Vertical(
-                rrb.TimeSeriesView(origin=f"{m}/current", name="measured vs estimated current"),
+                out_views[0] if len(out_views) == 1 else rrb.Horizontal(*out_views),
                 rrb.TimeSeriesView(origin=f"{m}/gamma", name="gamma^ vs thresholds"),
                 rrb.Horizontal(
                     rrb.TimeSeriesView(origin=f"{m}/rules", name="rule count"),
@@ -111,11 +168,11 @@ def default_blueprint(nodes: Sequence[int]) -> rrb.Blueprint:
                         # spike of 1000 would otherwise flatten the whole plot
                         axis_y=rrb.ScalarAxis(range=(0.0, 20.0), zoom_lock=False),
                     ),
-                    rrb.TimeSeriesView(origin=f"{m}/voltage", name="supply voltage"),
+                    *in_views,
                 ),
                 rrb.TextLogView(origin=f"{m}/events", name="events"),
                 row_shares=[3.0, 3.0, 2.0, 2.0],
-                name=f"motor {n}",
+                name=f"node {n}",
             )
         )
     tabs.append(

@@ -49,7 +49,7 @@ class JournalSink(Sink):
         self._send(message=f"node {event.node}: {event.text}", message_id=TRANSITION_ID,
                    priority=int(p.INFO if event.level == "INFO" else p.WARNING),
                    node=str(event.node), state=event.state, previous=event.previous,
-                   gamma=f"{event.gamma:.4f}", fault=f"{event.fault_volts:.3f}",
+                   gamma=f"{event.gamma:.4f}", fault=f"{event.fault_input:.3f}",
                    rules=str(event.rules), cause=event.cause, kind=event.kind,
                    model_mismatch="1" if event.model_mismatch else "0")
 

@@ -19,7 +19,7 @@ __all__ = ["BusPublisher"]
 log = logging.getLogger("motor_monitor")
 
 _WARN_PERIOD_S = 10.0
-_FAULT_LIMIT_V = 999.0  # what FaultEstimate can carry
+_FAULT_LIMIT_V = 999.0  # what FaultEstimate (V: our bus's input) can carry
 
 
 class BusPublisher(Sink):
@@ -38,7 +38,7 @@ class BusPublisher(Sink):
 
     def on_diagnosis(self, diagnosis: Diagnosis) -> None:
         node = diagnosis.node
-        fault = max(-_FAULT_LIMIT_V, min(_FAULT_LIMIT_V, diagnosis.fault_volts))
+        fault = max(-_FAULT_LIMIT_V, min(_FAULT_LIMIT_V, diagnosis.fault_input))
         counter = self._alive.get(node, 0)
         try:
             data = self.db.encode_diagnosis(node, int(diagnosis.state), diagnosis.gamma, fault,

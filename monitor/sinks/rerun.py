@@ -26,8 +26,8 @@ line may stop up to that much before the others, on a value that had not changed
 through them, stepped or straight, is the line through every sample, the latest value at any
 time is the same, and the viewer draws them without its per-pixel averaging, which would
 slant a run's line between two changes (`_EXACT_LINE`). They were 4 of the 8 rows of every
-sample; the other series (measured and estimated current, gamma^, NIS, and the voltage) keep
-every sample.
+sample; the other series (each output measured and estimated, gamma^, NIS, and the inputs)
+keep every sample.
 
 All data goes on one timeline, ``time``: a timestamp timeline of the bus time in float seconds
 since the Unix epoch (CAN kernel time stamps), sent as ``rr.TimeColumn("time",
@@ -89,17 +89,29 @@ import numpy as np
 import rerun as rr
 from numpy.typing import NDArray
 
-from monitor.pipeline.events import BusEvent, DiagnosisEvent, Sample, SampleColumns, VoltageSample
+from monitor.pipeline.events import (
+    BusEvent,
+    DiagnosisEvent,
+    InputSample,
+    PlantSignals,
+    Sample,
+    SampleColumns,
+)
 from monitor.sinks.base import Sink
 from monitor.sinks.blueprint import (
     BUS_EVENTS_PATH,
     COUNTER_COLOR,
+    ESTIMATED_COLOR,
+    INPUT_COLOR,
+    MEASURED_COLOR,
     STYLES,
     BlueprintSender,
     counter_path,
     default_blueprint,
     node_path,
     series_style,
+    signal_legend,
+    signal_parts,
 )
 
 __all__ = ["DEFAULT_FLUSH_INTERVAL_S", "REPLAY_BATCH_SIZE", "REPLAY_PART_BYTES", "RUNS",
@@ -186,16 +198,16 @@ def run_ends(v: Array, previous: float = math.nan) -> NDArray[np.bool_]:
 
 
 class RecordingOutlet(Sink):
-    """The pipeline's events onto a recording's column API (`add_sample`, `add_voltage`,
+    """The pipeline's events onto a recording's column API (`add_sample`, `add_input`,
     `log_event`, `log_counters`), which `RerunSink` and `RotatingRerunSink` implement."""
 
-    def add_sample(self, node: int, t: float, measured_current: float,
-                   estimated_current: float, gamma_hat: float, rule_count: int, health: int,
-                   nis: float, true_gamma: float | None = None,
-                   model_mismatch: bool = False) -> None:
+    def add_sample(self, node: int, t: float, measured: float, estimated: float,
+                   gamma_hat: float, rule_count: int, health: int, nis: float,
+                   true_gamma: float | None = None, model_mismatch: bool = False, *,
+                   outputs: Sequence[float] = (), predicted: Sequence[float] = ()) -> None:
         raise NotImplementedError
 
-    def add_voltage(self, node: int, t: float, volts: float) -> None:
+    def add_input(self, node: int, t: float, value: float, index: int = 0) -> None:
         raise NotImplementedError
 
     def log_event(self, node: int, t: float, text: str, level: str = "INFO") -> None:
@@ -207,10 +219,11 @@ class RecordingOutlet(Sink):
     def on_sample(self, sample: Sample) -> None:
         self.add_sample(sample.node, sample.t, sample.measured, sample.estimated, sample.gamma,
                         sample.rules, int(sample.state), sample.nis, sample.true_gamma,
-                        sample.model_mismatch)
+                        sample.model_mismatch, outputs=sample.outputs,
+                        predicted=sample.predicted)
 
-    def on_voltage(self, sample: VoltageSample) -> None:
-        self.add_voltage(sample.node, sample.t, sample.volts)
+    def on_input(self, sample: InputSample) -> None:
+        self.add_input(sample.node, sample.t, sample.value, sample.index)
 
     def on_transition(self, event: DiagnosisEvent) -> None:
         self.log_event(event.node, event.t, event.text, event.level)
@@ -222,6 +235,18 @@ class RecordingOutlet(Sink):
         self.log_counters(t, counters)
 
 
+class _Input:
+    """The column buffer of one input of a node: its own rate, its own rows."""
+
+    __slots__ = ("n", "path", "t", "v")
+
+    def __init__(self, path: str, batch_size: int) -> None:
+        self.path = path
+        self.n = 0
+        self.t: Array = np.zeros(batch_size)
+        self.v: Array = np.zeros(batch_size)
+
+
 class _Node:
     """Preallocated column buffers and entity paths of one node."""
 
@@ -229,12 +254,14 @@ class _Node:
         "estimated",
         "gamma",
         "health",
+        "inputs",
         "last",
         "measured",
         "mismatch",
         "n",
         "nis",
-        "nv",
+        "node",
+        "out_paths",
         "path",
         "pending",
         "rules",
@@ -242,17 +269,21 @@ class _Node:
         "t",
         "true_gamma",
         "true_styled",
-        "tv",
-        "volts",
     )
 
-    def __init__(self, node: int, batch_size: int) -> None:
+    def __init__(self, node: int, batch_size: int, outputs: Sequence[str]) -> None:
+        self.node = node
         self.path: dict[str, str] = {s[0]: node_path(node, s[0]) for s in STYLES}
         self.path["events"] = node_path(node, "events")
+        self.out_paths: list[tuple[str, str]] = [
+            (node_path(node, f"{o}/measured"), node_path(node, f"{o}/estimated"))
+            for o in outputs]
+        """(measured, estimated) entity of each output."""
         self.n = 0
         self.t: Array = np.zeros(batch_size)
-        self.measured: Array = np.zeros(batch_size)
-        self.estimated: Array = np.zeros(batch_size)
+        # one row per output; NaN where a producer gives only the first output
+        self.measured: Array = np.zeros((len(outputs), batch_size))
+        self.estimated: Array = np.zeros((len(outputs), batch_size))
         self.gamma: Array = np.zeros(batch_size)
         self.true_gamma: Array = np.zeros(batch_size)
         self.rules: Array = np.zeros(batch_size)
@@ -266,9 +297,9 @@ class _Node:
         self.sent_t: dict[str, float] = {}
         """The time of the last row sent of each `RUNS` series."""
         self.true_styled = False
-        self.nv = 0
-        self.tv: Array = np.zeros(batch_size)
-        self.volts: Array = np.zeros(batch_size)
+        self.inputs: dict[int, _Input] = {}
+        """Each input's buffer, by its index (one beyond the names given from its first
+        row)."""
 
 
 class RerunSink(RecordingOutlet):
@@ -287,6 +318,9 @@ class RerunSink(RecordingOutlet):
     (footer, styles, blueprint) and of the same recording, so the viewer opens one part or
     all of them as one recording (`parts` lists them). Parts of an earlier recording to the
     same path are deleted at start: they would merge into this one.
+
+    ``signals`` names the inputs and outputs (entities, legends; default: our bus's): the
+    rig's, `monitor.app.outputs.plant_signals`.
     """
 
     def __init__(
@@ -303,6 +337,7 @@ class RerunSink(RecordingOutlet):
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
         write_footer: bool = True,
         part_bytes: int | None = None,
+        signals: PlantSignals | None = None,
     ) -> None:
         if rrd_path is None and connect_url is None:
             raise ValueError("RerunSink needs rrd_path and/or connect_url (use Sink() for none)")
@@ -315,6 +350,8 @@ class RerunSink(RecordingOutlet):
             raise ValueError("flush_interval_s must be >= 0")
         self._batch_size = int(batch_size)
         self._flush_interval_s = float(flush_interval_s)
+        self._signals = signals if signals is not None else PlantSignals()
+        self._in_parts, self._out_parts = signal_parts(self._signals, 0, 1)
         self._f1 = float(f1)
         self._f2 = float(f2)
         self._closed = False
@@ -362,16 +399,22 @@ class RerunSink(RecordingOutlet):
         self,
         node: int,
         t: float,
-        measured_current: float,
-        estimated_current: float,
+        measured: float,
+        estimated: float,
         gamma_hat: float,
         rule_count: int,
         health: int,
         nis: float,
         true_gamma: float | None = None,
         model_mismatch: bool = False,
+        *,
+        outputs: Sequence[float] = (),
+        predicted: Sequence[float] = (),
     ) -> None:
-        """Buffer one estimator sample of ``node`` at bus time ``t`` (epoch seconds)."""
+        """Buffer one estimator sample of ``node`` at bus time ``t`` (epoch seconds):
+        every output measured and estimated (`outputs`, `predicted`, in the order of the
+        sink's ``signals``), or, where they are not given, the first one (`measured`,
+        `estimated`; the others NaN)."""
         if self._closed:
             return
         if self._part_due:
@@ -381,8 +424,8 @@ class RerunSink(RecordingOutlet):
             st = self._new_node(node)
         i = st.n
         st.t[i] = t
-        st.measured[i] = measured_current
-        st.estimated[i] = estimated_current
+        _put(st.measured[:, i], measured, outputs)
+        _put(st.estimated[:, i], estimated, predicted)
         st.gamma[i] = gamma_hat
         st.true_gamma[i] = math.nan if true_gamma is None else true_gamma
         st.rules[i] = rule_count
@@ -395,8 +438,8 @@ class RerunSink(RecordingOutlet):
             self._flush_samples(st)
             self._note_part_full()
 
-    def add_voltage(self, node: int, t: float, volts: float) -> None:
-        """Buffer one supply-voltage reading of ``node``."""
+    def add_input(self, node: int, t: float, value: float, index: int = 0) -> None:
+        """Buffer one row of input `index` of ``node``, as a frame carried it."""
         if self._closed:
             return
         if self._part_due:
@@ -404,13 +447,14 @@ class RerunSink(RecordingOutlet):
         st = self._nodes.get(node)
         if st is None:
             st = self._new_node(node)
-        i = st.nv
-        st.tv[i] = t
-        st.volts[i] = volts
+        buf = st.inputs.get(index) or self._new_input(st, index)
+        i = buf.n
+        buf.t[i] = t
+        buf.v[i] = value
         i += 1
-        st.nv = i
+        buf.n = i
         if i == self._batch_size:
-            self._flush_voltage(st)
+            self._flush_input(buf)
             self._note_part_full()
 
     # -- rare data --------------------------------------------------------------------------
@@ -494,8 +538,8 @@ class RerunSink(RecordingOutlet):
             k = min(self._batch_size - at, n - i)
             dst, src = slice(at, at + k), slice(i, i + k)
             st.t[dst] = cols.t[src]
-            st.measured[dst] = cols.measured[src]
-            st.estimated[dst] = cols.estimated[src]
+            _put_columns(st.measured[:, dst], cols.measured[src], cols.outputs, src)
+            _put_columns(st.estimated[:, dst], cols.estimated[src], cols.predicted, src)
             st.gamma[dst] = cols.gamma[src]
             st.true_gamma[dst] = cols.true_gamma[src]
             st.rules[dst] = cols.rules[src]
@@ -508,24 +552,30 @@ class RerunSink(RecordingOutlet):
                 self._flush_samples(st)
                 self._note_part_full()
 
-    def on_voltage_columns(self, node: int, t: Array, volts: Array) -> None:
-        """A node's voltage commands as columns: `add_voltage` a slice at a time."""
+    def on_input_columns(self, node: int, t: Array, values: Array,
+                         index: NDArray[np.int64]) -> None:
+        """A node's inputs as columns (row i: input `index[i]`): `add_input` a slice at a
+        time, each input into its own buffer."""
         if self._closed:
             return
         if self._part_due:
             self._next_part()
         st = self._nodes.get(node) or self._new_node(node)
-        n, i = len(t), 0
-        while i < n:
-            at = st.nv
-            k = min(self._batch_size - at, n - i)
-            st.tv[at:at + k] = t[i:i + k]
-            st.volts[at:at + k] = volts[i:i + k]
-            st.nv = at + k
-            i += k
-            if st.nv == self._batch_size:
-                self._flush_voltage(st)
-                self._note_part_full()
+        for a in np.unique(index).tolist():
+            rows = index == a
+            ta, va = t[rows], values[rows]
+            buf = st.inputs.get(a) or self._new_input(st, a)
+            n, i = len(ta), 0
+            while i < n:
+                at = buf.n
+                k = min(self._batch_size - at, n - i)
+                buf.t[at:at + k] = ta[i:i + k]
+                buf.v[at:at + k] = va[i:i + k]
+                buf.n = at + k
+                i += k
+                if buf.n == self._batch_size:
+                    self._flush_input(buf)
+                    self._note_part_full()
 
     def set_thresholds(self, f1: float, f2: float) -> None:
         """Change the diagnosis thresholds; buffered samples keep the old ones."""
@@ -550,7 +600,8 @@ class RerunSink(RecordingOutlet):
             return
         for st in self._nodes.values():
             self._flush_samples(st)
-            self._flush_voltage(st)
+            for buf in st.inputs.values():
+                self._flush_input(buf)
         self._flush_events()
         self._flush_counters()
         if not self._rows_batched:
@@ -659,15 +710,39 @@ class RerunSink(RecordingOutlet):
     # -- internals --------------------------------------------------------------------------
 
     def _add_node(self, node: int) -> _Node:
-        st = _Node(node, self._batch_size)
+        st = _Node(node, self._batch_size, self._out_parts)
+        for index, part in enumerate(self._in_parts):  # styled with the node, like its outputs
+            st.inputs[index] = _Input(node_path(node, part), self._batch_size)
         self._nodes[node] = st
         self._style_node(st)
         return st
+
+    def _new_input(self, st: _Node, index: int) -> _Input:
+        """The buffer of an input beyond the names given, at its first row (named by
+        `signal_parts` too)."""
+        if index >= len(self._in_parts):
+            self._in_parts = signal_parts(self._signals, index + 1)[0]
+        buf = _Input(node_path(st.node, self._in_parts[index]), self._batch_size)
+        st.inputs[index] = buf
+        self._style_input(buf, index)
+        return buf
 
     def _style_node(self, st: _Node) -> None:
         for suffix, *_ in STYLES:
             if suffix != "gamma/true":  # styled when the first true gamma arrives
                 self._style(st.path[suffix], suffix)
+        for j, (measured, estimated) in enumerate(st.out_paths):
+            signal = self._signals.output(j)
+            self._log_static(measured, series_style(signal_legend(signal, "measured"),
+                                                    MEASURED_COLOR, 1.0, False))
+            self._log_static(estimated, series_style(signal_legend(signal, "estimated"),
+                                                     ESTIMATED_COLOR, 1.5, False))
+        for index, buf in st.inputs.items():
+            self._style_input(buf, index)
+
+    def _style_input(self, buf: _Input, index: int) -> None:
+        self._log_static(buf.path, series_style(signal_legend(self._signals.input(index)),
+                                                INPUT_COLOR, 1.0, False))
 
     def _style(self, path: str, suffix: str) -> None:
         _, name, color, width, stepped = next(s for s in STYLES if s[0] == suffix)
@@ -690,7 +765,7 @@ class RerunSink(RecordingOutlet):
         return st
 
     def _send_blueprint(self) -> None:
-        self._blueprints.send(default_blueprint(sorted(self._nodes)))
+        self._blueprints.send(default_blueprint(sorted(self._nodes), self._signals))
 
     def _flush_samples(self, st: _Node) -> None:
         n = st.n
@@ -702,8 +777,9 @@ class RerunSink(RecordingOutlet):
         t = st.t[:n]
         index = [rr.TimeColumn(TIMELINE, timestamp=t)]
         scalars = rr.Scalars.columns
-        send(path["current/measured"], indexes=index, columns=scalars(scalars=st.measured[:n]))
-        send(path["current/estimated"], indexes=index, columns=scalars(scalars=st.estimated[:n]))
+        for j, (measured, estimated) in enumerate(st.out_paths):
+            send(measured, indexes=index, columns=scalars(scalars=st.measured[j, :n]))
+            send(estimated, indexes=index, columns=scalars(scalars=st.estimated[j, :n]))
         send(path["gamma/estimate"], indexes=index, columns=scalars(scalars=st.gamma[:n]))
         true_gamma = st.true_gamma[:n]
         given = ~np.isnan(true_gamma)
@@ -758,13 +834,37 @@ class RerunSink(RecordingOutlet):
                 self._send_rows(st, suffix, np.array([t]), np.array([v]))
             st.pending.clear()
 
-    def _flush_voltage(self, st: _Node) -> None:
-        n = st.nv
+    def _flush_input(self, buf: _Input) -> None:
+        n = buf.n
         if n == 0:
             return
-        st.nv = 0
+        buf.n = 0
         self._rec.send_columns(
-            st.path["voltage"],
-            indexes=[rr.TimeColumn(TIMELINE, timestamp=st.tv[:n])],
-            columns=rr.Scalars.columns(scalars=st.volts[:n]),
+            buf.path,
+            indexes=[rr.TimeColumn(TIMELINE, timestamp=buf.t[:n])],
+            columns=rr.Scalars.columns(scalars=buf.v[:n]),
         )
+
+
+def _put(dst: Array, first: float, values: Sequence[float]) -> None:
+    """One sample's outputs into a column of the output rows: `values` where given (as many
+    as there are rows), else `first` into the first row and NaN into the others."""
+    if len(values):
+        k = min(len(values), len(dst))
+        dst[:k] = values[:k]
+        dst[k:] = math.nan
+    else:
+        dst[0] = first
+        dst[1:] = math.nan
+
+
+def _put_columns(dst: Array, first: Array, values: Array | None, rows: slice) -> None:
+    """`_put` for a slice of samples: `values` (one column per output) where given, else
+    `first`."""
+    if values is not None and values.shape[1]:
+        k = min(values.shape[1], len(dst))
+        dst[:k] = values[rows, :k].T
+        dst[k:] = math.nan
+    else:
+        dst[0] = first
+        dst[1:] = math.nan

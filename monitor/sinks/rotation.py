@@ -13,6 +13,7 @@ from typing import Any, Final
 import rerun as rr
 
 from monitor.files import FileSeries
+from monitor.pipeline.events import PlantSignals
 from monitor.sinks.compact import Compactor, sweep
 from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet, RerunSink
 
@@ -79,6 +80,8 @@ class RotatingRerunSink(RecordingOutlet):
     how far the live stream lags); when another record carries that bound (the raw bus log,
     ``run --raw-dir``), a longer interval writes larger chunks (a few times smaller files
     before compaction).
+
+    ``signals`` names the inputs and outputs, as `RerunSink`'s.
     """
 
     def __init__(
@@ -100,6 +103,7 @@ class RotatingRerunSink(RecordingOutlet):
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
         compactor: Compactor | None = None,
         compact_wait_s: float = 20.0,
+        signals: PlantSignals | None = None,
     ) -> None:
         if max_bytes is not None and max_bytes < 1:
             raise ValueError("max_bytes must be >= 1 (or None)")
@@ -130,7 +134,7 @@ class RotatingRerunSink(RecordingOutlet):
         common: dict[str, Any] = {
             "application_id": application_id, "recording_id": self.recording_id,
             "nodes": nodes, "f1": f1, "f2": f2, "batch_size": batch_size,
-            "flush_interval_s": flush_interval_s,
+            "flush_interval_s": flush_interval_s, "signals": signals,
         }
         self._file = RerunSink(rrd_path=path, **common)
         self._path = path
@@ -154,23 +158,26 @@ class RotatingRerunSink(RecordingOutlet):
         self,
         node: int,
         t: float,
-        measured_current: float,
-        estimated_current: float,
+        measured: float,
+        estimated: float,
         gamma_hat: float,
         rule_count: int,
         health: int,
         nis: float,
         true_gamma: float | None = None,
         model_mismatch: bool = False,
+        *,
+        outputs: Sequence[float] = (),
+        predicted: Sequence[float] = (),
     ) -> None:
         """Buffer one estimator sample (see `RerunSink.add_sample`)."""
         for sink in self._sinks():
-            sink.add_sample(node, t, measured_current, estimated_current, gamma_hat,
-                            rule_count, health, nis, true_gamma, model_mismatch)
+            sink.add_sample(node, t, measured, estimated, gamma_hat, rule_count, health, nis,
+                            true_gamma, model_mismatch, outputs=outputs, predicted=predicted)
 
-    def add_voltage(self, node: int, t: float, volts: float) -> None:
+    def add_input(self, node: int, t: float, value: float, index: int = 0) -> None:
         for sink in self._sinks():
-            sink.add_voltage(node, t, volts)
+            sink.add_input(node, t, value, index)
 
     def log_event(self, node: int, t: float, text: str, level: str = "INFO") -> None:
         for sink in self._sinks():

@@ -13,7 +13,7 @@ it as an attribute name; the unit, where there is one, is the name's last part:
 * ``gamma_<Input>``: gamma^, the estimated loss of effectiveness of each input that may
   lose it (the model's fault inputs; a known input has none);
 * ``f_<Input>_<unit>``: f^ = gamma^ u, the part of that input the fault takes away, in the
-  input's unit (what the diagnosis reports as `fault_volts` for the worst one);
+  input's unit (what the diagnosis reports as `fault_input` for the worst one);
 * ``nis``: the normalised innovation squared; ``state``: the reported health state
   (``fault_free``, ``fault``, ...); ``model_mismatch``: the model-mismatch flag beside it
   (Parquet: a boolean; CSV: 1 or 0).
@@ -215,9 +215,9 @@ class SamplesFileSink(Sink):
         if self._buffered >= self.batch_rows:
             self.flush()
 
-    def on_voltage_columns(self, node: int, t: NDArray[np.float64],
-                           volts: NDArray[np.float64]) -> None:
-        """Voltages alone are not samples: each row holds the input held at its sample."""
+    def on_input_columns(self, node: int, t: NDArray[np.float64], values: NDArray[np.float64],
+                         index: NDArray[np.int64]) -> None:
+        """Inputs alone are not samples: each row holds the inputs held at its sample."""
 
     # ------------------------------------------------------------------ out
 

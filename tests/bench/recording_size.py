@@ -219,8 +219,8 @@ def main() -> None:
     same = rows_live == rows_compact
     print(f"rows: {sum(rows_live.values())} in the live file, {sum(rows_compact.values())} "
           f"compacted ({'the same per entity' if same else 'DIFFERENT'}); per second: "
-          + ", ".join(f"{e.removeprefix('/motor/0/')} {rows_live[e] / run['seconds']:.1f}"
-                      for e in sorted(rows_live) if e.startswith("/motor/0/")))
+          + ", ".join(f"{e.removeprefix('/node/0/')} {rows_live[e] / run['seconds']:.1f}"
+                      for e in sorted(rows_live) if e.startswith("/node/0/")))
     print(json.dumps({"benchmark": "recording_size", "minutes": args.minutes,
                       "flush_s": args.flush_s, "frames": run["frames"],
                       "estimated": run["estimated"], "rows_same_after_compaction": same,

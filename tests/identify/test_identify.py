@@ -225,7 +225,7 @@ def _refusal(u: np.ndarray, y: np.ndarray, T: float, **kw) -> str:
 def test_refuses_a_constant_voltage() -> None:
     u = np.full((3000, 1), 220.0)
     msg = _refusal(u, capture(dc_motor(), T1, u), T1)
-    assert "constant" in msg and "record with the voltage command varying" in msg
+    assert "constant" in msg and "record with the input varying" in msg
 
 
 def test_refuses_a_sine_for_want_of_persistent_excitation() -> None:

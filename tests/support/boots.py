@@ -156,10 +156,10 @@ class _BootReadback:
         return self.values.get("ready") == "1"
 
     def gamma(self) -> tuple[Array, Array]:
-        return series(self.rrd, f"/motor/{NODE}/gamma/estimate")
+        return series(self.rrd, f"/node/{NODE}/gamma/estimate")
 
     def measured(self) -> tuple[Array, Array]:
-        return series(self.rrd, f"/motor/{NODE}/current/measured")
+        return series(self.rrd, f"/node/{NODE}/ArmatureCurrent/measured")
 
     def _read_back(self, out: Path, rrd_name: str) -> None:
         """What both boots leave: script values, recording, counters, events, stderr."""

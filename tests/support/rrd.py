@@ -44,8 +44,8 @@ BAD_OUTCOMES = ("rejected/", "ignored/", "bus/error_frames", "bus/errors/", "e2e
                 "time/non_monotonic")
 #: Counters that together count every received frame exactly once (at each snapshot).
 OUTCOME_PREFIXES = ("rejected/", "ignored/", "bus/error_frames", "e2e/repeated",
-                    "time/non_monotonic", "samples/no_voltage", "samples/estimated",
-                    "samples/voltage", "samples/truth")
+                    "time/non_monotonic", "samples/no_input", "samples/estimated",
+                    "samples/input", "samples/truth")
 
 COUNTERS_PREFIX = "/monitor/counters/"
 

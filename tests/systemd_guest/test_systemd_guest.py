@@ -233,7 +233,7 @@ def rrd_gamma_times(path: Path) -> list[float]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # no footer: the writer was killed
         for chunk in RrdReader(path).stream():
-            if chunk.is_static or chunk.entity_path != "/motor/0/gamma/estimate":
+            if chunk.is_static or chunk.entity_path != "/node/0/gamma/estimate":
                 continue
             col = chunk.to_record_batch().column("time").cast(pa.int64())
             times.extend(t / 1e9 for t in col.to_pylist())
