@@ -36,7 +36,7 @@ from monitor.sinks.metrics import MetricsSink
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.archive.logs import write_log
-from tests.support.rrd import read_rrd
+from tests.support.rrd import blueprint_names, read_rrd
 
 RIGS = Path(__file__).resolve().parent / "rigs"
 ENGINE_NAMES = ("columnar", "per-frame")
@@ -92,18 +92,6 @@ def _legends(path: Path) -> dict[str, list[str]]:
     return out
 
 
-def _tabs(path: Path) -> set[str]:
-    reader = RrdReader(path)
-    (bp,) = reader.blueprints()
-    names: set[str] = set()
-    for chunk in reader.stream(store=bp):
-        rb = chunk.to_record_batch()
-        for col in rb.schema.names:
-            if col.endswith("Blueprint:display_name"):
-                names.update(x for row in rb.column(col).to_pylist() if row for x in row)
-    return names
-
-
 @pytest.mark.parametrize("engine", ENGINE_NAMES)
 def test_events_and_recording_carry_the_rigs_names(drive: tuple[Path, Path], tmp_path: Path,
                                                    engine: str) -> None:
@@ -136,7 +124,7 @@ def test_events_and_recording_carry_the_rigs_names(drive: tuple[Path, Path], tmp
     assert legends[f"{n}/Position/estimated"] == ["Position estimated (rad)"]
     assert legends[f"{n}/CurrentCmdA"] == ["CurrentCmdA (A)"]
     assert legends[f"{n}/CurrentCmdB"] == ["CurrentCmdB (A)"]
-    tabs = _tabs(rrd)
+    tabs = blueprint_names(rrd)
     assert {f"node {NODE}", "Speed: measured vs estimated", "CurrentCmdA (A)"} <= tabs, tabs
 
 

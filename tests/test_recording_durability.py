@@ -36,6 +36,7 @@ from monitor.sinks.base import Sink
 from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
 from monitor.sinks.rotation import RotatingRerunSink
 from monitor.sinks.salvage import salvage_rrd
+from tests.support.rrd import blueprint_names
 from tests.test_rerun_sink import rows
 
 RERUN_EXE = Path(sys.executable).with_name("rerun")
@@ -324,18 +325,6 @@ def _static_entities(path: Path) -> set[str]:
     return {c.entity_path for c in RrdReader(path).stream() if c.is_static}
 
 
-def _blueprint_views(path: Path) -> set[str]:
-    reader = RrdReader(path)
-    names: set[str] = set()
-    for bp in reader.blueprints():
-        for chunk in reader.stream(store=bp):
-            rb = chunk.to_record_batch()
-            for col in rb.schema.names:
-                if col.endswith("Blueprint:display_name"):
-                    names.update(x for row in rb.column(col).to_pylist() if row for x in row)
-    return names
-
-
 def test_rotation_by_size_keeps_everything_contiguous_and_verified(tmp_path: Path) -> None:
     sink = RotatingRerunSink(
         tmp_path, max_bytes=200_000, max_age_s=None, keep=None, nodes=(0,), batch_size=128,
@@ -377,7 +366,7 @@ def test_rotation_by_size_keeps_everything_contiguous_and_verified(tmp_path: Pat
         assert rec.recording_id == "size-run"
         static = _static_entities(p)
         assert {"/node/0/gamma/F1", "/node/1/nis", "/node/0/gamma/true"} <= static, p
-        assert {"node 0", "node 1", "daemon counters"} <= _blueprint_views(p), p
+        assert {"node 0", "node 1", "daemon counters"} <= blueprint_names(p), p
     # the thresholds in the last file are the current ones
     last = [c for c in RrdReader(files[-1]).stream() if c.entity_path == "/node/0/gamma/F1"]
     f1 = np.concatenate(

@@ -44,6 +44,7 @@ from monitor.sinks.rerun import (
     run_ends,
 )
 from monitor.sinks.rotation import RotatingRerunSink
+from tests.support.rrd import blueprint_names
 
 T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
 DT = 1e-3
@@ -140,13 +141,8 @@ def test_recording_and_blueprint_stores(recorded: Path) -> None:
     (rec,) = reader.recordings()
     assert rec.application_id == "motor-monitor"
     assert rec.recording_id == "test-run"
-    (bp,) = reader.blueprints()
-    names: set[str] = set()
-    for chunk in reader.stream(store=bp):
-        rb = chunk.to_record_batch()
-        for col in rb.schema.names:
-            if col.endswith("Blueprint:display_name"):
-                names.update(x for row in rb.column(col).to_pylist() if row for x in row)
+    assert len(list(reader.blueprints())) == 1
+    names = blueprint_names(recorded)
     assert {
         "node 0",
         "node 1",

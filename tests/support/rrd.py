@@ -133,6 +133,19 @@ class Snapshots:
                 if b.get(k, 0) != a.get(k, 0)}
 
 
+
+def blueprint_names(path: Path) -> set[str]:
+    """The display names (tabs and views) of every blueprint an .rrd file holds."""
+    reader = RrdReader(path)
+    names: set[str] = set()
+    for bp in reader.blueprints():
+        for chunk in reader.stream(store=bp):
+            rb = chunk.to_record_batch()
+            for col in rb.schema.names:
+                if col.endswith("Blueprint:display_name"):
+                    names.update(x for row in rb.column(col).to_pylist() if row for x in row)
+    return names
+
 def _among(name: str, prefixes: tuple[str, ...]) -> bool:
     """`name` is one of `prefixes`, or lies under one that ends in "/"."""
     return any(name == p or (p.endswith("/") and name.startswith(p)) for p in prefixes)
