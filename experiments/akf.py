@@ -1,6 +1,6 @@
 """Baseline: the augmented-state Kalman filter on [x; gamma].
 
-The honest competitor of the fuzzy UKF (NOTES.md, "What it competes with"): the loss of
+The honest competitor of the fuzzy UKF (Liu et al., Int. J. Fuzzy Syst. 22(1), 2020): the loss of
 effectiveness is appended to the state as a random walk (11), (14),
 
     [x; gamma](k+1) = [[A, -B diag(u)], [0, I]] [x; gamma](k) + [B u; 0] + w,

@@ -45,7 +45,7 @@ def test_zoh_is_exact_matrix_exponential() -> None:
 
 def test_paper_euler_step_is_unstable_but_zoh_is_not() -> None:
     # The printed matrices of section 5.2 (from (69) with T = 1 s): E^-1 A has an
-    # eigenvalue near 95 (NOTES.md).
+    # eigenvalue near 95 (Liu et al., Int. J. Fuzzy Syst. 22(1), 2020, (69); docs/method.md).
     E = np.diag([1.0, 0.01, 1.0])
     A = np.array([[0.0, 0.125, 0.0], [0.25, 0.95, 0.0], [0.0, 0.0, 1.0]])
     assert np.max(np.abs(np.linalg.eigvals(np.linalg.solve(E, A)))) == pytest.approx(95, abs=1)

@@ -24,7 +24,7 @@ def test_weights_sum_to_one(n: int, alpha: float, beta: float) -> None:
 
 def test_paper_alpha_gives_huge_negative_central_weight() -> None:
     w = sigma_weights(2, 1e-4, 2.0)
-    assert w.wm0 < -1e7  # why deviation form is needed (NOTES.md)
+    assert w.wm0 < -1e7  # why deviation form is needed (the paper's alpha, (34); docs/method.md)
 
 
 def test_sigma_points_reproduce_mean_and_covariance() -> None:

@@ -357,7 +357,8 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
                    help="start a new file after this long, minutes (default 60)")
     r.add_argument("--keep", type=int, default=4000,
                    help="recordings kept in DIR, oldest deleted first (default 4000: a week "
-                   "of a full 16-node bus in 256 MiB files, README 'Recording size')")
+                   "of a full 16-node bus in 256 MiB files; docs/operations.md, 'Recording "
+                   "size and retention')")
     r.add_argument("--secoc-state", default=None, metavar="FILE",
                    help="persist SecOC freshness here (with --key): restarts resume at once")
     r.add_argument("--max-total-gb", type=options.positive_float, default=128.0,

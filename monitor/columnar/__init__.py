@@ -10,8 +10,9 @@ the per-file engine: `db` the rig's decoder (`monitor.rig.build_decoder`), `cfg`
 final state, and whether the columnar path ran (`columnar`, else `fallback` says why).
 A file that cannot be read raises `LogReadError` (a `MonitorError`, one line).
 
-Per chunk (`reader.read_chunks`: candump .log by a compiled scanner, .asc and .blf by
-python-can's readers):
+Per chunk (`reader.read_chunks`: candump .log, .asc and .blf by compiled scanners that hand
+what they do not take to python-can's readers; under NUMBA_DISABLE_JIT .asc and .blf by
+python-can):
 
 1. `decode.RouteTable` routes every frame by (ID, extended) with the per-frame codec's own
    routes, checks length, E2E profile 2 (`e2e`: CRC-8/AUTOSAR by a table generated from and

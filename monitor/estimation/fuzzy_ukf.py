@@ -4,7 +4,7 @@ One `FuzzyUKF` per motor takes one sample (u, y, dt) at a time and returns the s
 estimate x^, the fault-model state x~, the loss of effectiveness gamma^, the fault
 function f^ = -B diag(u) gamma^, the rule count and the normalised innovation.
 
-Per sample k (the paper's order, made sound where NOTES.md says it must be):
+Per sample k (the paper's order, made sound where Liu et al. 2020 is ambiguous or broken):
 
 1. The fuzzy system (17), (51) evaluated at the previous input z_{k-1} gives gamma^_k and
    the fault function f^_k = -B diag(u_k) gamma^_k (10). The paper's f^ in R^n is not
@@ -111,7 +111,7 @@ Why it is built this way -- what failed on a small, stiff, back-EMF dominated mo
     790 rad/s speed. The fuzzy input is normalised by the whole prior covariance (step 7):
     by P^- alone, the bias-free part, the servo's speed component of x_e swung by 28 of
     its "sigmas" in healthy running.
-(g) Cost, bounded per sample whatever the frame loss (5c6589b was reverted for starving a
+(g) Cost, bounded per sample whatever the frame loss (an unbounded cost starves a
     one-CPU daemon under a CAN flood). A sample costs one kernel call (35)-(54) plus its
     ring slot. The structure test (20) can fire at most once per dwell time (a negligible
     jump restarts the dwell too), and only then does a sample pay for the onset search and

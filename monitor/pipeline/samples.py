@@ -6,7 +6,7 @@
    between its input frames). `hold` takes one frame into the held values, `held_column`
    does the same for a whole chunk of frames at once.
 2. The input delay. The estimator's step for output sample k applies, over the interval
-   that ends at the sample (Haddad Kia et al. (35)), the held input of output sample k - d,
+   that ends at the sample (Liu et al. 2020, (35)), the held input of output sample k - d,
    d = the rig's `[model] input_delay` (whole samples, `MAX_INPUT_DELAY` at most). d = 0:
    the output already reflects the input held at it (our own bus: the ECU sends the
    output measured at t(k) before the command it applies from t(k)). A larger d is a dead

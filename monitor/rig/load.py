@@ -3,7 +3,7 @@
 Each mistake is one `RigError` line naming the file, the key and what is wrong: an unknown
 key, a value of the wrong type, a DBC that does not load, a message or signal the DBC does
 not have, a unit that does not convert, a model whose shapes disagree or whose fault the
-outputs cannot see. The format is explained key by key in README.md ("Rig files") and in
+outputs cannot see. The format is explained key by key in docs/rig-file.md and in
 the example rigs/motor.toml, which is the built-in default.
 """
 

@@ -26,9 +26,8 @@ README's "Your own rig" and the example rigs, without looking at the monitor's c
 
        motor-monitor identify identify.log --rig rig.toml --out learned.toml [--node N]
 
-   first with the rig file as written (no `[model]`); the README does not say a model is
-   needed, but the rig loader refuses a rig without one ("model: missing"), and
-   `state_space` needs A, B, C, Q and R, so the zoo then adds a first-order guess
+   with the rig file as written (no `[model]`, which identify takes as its input); should
+   identify refuse a rig without one ("model: missing"), the zoo adds a first-order guess
    (A = -1, B = C = Q = R = 1 at the output's rate) and runs identify again (the default
    `--model`). A non-zero exit is a refusal; its reason is the last stderr line;
 4. with the learned rig, four fresh runs (other seeds, 30-45 s): an abrupt loss of 0.3 and

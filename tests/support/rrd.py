@@ -16,8 +16,8 @@ import pyarrow as pa
 from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
-# NOTE: salvage_rrd lived in monitor.sinks.rerun until the sinks' redesign moved it here
-# (commit 9490416); if it moves again, this import is the only line to change.
+# NOTE: salvage_rrd lives in monitor.sinks.salvage; if it moves, this import is the only
+# line to change.
 from monitor.sinks.salvage import salvage_rrd
 from tests.support import BIN
 
