@@ -198,6 +198,34 @@ def _fit_black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
     return _Candidate("state_space", model, fit.q, n, None, dict(fit.invariants), extra)
 
 
+def _black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
+               names: tuple[tuple[str, ...], tuple[str, ...]]
+               ) -> tuple[_Candidate, dict[str, Any], dict[str, Array]]:
+    """The black box of the chosen order and its evaluation; where the estimator cannot
+    run the chosen order (a spurious zero at DC hides the fault, say) and the order was not
+    given, the next orders around it in turn: the first that serves, else the first
+    refusal."""
+    c = _fit_black_box(u, y, ntr, T, order, names)
+    try:
+        ev, tr = _evaluate(c.model, u, y, ntr, T)
+        return c, ev, tr
+    except IdentifyError as first:
+        if order is not None:
+            raise
+        for n in (c.order - 1, c.order + 1, c.order - 2, c.order + 2):
+            if not 1 <= n <= MAX_ORDER:
+                continue
+            try:
+                other = _fit_black_box(u, y, ntr, T, n, names)
+                ev, tr = _evaluate(other.model, u, y, ntr, T)
+            except IdentifyError:
+                continue
+            other.extra["order_fallback"] = {"refused_order": c.order,
+                                             "why": one_line(first, 300)}
+            return other, ev, tr
+        raise
+
+
 MOTOR_ADVICE = ("the DC-motor model needs the armature voltage as input and the armature "
                 "current as output; for another plant use --model state_space")
 
@@ -210,6 +238,12 @@ def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
         dm = model.discretize(T)
     except ModelError as exc:
         # The model's own message whole: cut, it hides why (a fault that does not show).
+        if "not observable" in str(exc):
+            # too few states for the faulty inputs, or a zero at DC (a speed held by a
+            # spring, a high-pass sensor), which no order removes: then it is the signals
+            advice += ("; or, where the output does not answer a constant input (its "
+                       "steady-state gain is zero), monitor an output that settles at a "
+                       "level the input sets (a position, a current)")
         raise IdentifyError(f"the fitted model cannot serve the estimator ({one_line(exc, 400)}): "
                             f"{advice}") from exc
     A, B, Qd = dm.at(T)
@@ -422,8 +456,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                 kind = "dc_motor"
     if kind == "state_space" or kind == "auto":
         try:
-            c = _fit_black_box(u, y, ntr, T, order, names)
-            ev, tr = _evaluate(c.model, u, y, ntr, T)
+            c, ev, tr = _black_box(u, y, ntr, T, order, names)
         except IdentifyError as exc:
             if motor_failed is None:
                 raise
