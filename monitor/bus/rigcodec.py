@@ -345,7 +345,7 @@ class RigCodec:
                             f"{type(exc).__name__}: {exc}")
         for name, lo, hi in route.limits:
             v = signals[name]
-            if not lo <= v <= hi:  # also catches NaN and inf
+            if not (lo <= v <= hi and math.isfinite(v)):  # NaN and inf, ranged or not
                 return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp, node,
                                 None, f"{name}={v} not in [{lo}, {hi}]")
         if route.sync is not None:
@@ -383,7 +383,8 @@ class RigCodec:
 
 
 def _limits(message: Message, spec: RigMessage) -> tuple[tuple[str, float, float], ...]:
-    """[min, max] of every signal the estimator reads (NaN and inf fail any range)."""
+    """[min, max] of every signal the estimator reads (NaN and inf fail it, with or
+    without a range in the DBC)."""
     used = [s for _, s, _ in spec.inputs] + [s for s, _ in spec.outputs]
     if spec.truth is not None:
         used.append(spec.truth)

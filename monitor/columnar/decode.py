@@ -246,7 +246,7 @@ class RouteTable:
             inside = np.ones(len(rows), np.bool_)
             for name, lo, hi in r.limits:
                 v = vals.get(name)
-                inside &= (lo <= v) & (v <= hi)  # NaN fails, as in the codec
+                inside &= (lo <= v) & (v <= hi) & np.isfinite(v)  # as in the codec
             code[rows[~inside]] = _CODE[RejectReason.OUT_OF_RANGE]
             rows = rows[inside]
             if not len(rows):

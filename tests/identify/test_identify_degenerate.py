@@ -272,14 +272,14 @@ def test_two_nodes_interleaved(tmp_path: Path, capfd: CapFD, caplog: CapLog) -> 
 
 def test_inf_in_a_few_frames_is_left_out_and_counted(tmp_path: Path, capfd: CapFD,
                                                      caplog: CapLog) -> None:
-    rig = _rig(tmp_path, unbounded=True)  # inf passes the decoder
+    rig = _rig(tmp_path, unbounded=True)  # no range in the DBC: inf is out of range all the same
     u, y = _healthy()
     y[[3500, 3700, 3900]] = np.inf
     cap = _write(tmp_path / "inf.log", rig, _clock(len(u)), u, y)
     report, _ = _identified(capfd, caplog, cap, rig, "--node", "1")
     capture_info = report["capture"]
     assert isinstance(capture_info, dict)
-    assert capture_info["non_finite_dropped"] == 3
+    assert capture_info["frames"]["rejected/out_of_range"] == 3
     assert capture_info["samples"] == 3500  # the stretch before the first inf
 
 
