@@ -87,7 +87,7 @@ from monitor.pipeline.events import (
     Sample,
 )
 from monitor.pipeline.periods import counter_periods, wrapped
-from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, hold, no_past
+from monitor.pipeline.samples import delayed, hold, input_delay_problem, no_past
 from monitor.sinks import base as sinks
 
 if TYPE_CHECKING:
@@ -144,10 +144,9 @@ class MonitorConfig:
     input_delay: int = 0
 
     def __post_init__(self) -> None:
-        d = self.input_delay
-        if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= MAX_INPUT_DELAY:
-            raise ValueError(f"input_delay must be a whole number of samples from 0 to "
-                             f"{MAX_INPUT_DELAY}, got {d!r}")
+        problem = input_delay_problem(self.input_delay)
+        if problem is not None:
+            raise ValueError(f"input_delay {problem}")
 
     def plant(self) -> ContinuousDescriptor:
         """The continuous model of every node."""

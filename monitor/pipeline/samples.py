@@ -30,11 +30,20 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["MAX_INPUT_DELAY", "delayed", "fit_rows", "held_column", "hold", "no_past"]
+__all__ = ["MAX_INPUT_DELAY", "delayed", "fit_rows", "held_column", "hold", "input_delay_problem",
+           "no_past"]
 
 MAX_INPUT_DELAY = 50
 """The largest input delay a rig may give (samples): a dead time longer than this is a
 record the model cannot describe at this rate."""
+
+
+def input_delay_problem(d: object) -> str | None:
+    """What is wrong with `d` as an input delay (None: nothing), the one rule of the rig
+    file and of `MonitorConfig`."""
+    if isinstance(d, bool) or not isinstance(d, int) or not 0 <= d <= MAX_INPUT_DELAY:
+        return f"must be a whole number of samples from 0 to {MAX_INPUT_DELAY}, got {d!r}"
+    return None
 
 
 def hold(held: Array, seen: NDArray[np.bool_], inputs: Iterable[tuple[int, float]]) -> None:

@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 from monitor.errors import MonitorError
 from monitor.files import MIB, UserFileError, read_user_toml, shown_path, user_file_problem
-from monitor.pipeline.samples import MAX_INPUT_DELAY
+from monitor.pipeline.samples import input_delay_problem
 from monitor.rig.spec import (
     DiagnosisSpec,
     LayoutSpec,
@@ -384,9 +384,9 @@ def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
         raise fail("model.rate", problem)
     spec, rate = _model_kind(t, kind, rate, m, p, fail)
     delay = t.take("input_delay", int, 0)
-    if not 0 <= delay <= MAX_INPUT_DELAY:
-        raise fail("model.input_delay", f"must be a whole number of samples from 0 to "
-                   f"{MAX_INPUT_DELAY}, got {delay!r}")
+    problem = input_delay_problem(delay)
+    if problem is not None:
+        raise fail("model.input_delay", problem)
     adaptive = t.take("adaptive_noise", bool, True)
     window = t.number("noise_window_s", 2.0, positive=True)
     return replace(spec, input_delay=delay, adaptive_noise=adaptive,
