@@ -7,7 +7,10 @@
 #   can-utils        candump, cansend, cangen, canplayer
 #   iproute2         ip link add/set/del
 #   systemd          systemd-analyze (unit file checks), systemd-networkd (vcan0 at boot)
-#   gcc, libc6-dev   build the ahead-of-time estimator kernel (python -m monitor.estimation.kernels_aot)
+#   gcc, libc6-dev   build the ahead-of-time estimator kernel (python -m monitor.estimation.kernels_aot,
+#                    run by scripts/setup-venv.sh)
+#   python3-dev      the Python headers that build needs when the venv's Python is Debian's own
+#                    (a pyenv or python.org build brings its own)
 #   mesa-vulkan-drivers  software Vulkan for the headless Rerun viewer (tests/test_viewer.py)
 #   mmdebstrap       builds the small Debian root file system of the User-Mode Linux guest that
 #                    runs the units under a real systemd (tests/systemd_guest; built once, cached
@@ -15,8 +18,8 @@
 # Run as root, or as a user with sudo.  Packages already installed are skipped.
 set -euo pipefail
 
-PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev mesa-vulkan-drivers
-          mmdebstrap)
+PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev python3-dev
+          mesa-vulkan-drivers mmdebstrap)
 
 if [[ "$(id -u)" -eq 0 ]]; then
     SUDO=()

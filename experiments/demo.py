@@ -22,9 +22,7 @@ from typing import Any
 import can
 import numpy as np
 
-from experiments.plotting import pyplot
 from experiments.scoring import match_transitions, true_classes
-from monitor.app import options
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.rigcodec import RigCodec
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState
@@ -32,7 +30,10 @@ from monitor.estimation.model import DCMotorParameters
 from monitor.pipeline import Counters, DiagnosisEvent, MonitorPipeline, Sample
 from monitor.pipeline import counters as C
 from monitor.pipeline.events import HEALTH
+from monitor.plotting import pyplot
 from monitor.rig import Rig, model_of
+from monitor.runtime.argtypes import add_rig_option
+from monitor.setup import frame_decoder, monitor_config, setup_rig
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.jsonl import JsonLinesSink
 from monitor.sinks.log import LogSink
@@ -110,16 +111,16 @@ def _ecu(args: argparse.Namespace, rig: Rig, db: MotorDatabase | RigCodec, node:
 def run_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    rig = options.rig(args)
-    db = options.database(args, rig)
+    rig = setup_rig(args.rig)
+    db = frame_decoder(rig)
     node = 0 if isinstance(db, MotorDatabase) else db.nodes[0]
     scenario = load_scenario(args.scenario)
-    ecu_db = options.database(args, rig)  # its own alive counters
+    ecu_db = frame_decoder(rig)  # its own alive counters
     channel = f"motor-monitor-demo-{os.getpid()}"
     ecu_bus = can.Bus(interface="virtual", channel=channel)
     mon_bus = can.Bus(interface="virtual", channel=channel)
     rrd = out / "demo.rrd"
-    cfg = replace(options.monitor_config(args, rig), nodes=(node,))
+    cfg = replace(monitor_config(rig), nodes=(node,))
     rows = SampleRows()
     t_start = time.time()
     counters = Counters()
@@ -185,5 +186,5 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     d.add_argument("--scenario", default="fault-outage-recovery",
                    help="built-in scenario name or TOML file")
     d.add_argument("--seed", type=int, default=1)
-    options.add_rig_option(d)
-    d.set_defaults(func=run_demo, dbc=None, key=None, nodes=None, rate=None, thresholds=None)
+    add_rig_option(d)
+    d.set_defaults(func=run_demo)

@@ -24,11 +24,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from experiments.plotting import pyplot
-from monitor.app.options import positive_float
 from monitor.diagnosis import calibrate, fcm_memberships, fuzzy_c_means, save_thresholds
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import dc_motor
+from monitor.plotting import pyplot
+from monitor.runtime.argtypes import positive_float
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import Scenario, scenario_from_dict
 

@@ -27,3 +27,8 @@ extras="${1:-}"
 # of its own, not a problem): a quiet install should not make a newcomer scroll past it.
 PYTHONWARNINGS="ignore:Editable installation" \
     .venv/bin/python -m pip install -q -c constraints.txt -e "$spec"
+# The estimator's kernels, made now so that nothing is compiled when the daemon starts: the
+# ahead-of-time module (for the hardened unit) and numba's cache of the JIT kernels, warmed
+# in the directory the daemon reads (monitor/estimation/kernels_aot.py). A failure is one
+# line (its own) and not the install's: the daemon then compiles at its first start.
+.venv/bin/python -m monitor.estimation.kernels_aot --quiet || true

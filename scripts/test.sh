@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Fresh machine -> everything checked: system packages (apt-get), the virtual environment,
-# lint (ruff), types (mypy) and the whole test suite, vcan integration tests included
+# lint (ruff), types (mypy), the direction of the imports (import-linter: the contracts in
+# pyproject.toml) and the whole test suite, vcan integration tests included
 # (through User-Mode Linux where the kernel has no SocketCAN).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -8,4 +9,5 @@ bash .ci/install-system.sh
 bash scripts/setup-venv.sh dev
 .venv/bin/ruff check .
 .venv/bin/mypy
+.venv/bin/lint-imports --no-cache
 .venv/bin/pytest -q "$@"

@@ -25,16 +25,16 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from monitor.app.argtypes import OneLineParser
-from monitor.app.canbus import open_bus
-from monitor.app.freshness import FreshnessSaver
-from monitor.app.paths import Output, check_outputs, monitor_inputs
-from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import N_NODES, MotorDatabase
 from monitor.bus.secoc import load_key
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.rig import Rig, build_decoder, builtin_rig, load_rig, model_of
+from monitor.runtime.argtypes import OneLineParser
+from monitor.runtime.canbus import open_bus
+from monitor.runtime.freshness import FreshnessSaver
+from monitor.runtime.paths import Output, check_outputs, monitor_inputs
+from monitor.runtime.signals import StopOnSignals
 from sim_ecu.ecu import DEFAULT_MAX_CATCH_UP, ECUStats, VirtualECU, load_motor_parameters
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import BUILTIN_SCENARIOS, load_scenario
@@ -244,6 +244,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                         motor=motor,
                         max_catch_up=args.max_catch_up,
                     )
+                elif rig.canopen is not None:  # a CiA 402 drive and its host
+                    from sim_ecu.cia402 import Cia402ECU
+
+                    ecu = Cia402ECU(bus, db, rig, args.node, scenario, seed=args.seed,
+                                    max_catch_up=args.max_catch_up)
                 else:
                     ecu = RigECU(bus, db, rig, args.node, scenario, seed=args.seed,
                                  input_rate=args.voltage_rate,

@@ -46,11 +46,11 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.app.canbus import send_frame
 from monitor.bus.codec import N_NODES, SECOC_KINDS, CodecError, Kind, MotorDatabase
 from monitor.errors import MonitorError
 from monitor.estimation.model import DCMotorParameters, ModelError, dc_motor
 from monitor.files import finite_number
+from monitor.runtime.canbus import send_frame
 from sim_ecu.plant import PlantSimulator, steady_state
 from sim_ecu.scenario import BUILTIN_SCENARIOS, Scenario, ScenarioError, scenario_document
 
@@ -327,7 +327,7 @@ class VirtualECU:
     every rate/voltage_rate samples, and always at a change of the command; >= rate means
     every sample). `motor` overrides the Table 1 parameters; when None, a ``motor`` mapping
     in ``scenario.extra`` is used if present. `send_timeout` (default a quarter period) is
-    how long a send may wait for a full queue (`monitor.app.canbus.send_frame`);
+    how long a send may wait for a full queue (`monitor.runtime.canbus.send_frame`);
     `max_catch_up` is how many late samples `run` may send back to back before it skips
     ahead instead. `key` (16 or 32 bytes, e.g. from
     `monitor.bus.secoc.load_key`) signs the current and voltage frames with SecOC on a copy of

@@ -1,12 +1,17 @@
 """Shared by the log reader tests: a frame's fields as python-can's reader (the per-frame
-path) and the columnar reader give them, and random frames of every kind."""
+path) and the columnar reader give them, random frames of every kind, and MF4 files written
+by asammdf itself (column by column, as a logger's software would)."""
 
 from __future__ import annotations
 
 import random
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any, Literal
 
 import can
+import numpy as np
+from numpy.typing import NDArray
 
 from monitor.bus.logfile import LogError, read_log
 from monitor.columnar import read_chunks
@@ -39,6 +44,44 @@ def columnar(path: Path, chunk_frames: int = 1 << 18) -> tuple[list[Frame], str 
     except LogError as exc:
         return rows, str(exc)
     return rows, None
+
+
+def python_can(path: Path) -> list[Frame]:
+    """The frames python-can's own `can.LogReader` reads from `path` (gzip included)."""
+    with can.LogReader(str(path)) as reader:
+        return [row(m) for m in reader]
+
+
+def write_mf4(path: Path, t: NDArray[np.floating[Any]], ids: NDArray[np.int64],
+              data: NDArray[np.uint8], length: NDArray[np.int64], *,
+              fields: tuple[str, ...] = ("IDE", "DLC"),
+              compression: Literal[0, 1, 2] = 2) -> Path:
+    """A CAN bus-logging MF4 file of one CAN_DataFrame channel group written by asammdf:
+    the time stamps `t` (seconds after 2026-01-01 UTC), `ids`, the payloads `data` (n, w)
+    of `length` bytes, and the optional `fields` (IDE from ID > 0x7FF, DLC = length, EDL,
+    BRS and ESI zero); a field left out is one the reader takes a default for."""
+    from asammdf import MDF, Signal
+    from asammdf.blocks.v4_blocks import SourceInformation
+    from asammdf.blocks.v4_constants import BUS_TYPE_CAN, SOURCE_BUS
+
+    n, width = data.shape
+    layout = [("CAN_DataFrame.ID", "<u4"), *((f"CAN_DataFrame.{f}", "u1") for f in fields),
+              ("CAN_DataFrame.DataLength", "u1"), ("CAN_DataFrame.DataBytes", f"({width},)u1")]
+    samples = np.zeros(n, np.dtype(layout))
+    samples["CAN_DataFrame.ID"] = ids
+    samples["CAN_DataFrame.DataLength"] = length
+    samples["CAN_DataFrame.DataBytes"] = data
+    if "IDE" in fields:
+        samples["CAN_DataFrame.IDE"] = ids > 0x7FF
+    if "DLC" in fields:
+        samples["CAN_DataFrame.DLC"] = length
+    mdf = MDF(version="4.10")
+    mdf.header.start_time = datetime(2026, 1, 1, tzinfo=UTC)
+    mdf.append(Signal(name="CAN_DataFrame", samples=samples, timestamps=t,
+                      source=SourceInformation(source_type=SOURCE_BUS, bus_type=BUS_TYPE_CAN)))
+    mdf.save(str(path), overwrite=True, compression=compression)
+    mdf.close()
+    return path
 
 
 def random_frames(n: int, seed: int) -> list[can.Message]:

@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from monitor.columnar.asc import _header, _scan_asc
-from monitor.columnar.reader import empty_chunk
+from monitor.columnar.chunk import empty_chunk
 from monitor.estimation.jit import JIT_DISABLED
 from tests.log_readers import columnar, per_frame, random_frames
 

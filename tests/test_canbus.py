@@ -7,7 +7,7 @@ import uuid
 
 import can
 
-from monitor.app.canbus import receive_batch, send_frame
+from monitor.runtime.canbus import receive_batch, send_frame
 
 
 def _pair() -> tuple[can.BusABC, can.BusABC]:

@@ -18,18 +18,19 @@ import can
 import numpy as np
 import pytest
 
-from monitor.app import canbus
-from monitor.app import replay as per_frame
-from monitor.app.canbus import CAN_MTU, interface_mtu, open_bus
 from monitor.app.options import monitor_config
 from monitor.bus.codec import Decoded, Rejected, RejectReason, load_database
+from monitor.bus.logfile import read_log
 from monitor.bus.rigcodec import RigCodec
 from monitor.columnar.decode import window_of
 from monitor.columnar.reader import read_chunks
 from monitor.columnar.replay import replay_file
 from monitor.pipeline import Counters, DiagnosisEvent, MonitorConfig, MonitorPipeline
 from monitor.pipeline import counters as C
+from monitor.pipeline.feed import feed_log
 from monitor.rig import build_decoder, load_rig
+from monitor.runtime import canbus
+from monitor.runtime.canbus import CAN_MTU, interface_mtu, open_bus
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
@@ -88,7 +89,7 @@ def test_fd_rig_frames_are_decoded_through_the_pipeline() -> None:
     assert {len(m.data) for m in frames} == {8, 16, 64}
     events: list[DiagnosisEvent] = []
     pipe = _fd_pipe(events)
-    per_frame.feed_log(pipe, frames)
+    feed_log(pipe, frames)
     c = pipe.counters
     assert c[C.FRAMES_FD] == c[C.FRAMES_RECEIVED] == len(frames)
     assert c.rejected_total() == 0
@@ -161,7 +162,7 @@ def _compare(path: Path, make_db: Any, cfg: MonitorConfig) -> tuple[Any, Monitor
                                                                       list[DiagnosisEvent]]:
     events: list[DiagnosisEvent] = []
     pipe = pipeline(make_db(), cfg, events=events)
-    n = per_frame.feed_log(pipe, per_frame.read_log(path))
+    n = feed_log(pipe, read_log(path))
     res = replay_file(path, make_db(), cfg, chunk_frames=997)
     assert res.frames == n
     assert res.counters == dict(pipe.counters)
@@ -302,12 +303,12 @@ def test_a_classic_interface_is_named_in_the_log(monkeypatch: pytest.MonkeyPatch
 
     monkeypatch.setattr(can, "Bus", lambda **kwargs: FakeBus())
     monkeypatch.setattr(canbus, "interface_mtu", lambda channel: CAN_MTU)
-    with caplog.at_level("INFO", logger="monitor.app.canbus"):
+    with caplog.at_level("INFO", logger="monitor.runtime.canbus"):
         open_bus("socketcan", "can7")
     assert "can7: classic CAN interface (MTU 16): no CAN FD frame can arrive" in caplog.text
     caplog.clear()
     monkeypatch.setattr(canbus, "interface_mtu", lambda channel: 72)
-    with caplog.at_level("INFO", logger="monitor.app.canbus"):
+    with caplog.at_level("INFO", logger="monitor.runtime.canbus"):
         open_bus("socketcan", "can7")
     assert "can7: CAN FD frames are received (socket FD-enabled, interface MTU 72)" in caplog.text
 

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -26,17 +27,17 @@ from cantools.autosar.end_to_end import compute_profile2_crc
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.app import replay as per_frame
 from monitor.app.options import monitor_config
 from monitor.bus.codec import load_database
+from monitor.bus.logfile import read_log
 from monitor.bus.rigcodec import RigCodec
-from monitor.columnar import kernels
 from monitor.columnar.e2e import crc_table, profile2_ok
 from monitor.columnar.reader import read_chunks
 from monitor.columnar.replay import replay_file
 from monitor.columnar.signals import SignalExtractor, payload_integers
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, InputSample, Sample
+from monitor.pipeline.feed import TICK_S, feed_log
 from monitor.rig import build_decoder, load_rig
 from monitor.sinks.base import Sink
 from sim_ecu.ecu import VirtualECU
@@ -176,7 +177,7 @@ class Recorder(Sink):
 def _compare(path: Path, db: Any, db2: Any, cfg: MonitorConfig, chunk: int = 997) -> Any:
     a = Recorder()
     pipe = MonitorPipeline(db, cfg, sink=a)
-    n = per_frame.feed_log(pipe, per_frame.read_log(path))
+    n = feed_log(pipe, read_log(path))
     b = Recorder()
     res = replay_file(path, db2, cfg, b, chunk_frames=chunk)
     assert res.frames == n
@@ -193,8 +194,35 @@ def _compare(path: Path, db: Any, db2: Any, cfg: MonitorConfig, chunk: int = 997
     return res, pipe, a
 
 
-def test_tick_period_is_the_per_frame_one() -> None:
-    assert per_frame.TICK_S == kernels.TICK_S
+def test_a_silence_is_reported_at_the_same_tick_by_both_engines(tmp_path: Path) -> None:
+    """Node 0 falls silent for 1.2 s while frames of an id of no node go on every 7.3 ms.
+    Both engines tick at frames, every `TICK_S` of bus time (`feed_log`'s rule; the
+    columnar `ticks` kernel compiles its own copy of the period), and report the silence at
+    the first tick `silence_timeout_s` or more after the node's last output frame: a kernel
+    that ticked at another period would report it at another time."""
+    db = load_database()
+    gap = (1005.0, 1006.2)
+    frames = [m for m in _sim_frames("healthy") if not gap[0] <= m.timestamp < gap[1]]
+    frames += [can.Message(timestamp=gap[0] + 0.0001 + 0.0073 * k, arbitration_id=0x7F0,
+                           data=bytes(8), is_extended_id=False) for k in range(160)]
+    frames.sort(key=lambda m: m.timestamp)
+    path = _write(frames, tmp_path / "silence.log")
+    cfg = MonitorConfig(nodes=(0,))
+    res, _, a = _compare(path, db, load_database(), cfg)
+    assert res.columnar
+    current = db.frame_id("current", 0)
+    frames = list(read_log(path))  # the time stamps as the log holds them
+    last_output = max(m.timestamp for m in frames
+                      if m.arbitration_id == current and m.timestamp < gap[0])
+    ticks, last_tick = [], -math.inf
+    for m in frames:
+        if m.timestamp - last_tick >= TICK_S:
+            last_tick = m.timestamp
+            ticks.append(last_tick)
+    want = next(t for t in ticks if t - last_output >= cfg.silence_timeout_s)
+    silences = [e for e in a.transitions if e.cause == "silence"]
+    assert [e.t for e in silences] == [want]
+    assert [e.t for e in res.events if e.cause == "silence"] == [want]
 
 
 @pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
@@ -281,7 +309,7 @@ def test_secoc_falls_back_to_the_per_frame_path(tmp_path: Path,
     key = bytes(range(16))
     a = Recorder()
     pipe = MonitorPipeline(load_database(secoc_key=key), MonitorConfig(nodes=(0,)), sink=a)
-    per_frame.feed_log(pipe, per_frame.read_log(path))
+    feed_log(pipe, read_log(path))
     b = Recorder()
     with caplog.at_level("WARNING"):
         res = replay_file(path, load_database(secoc_key=key), MonitorConfig(nodes=(0,)), b)
@@ -321,7 +349,7 @@ def test_rerun_sink_gets_the_same_columns(tmp_path: Path) -> None:
     a = RerunSink(rrd_path=tmp_path / "a.rrd", nodes=(0,))
     rows_a = spy(a)
     pipe = MonitorPipeline(load_database(), MonitorConfig(nodes=(0,)), sink=a)
-    per_frame.feed_log(pipe, per_frame.read_log(path))
+    feed_log(pipe, read_log(path))
     a.close()
     b = RerunSink(rrd_path=tmp_path / "b.rrd", nodes=(0,))
     rows_b = spy(b)

@@ -292,7 +292,8 @@ def test_one_rule_is_the_augmented_kalman_filter(plant: str) -> None:
         T = 0.01
     cfg = FuzzyUKFConfig(q_gamma=0.0, var0=0.1, var_rule=0.0, nis_threshold=math.inf,
                          fuzzy=FuzzyConfig(initial_mf=((0.0,), (0.0,)), max_mf=1,
-                                           lower=-10.0, upper=10.0), adaptive_noise=False)
+                                           lower=-10.0, upper=10.0), adaptive_noise=False,
+                         bias="none")  # the AKF has no bias states (step 8)
     md = model.discretize(T)
     fz = FuzzyUKF(md, cfg, x0=run.x[0])
     akf = AugmentedKalmanFilter(md, AugmentedKFConfig(q_gamma=0.0, P0_gamma=0.1), x0=run.x[0])
@@ -333,8 +334,9 @@ def test_structure_event_relearns_from_the_onset() -> None:
     # from there, so gamma^ is right within a few samples of the detection.
     J, b, Ki = 1e-4, 1e-4, 0.05
     E = np.diag([J, 1.0])
-    model = ContinuousDescriptor(E=E, A=[[-b, 0.0], [1.0, 0.0]], B=[[Ki], [0.0]],
-                                 C=[[1.0, 0.0]], Qc=E @ (1e-4 * np.eye(2)) @ E, R=[[0.04]],
+    model = ContinuousDescriptor(E=E, A=np.array([[-b, 0.0], [1.0, 0.0]]),
+                                 B=np.array([[Ki], [0.0]]), C=np.array([[1.0, 0.0]]),
+                                 Qc=E @ (1e-4 * np.eye(2)) @ E, R=np.array([[0.04]]),
                                  state_names=("speed", "angle"))
     T = 0.002
     sc = scenario_from_dict({
@@ -378,8 +380,9 @@ def test_scale_aware_initial_covariance() -> None:
     assert np.all(np.linalg.eigvalsh(P) > 0)
     assert P[0, 0] < 1e-3 ** 2 * 100  # the current, measured to 0.01 A, known to 1 mA or so
     est = FuzzyUKF(md)
-    assert np.array_equal(est.P, P)
-    assert np.array_equal(FuzzyUKF(md, FuzzyUKFConfig(P0=1.0)).P, np.eye(2))
+    n = md.n  # the plant's states; the bias states (step 8) follow them
+    assert np.array_equal(est.P[:n, :n], P)
+    assert np.array_equal(FuzzyUKF(md, FuzzyUKFConfig(P0=1.0)).P[:n, :n], np.eye(2))
 
 
 @pytest.mark.parametrize("chunk", [1, 37, 1000])

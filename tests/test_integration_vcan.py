@@ -44,9 +44,9 @@ import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
 
-from monitor.app.replay import feed_log
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.pipeline import DiagnosisEvent, MonitorConfig
+from monitor.pipeline.feed import feed_log
 from monitor.sinks.blueprint import counter_path
 from sim_ecu import VirtualECU
 from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict

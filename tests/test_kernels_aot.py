@@ -1,15 +1,22 @@
-"""The ahead-of-time kernel (for W^X services) computes exactly what the JIT kernel does."""
+"""The kernels made at install: the ahead-of-time kernel (for W^X services) computes exactly
+what the JIT kernel does, and the warmed JIT cache leaves the daemon nothing to compile."""
 
 from __future__ import annotations
 
 import importlib.util
+import os
+import signal
+import socket
+import subprocess
 import sys
+from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
 
 from monitor.estimation.fuzzy_ukf import KERNEL_LAYOUT, FuzzyUKF, select_kernel
+from monitor.estimation.jit import JIT_DISABLED
 from monitor.estimation.kernels_aot import MODULE, build
 from monitor.estimation.model import ContinuousDescriptor, dc_motor
 from sim_ecu.plant import SimulatedRun, simulate
@@ -84,3 +91,44 @@ def test_stale_aot_kernel_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
         select_kernel("aot")
     monkeypatch.setenv("NUMBA_DISABLE_JIT", "1")
     assert select_kernel("auto")[0] == "python"
+
+
+@pytest.mark.skipif(JIT_DISABLED, reason="the JIT is off: it compiles and caches nothing")
+def test_the_warmed_cache_leaves_the_daemon_nothing_to_compile(tmp_path: Path) -> None:
+    # What scripts/setup-venv.sh does, into a cache of this test's own; then the daemon's
+    # start up to READY=1 (its kernels loaded, the bus open) must only load from it: numba
+    # says "data saved" for every kernel it compiles and caches.
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), NUMBA_DISABLE_JIT="0")
+    env.pop("MOTOR_MONITOR_KERNEL", None)
+    warm = subprocess.run([sys.executable, "-m", "monitor.estimation.kernels_aot", "--only",
+                           "cache", "--quiet"], env=env, capture_output=True, text=True,
+                          timeout=900, check=False)
+    assert warm.returncode == 0 and not warm.stdout and not warm.stderr, warm
+    saved = list((tmp_path / "cache").rglob("*.nbi"))
+    assert saved, "the warm-up cached nothing"
+
+    addr = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(addr)
+    sock.settimeout(600)
+    out = tmp_path / "daemon.out"
+    with out.open("w") as stdout:
+        proc = subprocess.Popen(
+            [str(Path(sys.executable).parent / "motor-monitor"), "run", "--interface",
+             "virtual", "--channel", "warm-cache-test"],
+            env=dict(env, NOTIFY_SOCKET=addr, NUMBA_DEBUG_CACHE="1"), stdout=stdout,
+            stderr=subprocess.PIPE, text=True)
+    try:
+        while b"READY=1" not in sock.recv(4096):
+            pass
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        sock.close()
+    assert proc.returncode == 0, err
+    debug = out.read_text()
+    assert "data loaded" in debug, debug[-2000:]
+    compiled = [line for line in debug.splitlines() if "data saved" in line]
+    assert not compiled, "the daemon compiled at start:\n" + "\n".join(compiled)

@@ -1,4 +1,4 @@
-"""monitor.app.notify against real AF_UNIX datagram sockets (no mocks).
+"""monitor.runtime.notify against real AF_UNIX datagram sockets (no mocks).
 
 Each test binds a SOCK_DGRAM receiver where systemd's notification socket would be, builds
 the Notifier from an environment pointing at it and reads back the exact datagrams.
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from monitor.app.notify import NOTIFY_BUFFER_MAX, STATUS_MAX_BYTES, Notifier
+from monitor.runtime.notify import NOTIFY_BUFFER_MAX, STATUS_MAX_BYTES, Notifier
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -315,7 +315,7 @@ def test_socket_vanishing_mid_run_does_not_raise(
     os.unlink(path)
     r.close()
     t = time.monotonic() + 10.0
-    with caplog.at_level(logging.WARNING, logger="monitor.app.notify"):
+    with caplog.at_level(logging.WARNING, logger="monitor.runtime.notify"):
         assert n.status("still running") is False
         assert n.watchdog() is False
         assert n.maybe_ping(t) is False
@@ -377,7 +377,7 @@ def test_full_queue_drops_pings_and_waits_bounded_for_state_changes(receiver: Re
 CHILD = textwrap.dedent(
     """
     import os
-    from monitor.app.notify import Notifier
+    from monitor.runtime.notify import Notifier
 
     n = Notifier.from_environment()
     assert n.enabled, os.environ.get("NOTIFY_SOCKET")
@@ -426,7 +426,7 @@ def test_child_with_another_watchdog_pid_does_not_ping(receiver: Receiver) -> No
     env = dict(os.environ, NOTIFY_SOCKET=receiver.env_value, WATCHDOG_USEC="200000",
                WATCHDOG_PID=str(os.getpid()))  # the watchdog is ours, not the child's
     code = (
-        "from monitor.app.notify import Notifier\n"
+        "from monitor.runtime.notify import Notifier\n"
         "n = Notifier.from_environment()\n"
         "print(n.watchdog_interval(), n.maybe_ping(0.0), n.status('child'))\n"
     )

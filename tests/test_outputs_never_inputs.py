@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 
 from monitor.app.cli import main
-from monitor.app.paths import PNG_MAGIC, RIG_HEADER, Kind, is_own_file
 from monitor.diagnosis import load_thresholds
+from monitor.runtime.paths import PNG_MAGIC, RIG_HEADER, Kind, is_own_file
 from sim_ecu.cli import main as sim_ecu_main
 from tests.archive.logs import ecu_frames, write_log
 

@@ -161,7 +161,7 @@ def test_metrics_count_inputs(drive: tuple[Path, Path], tmp_path: Path, engine: 
 
 
 def test_old_event_lines_are_still_events(tmp_path: Path) -> None:
-    from monitor.app.paths import is_own_file
+    from monitor.runtime.paths import is_own_file
 
     old = {"t": 1.0, "node": 0, "state": "fault", "previous": "fault_free", "gamma": 0.5,
            "fault_volts": 12.0, "rules": 3, "cause": "estimate", "model_mismatch": False,

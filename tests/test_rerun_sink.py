@@ -44,6 +44,7 @@ from monitor.sinks.rerun import (
     run_ends,
 )
 from monitor.sinks.rotation import RotatingRerunSink
+from tests.conftest import _ci_enabled
 from tests.support.rrd import blueprint_names
 
 T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
@@ -429,7 +430,8 @@ def _free_port() -> int:
 @contextlib.contextmanager
 def _headless_receiver(save_to: Path) -> Iterator[str]:
     """`rerun --port P --save FILE` hosts a gRPC proxy without a viewer and writes whatever
-    SDKs stream to it into FILE."""
+    SDKs stream to it into FILE. One that does not start is a skip, and a failure with CI
+    set (tests/conftest.py)."""
     port = _free_port()
     proc = subprocess.Popen(
         [str(RERUN_EXE), "--bind", "127.0.0.1", "--port", str(port), "--save", str(save_to)],
@@ -445,7 +447,10 @@ def _headless_receiver(save_to: Path) -> Iterator[str]:
                     break
             if proc.poll() is not None or time.monotonic() > deadline:
                 err = proc.stderr.read().decode() if proc.stderr else ""
-                pytest.skip(f"headless rerun receiver did not start: {err[-500:]}")
+                why = f"headless rerun receiver did not start: {err[-500:]}"
+                if _ci_enabled():  # in CI the receiver must run, as vcan must
+                    pytest.fail(f"CI is set, so this may not be skipped: {why}", pytrace=False)
+                pytest.skip(why)
             time.sleep(0.05)
         yield f"rerun+http://127.0.0.1:{port}/proxy"
     finally:

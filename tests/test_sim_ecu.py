@@ -7,7 +7,6 @@ runs it on a real SocketCAN vcan (natively or in User-Mode Linux).
 
 from __future__ import annotations
 
-import itertools
 import json
 import logging
 import math

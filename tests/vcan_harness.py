@@ -69,7 +69,12 @@ HARD_KILL_GRACE = 10.0
 
 _IFNAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,15}$")
 _ENV_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
-_PASSTHROUGH_ENV = ("PYTHONPATH", "VIRTUAL_ENV")
+#: Passed into the script's environment when set. The numba cache's: the guest runs the host's
+#: virtual environment and source through hostfs, and numba keys its cache by the source's
+#: content, directory and the CPU, all the same inside, so the monitor in the guest loads the
+#: kernels the install cached (monitor.estimation.kernels_aot) -- from the directory the host
+#: uses only if it is told the same one.
+_PASSTHROUGH_ENV = ("PYTHONPATH", "VIRTUAL_ENV", "NUMBA_CACHE_DIR", "XDG_CACHE_HOME")
 
 
 class VcanSetupError(RuntimeError):
@@ -486,10 +491,11 @@ def run_on_vcan(
     needs CAP_NET_ADMIN), otherwise as root inside a fresh User-Mode Linux kernel whose
     interfaces exist only for this run.  ``PATH`` starts with the directory of
     ``sys.executable`` (so ``python``, ``sim-ecu`` and ``motor-monitor`` resolve), then the
-    system directories; ``HOME``, ``TMPDIR=/tmp`` and ``LANG=C.UTF-8`` are set, ``PYTHONPATH``
-    and ``VIRTUAL_ENV`` are passed through, and ``env`` is added last.  ``cwd`` defaults to the
-    project root.  After ``timeout`` seconds (boot included) the script is killed and the
-    result has ``returncode`` 124 with whatever output was written.
+    system directories; ``HOME``, ``TMPDIR=/tmp`` and ``LANG=C.UTF-8`` are set, ``PYTHONPATH``,
+    ``VIRTUAL_ENV``, ``NUMBA_CACHE_DIR`` and ``XDG_CACHE_HOME`` are passed through, and ``env``
+    is added last.  ``cwd`` defaults to the project root.  After ``timeout`` seconds (boot
+    included) the script is killed and the result has ``returncode`` 124 with whatever output
+    was written.
 
     Raises :class:`VcanSetupError` if the environment cannot be set up, and ``ValueError`` for
     invalid interface or variable names.

@@ -4,7 +4,7 @@ The samples come from a capture replayed through the monitor (candump .log, .asc
 or more files, with the rig of the bus they were recorded on) or from a text/CSV file of
 gamma^ values (first column). The run must visit all three regimes: fault-free, fault and
 outage. The thresholds go to --out (./thresholds.toml by default), checked before any sample
-is read (`monitor.app.paths`: never an input; a file calibrate did not write only with
+is read (`monitor.runtime.paths`: never an input; a file calibrate did not write only with
 --force) and written atomically.
 """
 
@@ -21,13 +21,14 @@ from typing import Any
 import numpy as np
 
 from monitor.app import options
-from monitor.app.paths import Output, check_outputs, monitor_inputs
-from monitor.app.replay import LOG_SUFFIXES, replay_frames
+from monitor.bus.logfile import log_format, suffix_list
 from monitor.diagnosis import calibrate, save_thresholds
 from monitor.errors import UsageError, one_line
 from monitor.files import MIB, read_user_text, shown_path
 from monitor.pipeline import MonitorPipeline, Sample
 from monitor.pipeline.counters import Counters, nothing_decoded
+from monitor.pipeline.feed import replay_frames
+from monitor.runtime.paths import Output, check_outputs, monitor_inputs
 from monitor.sinks.base import Sink
 
 __all__ = ["GAMMA_FILE_LIMIT", "add_command", "gamma_of_captures", "read_gamma_file"]
@@ -114,9 +115,10 @@ def _gamma_lines(text: str, shown: str) -> np.ndarray:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     paths = [Path(p) for p in args.inputs]
-    captures = [p for p in paths if p.suffix.lower() in LOG_SUFFIXES]
+    captures = [p for p in paths if log_format(p) is not None]
     if captures and len(captures) != len(paths):
-        raise UsageError("give bus captures (.log, .asc, .blf) or one gamma^ text file, not both")
+        raise UsageError(f"give bus captures ({suffix_list()}) or one gamma^ text file, "
+                         "not both")
     config = monitor_inputs(options.rig(args), args) if captures else []
     check_outputs([*(("CAPTURE" if captures else "GAMMA_FILE", p) for p in paths), *config],
                   [Output("--out", Path(args.out), "thresholds")], force=args.force)
@@ -139,7 +141,7 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     c = sub.add_parser("calibrate", help="learn thresholds F1 < F2 from a capture replayed "
                        "through the monitor, or from gamma^ samples")
     c.add_argument("inputs", nargs="+", metavar="CAPTURE|GAMMA_FILE",
-                   help="bus captures (.log, .asc, .blf) of a run with fault-free, fault and "
+                   help=f"bus captures ({suffix_list()}) of a run with fault-free, fault and "
                    "outage periods; or a text/CSV file, gamma^ in the first column")
     c.add_argument("--out", default="thresholds.toml", metavar="FILE",
                    help="the thresholds file to write, never one of the inputs (default: "

@@ -12,10 +12,11 @@ parameters or state-space matrices), noise (process_noise / Q and R), rate and i
 (estimated: samples from an input to its first effect); the report is written beside it
 as JSON (and PNG when matplotlib is installed) and summarised on standard output.
 
-The three files are checked before the captures are read (`monitor.app.paths`): none is an
+The three files are checked before the captures are read (`monitor.runtime.paths`): none is an
 input, and a file identify did not write is replaced only with --force. Each is written
 atomically, the rig only once it loads and once the monitor, replaying the captures with
-it, keeps the fitted stretch fault-free, unflagged and with a consistent NIS
+it, keeps the fitted stretch fault-free with gamma^ well below the threshold, unflagged and
+with a consistent NIS, and reports a loss added to it in time
 (`monitor.app.identify_check`; every check is in the report and the summary). A model that
 fails there is not written: exit status 1, one line on standard error; the report is still
 written (it says why). With --force it is written, its header naming the failed checks.
@@ -38,17 +39,15 @@ import numpy as np
 import tomli_w
 
 from monitor.app import options
-from monitor.app.identify_check import Check, gating_failures, replay_capture, report_checks
-from monitor.app.paths import (
-    RIG_HEADER,
-    Output,
-    atomic_output,
-    check_outputs,
-    monitor_inputs,
-    write_text,
+from monitor.app.identify_check import (
+    Check,
+    fault_detection,
+    gating_failures,
+    replay_capture,
+    report_checks,
 )
-from monitor.app.replay import read_log
 from monitor.bus.codec import Decoded, Rejected
+from monitor.bus.logfile import read_log, suffix_list
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.files import read_user_toml, shown_path
@@ -59,6 +58,14 @@ from monitor.pipeline.samples import hold
 from monitor.rig import Rig, RigError, build_decoder
 from monitor.rig.load import RIG_FILE_LIMIT, rate_problem
 from monitor.rig.spec import ModelSpec
+from monitor.runtime.paths import (
+    RIG_HEADER,
+    Output,
+    atomic_output,
+    check_outputs,
+    monitor_inputs,
+    write_text,
+)
 
 __all__ = ["NodeCapture", "add_command", "collect", "rig_document"]
 
@@ -141,6 +148,8 @@ class Series(NamedTuple):
     segment: slice  # of the finite rows
     dropped: int  # rows with a non-finite input or output, left out
     span: tuple[float, float]  # the stretch's first and last timestamps
+    t: np.ndarray  # the stretch's timestamps
+    where: list[tuple[int, int]]  # the stretch's (file index, frame number) per row
 
 
 def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, int]
@@ -165,6 +174,7 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
     finite = np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1)
     dropped = int(np.count_nonzero(~finite))
     t, u, y = t[finite], u[finite], y[finite]
+    where = [w for w, ok in zip(nc.where, finite, strict=True) if ok]
     if t.size < 2:
         raise IdentifyError(
             f"{', '.join(p.name for p in paths)}: {t.size} usable output sample(s) of node "
@@ -195,7 +205,8 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
             f"{'; '.join(why)}; identify "
             f"needs {validate.MIN_SAMPLES} regular samples in a row: record without gaps or "
             "cut the capture to a gap-free stretch")
-    return Series(T, u[seg], y[seg], seg, dropped, (float(t[seg][0]), float(t[seg][-1])))
+    return Series(T, u[seg], y[seg], seg, dropped, (float(t[seg][0]), float(t[seg][-1])),
+                  t[seg], where[seg])
 
 
 def model_kind(rig: Rig, requested: str) -> str:
@@ -237,7 +248,11 @@ def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
                               for k, v in rig.protection.items()},
                "diagnosis": {}}
     base = out.resolve().parent
-    doc["bus"]["dbc"] = [_relative(p.resolve(), base) for p in rig.dbc]
+    if rig.canopen is not None:  # a CANopen rig names its drive's EDS or DCF, not DBCs
+        key = "dcf" if rig.canopen.file.suffix.lower() == ".dcf" else "eds"
+        doc["bus"][key] = _relative(rig.canopen.file.resolve(), base)
+    else:
+        doc["bus"]["dbc"] = [_relative(p.resolve(), base) for p in rig.dbc]
     # the delay the model was fitted for: the monitor must pair inputs and outputs so
     model: dict[str, Any] = {"rate": 1.0 / ident.T, "input_delay": ident.input_delay}
     if ident.motor is not None:
@@ -256,7 +271,7 @@ def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
     # the user's choices about the estimator, not learned: kept as the input rig has them
     if rig.model is not None:
         model.update(adaptive_noise=rig.model.adaptive_noise,
-                     noise_window_s=rig.model.noise_window_s)
+                     noise_window_s=rig.model.noise_window_s, bias=rig.model.bias)
     doc["model"] = model
     return doc
 
@@ -299,7 +314,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         raise UsageError(f"the capture holds nodes {', '.join(map(str, sorted(usable)))}: "
                          "choose one with --node (each node gets its own rig file)")
     node, nc = next(iter(usable.items()))
-    T, u, y, seg, dropped, span = fit_series(nc, node, paths, counts)
+    series = fit_series(nc, node, paths, counts)
+    T, u, y, seg, dropped, span = series[:6]
     template = DCMotorParameters(**rig.model.motor) \
         if rig.model is not None and rig.model.kind == "dc_motor" else DCMotorParameters()
     ident = identify(u, y, T, kind=model_kind(rig, args.model), order=args.order,
@@ -317,8 +333,16 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         with atomic_output("--out", out) as tmp:
             tmp.write_text(header + body, encoding="utf-8")
             # the monitor replays the capture with the rig as it loads from this very file
-            figures = replay_capture(_check_rig(tmp, out), paths, node, span)
-            checks = report_checks(ident.report, figures)
+            learned = _check_rig(tmp, out)
+            figures = replay_capture(learned, paths, node, span)
+            faults = None
+            if figures.samples and not figures.fault_seconds:
+                # a loss is added to a capture that replays fault-free: where it does not,
+                # whether the loss is reported says nothing
+                faults = fault_detection(learned, paths, node, series.t, u, series.where,
+                                         ident.report.get("innovation_std") or [1.0])
+                ident.report["fault_detection"] = faults.as_dict()
+            checks = report_checks(ident.report, figures, faults)
             ident.report["replay"] = figures.as_dict()
             ident.report["checks"] = [c.as_dict() for c in checks]
             failed = gating_failures(checks)
@@ -342,7 +366,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     print(_summary(ident, node, T, u.shape[0]))
     reports = f"{report_path}" + (f", {png}" if wrote_png else "")
     if failed:
-        why = (f"node {node}'s learned model fails the replay of its own capture: "
+        why = (f"node {node}'s learned model fails on its own capture: "
                + "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})"
                            for c in failed) + f": {failed[0].advice}")
         if not args.force:
@@ -431,7 +455,7 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     c = sub.add_parser("identify", help="learn a node's model from a healthy capture and "
                        "write a rig file for it")
     c.add_argument("captures", nargs="+", metavar="CAPTURE",
-                   help="healthy bus captures (.log, .asc, .blf) with the input varying")
+                   help=f"healthy bus captures ({suffix_list()}) with the input varying")
     options.add_rig_option(c, model_optional=True)
     c.add_argument("--node", type=int, default=None, help="the node to identify")
     c.add_argument("--model", choices=KINDS, default="auto",

@@ -10,7 +10,7 @@ a Dask cluster). Exit status: 0 every log replayed, 1 some log could not be (its
 summary says why), 2 a mistake in the command line or the configuration.
 
 Every output (--events, --rrd, --samples, each file under --out) is checked before the first
-frame is read (`monitor.app.paths`): none is a log or a configuration file the replay reads,
+frame is read (`monitor.runtime.paths`): none is a log or a configuration file the replay reads,
 and a file motor-monitor did not write is replaced only with --force.
 """
 
@@ -18,54 +18,35 @@ from __future__ import annotations
 
 import argparse
 import glob
-import math
 import os
 import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
-
-import can
+from typing import Any
 
 from monitor.app import options, outputs
-from monitor.app.paths import Kind, Output, check_directory, check_outputs, monitor_inputs
-from monitor.bus.logfile import LOG_SUFFIXES, LogDamaged, LogError, read_log
+from monitor.archive.engine import ENGINES
+from monitor.archive.inputs import LogInput, find_logs
+from monitor.archive.run import (
+    FLEET_PNG,
+    SUMMARY_CSV,
+    SUMMARY_PARQUET,
+    require_cluster_extra,
+    run_archive,
+)
+from monitor.bus.logfile import LogDamaged, suffix_list
 from monitor.errors import ERROR_LINE_LIMIT, UsageError, one_line
 from monitor.files import shown_path
-from monitor.pipeline import MonitorPipeline
 from monitor.pipeline import counters as C
+from monitor.rig import Rig
+from monitor.runtime.paths import Kind, Output, check_directory, check_outputs, monitor_inputs
+from monitor.setup import monitor_setup
 from monitor.sinks.base import Sink
 from monitor.sinks.log import LogSink
 from monitor.sinks.rerun import recording_parts
 
-if TYPE_CHECKING:
-    from monitor.archive.inputs import LogInput
-    from monitor.rig import Rig
-
-__all__ = ["LOG_SUFFIXES", "LogError", "add_command", "feed_log", "read_log", "replay_frames",
-           "run_replay"]
-
-TICK_S = 0.05  # bus time between timeout checks, as in the live loop
-
-
-def feed_log(pipe: MonitorPipeline, frames: Iterable[can.Message]) -> int:
-    """Every frame into `pipe`, with its timeouts checked in bus time; returns the count."""
-    last_tick = -math.inf
-    n = 0
-    for msg in frames:
-        pipe.feed(msg)
-        n += 1
-        ts = msg.timestamp
-        if ts - last_tick >= TICK_S:
-            last_tick = ts
-            pipe.tick(ts)
-    return n
-
-
-def replay_frames(pipe: MonitorPipeline, path: Path) -> int:
-    """`feed_log` of the capture at `path`."""
-    return feed_log(pipe, read_log(path))
+__all__ = ["add_command", "run_replay"]
 
 
 def _is_one_log(args: argparse.Namespace) -> bool:
@@ -83,15 +64,13 @@ def run_replay(args: argparse.Namespace) -> int:
 
 
 def _replay_one_log(args: argparse.Namespace) -> int:
-    from monitor.archive.engine import ENGINES, ReplaySettings, monitor_setup
-
     if args.rrd is True:
         raise UsageError("--rrd: give the recording's file name (or --out DIR for one "
                          "recording per log)")
     if args.jobs is not None or args.cluster is not None:
         raise UsageError("--jobs and --cluster replay logs into --out DIR: give --out DIR")
     samples = _samples_path(args.samples)
-    setup = monitor_setup(ReplaySettings.from_args(args))
+    setup = monitor_setup(options.settings(args))
     log_path = Path(args.paths[0])
     outs: list[Output] = []
     if args.events:
@@ -131,10 +110,6 @@ def _replay_one_log(args: argparse.Namespace) -> int:
 
 
 def _replay_archive(args: argparse.Namespace) -> int:
-    from monitor.archive.engine import ENGINES, ReplaySettings, monitor_setup
-    from monitor.archive.inputs import find_logs
-    from monitor.archive.run import require_cluster_extra, run_archive
-
     if args.out is None:
         raise UsageError("several logs (a directory or a pattern) need --out DIR for their "
                          "events, recordings and summary")
@@ -157,7 +132,7 @@ def _replay_archive(args: argparse.Namespace) -> int:
         require_cluster_extra()
     out = Path(args.out)
     check_directory("--out", out, create=True)
-    settings = ReplaySettings.from_args(args)
+    settings = options.settings(args)
     setup = monitor_setup(settings)  # a bad rig, DBC, threshold or key file: one line now
     setup.decoder()
     logs = find_logs(args.paths)
@@ -200,8 +175,6 @@ def _check_archive_outputs(args: argparse.Namespace, rig: Rig, logs: Sequence[Lo
     """Every file the archive replay writes under `out` (each log's events and recording,
     the summary, the fleet PNG), checked against every log and configuration file it reads
     (`check_outputs`)."""
-    from monitor.archive.run import FLEET_PNG, SUMMARY_CSV, SUMMARY_PARQUET
-
     found = [log for log in logs if log.problem is None]
     outs: list[Output] = []
     for log in found:
@@ -218,10 +191,10 @@ def _check_archive_outputs(args: argparse.Namespace, rig: Rig, logs: Sequence[Lo
 
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     p = sub.add_parser("replay", conflict_handler="resolve",
-                       help="run candump .log, .asc or .blf files (or directories, or patterns "
-                       "of them) as fast as possible")
+                       help="run bus logs (candump, ASC, BLF, TRC, MF4, gzip-compressed text "
+                       "logs; or directories, or patterns of them) as fast as possible")
     p.add_argument("paths", nargs="+", metavar="PATH",
-                   help="a log file; several, directories (their .log, .asc and .blf files, "
+                   help=f"a log file ({suffix_list()}); several, directories (their logs, "
                    "recursively) or glob patterns replay the archive into --out DIR")
     p.add_argument("--events", default=None,
                    help="one log: JSON lines to this file, replaced (default: stdout)")

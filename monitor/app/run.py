@@ -5,7 +5,7 @@ configuration). An interface that fails (deleted, down) is closed and reopened w
 back-off while the pipeline keeps its state; the outage is counted and logged. SIGINT and
 SIGTERM stop the loop; the sinks are flushed and closed so that `rerun rrd verify` passes on
 the recording. Under systemd (Type=notify) the loop reports READY, STATUS, WATCHDOG and
-STOPPING (`monitor.app.notify`).
+STOPPING (`monitor.runtime.notify`).
 
 The wiring: bus -> `MonitorPipeline` -> `FanOut` of sinks (the log, the bus publisher, the
 Rerun recording, JSON lines). This module owns the sinks' life (periodic flush, close); the
@@ -27,11 +27,6 @@ from typing import Any
 import can
 
 from monitor.app import options, outputs
-from monitor.app.canbus import BusError, open_bus, receive_batch, send_frame
-from monitor.app.freshness import FreshnessSaver
-from monitor.app.notify import Notifier
-from monitor.app.paths import Output, check_directory, check_outputs, monitor_inputs
-from monitor.app.signals import StopOnSignals
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.faults import grow_receive_buffer, socket_drops
 from monitor.bus.rawlog import RotatingBusLog
@@ -41,7 +36,13 @@ from monitor.errors import UsageError
 from monitor.pipeline import Counters, MonitorPipeline
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import DecodeWatch
+from monitor.pipeline.feed import TICK_S
 from monitor.rig import Rig
+from monitor.runtime.canbus import BusError, open_bus, receive_batch, send_frame
+from monitor.runtime.freshness import FreshnessSaver
+from monitor.runtime.notify import Notifier
+from monitor.runtime.paths import Output, check_directory, check_outputs, monitor_inputs
+from monitor.runtime.signals import StopOnSignals
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.journal import JournalSink, journal_available
 from monitor.sinks.log import LogSink
@@ -53,7 +54,6 @@ __all__ = ["add_command", "run_live"]
 log = logging.getLogger("motor_monitor")
 
 FRESHNESS_SAVE_PERIOD_S = 5.0
-TICK_S = 0.05  # timeouts, flushing and freshness saving, also while the bus is down
 RECEIVE_BATCH = 64  # frames per receive: the clocks are read between batches
 DRAIN_LIMIT_S = 2.0  # at most this long taking a backlog at stop (inside systemd's stop timeout)
 
@@ -124,7 +124,7 @@ def _raw_log(args: argparse.Namespace) -> RotatingBusLog | None:
 
 def _check_outputs(args: argparse.Namespace, rig: Rig) -> None:
     """Every file and directory the run writes, before anything is opened: none is a
-    configuration file it reads (`monitor.app.paths`), and a file motor-monitor did not
+    configuration file it reads (`monitor.runtime.paths`), and a file motor-monitor did not
     write is written only with --force (--events is appended to: a restarted daemon goes
     on with its own file). The SecOC state is read before it is written: its reader
     refuses a file that is not one."""

@@ -23,10 +23,10 @@ from typing import Any
 
 from prometheus_client.parser import text_string_to_metric_families
 
-from monitor.app.argtypes import positive_float
 from monitor.diagnosis import HealthState
 from monitor.errors import MonitorError, UsageError, one_line
 from monitor.files import MIB, UserFileError, read_user_text, shown_path
+from monitor.runtime.argtypes import positive_float
 
 __all__ = ["METRICS_FILE_LIMIT", "add_command", "read_metrics", "render"]
 

@@ -25,20 +25,20 @@ An engine is a callable `(path, setup, open_sinks, progress) -> EngineRun`:
 
 The options that configure the monitor travel to worker processes and cluster workers as
 `ReplaySettings` (file names and numbers, nothing bound to a process) and are turned into
-a `MonitorSetup` once per process. Every log gets a new pipeline (alive counters, the
-estimators) and, with a SecOC key, a new decoder: no state leaks from one log into the
-next, so a log's result does not depend on which worker ran it or after which log.
+a `MonitorSetup` once per process (`monitor.setup.monitor_setup`). Every log gets a new
+pipeline (alive counters, the estimators) and, with a SecOC key, a new decoder: no state
+leaks from one log into the next, so a log's result does not depend on which worker ran it
+or after which log.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import cache, lru_cache
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
@@ -46,15 +46,12 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.app import options
-from monitor.app.replay import feed_log, read_log
-from monitor.bus.codec import MotorDatabase
-from monitor.bus.logfile import LogDamaged
-from monitor.bus.rigcodec import RigCodec
+from monitor.bus.logfile import LogDamaged, read_log
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.pipeline.counters import nothing_decoded
 from monitor.pipeline.events import DiagnosisEvent, Sample, SampleColumns
-from monitor.rig import Rig
+from monitor.pipeline.feed import feed_log
+from monitor.setup import MonitorSettings, MonitorSetup, monitor_setup
 from monitor.sinks.base import FanOut, Sink
 
 __all__ = ["ENGINES", "PROGRESS_EVERY", "EngineRun", "FrameProgress", "MonitorSetup",
@@ -73,58 +70,10 @@ FrameProgress = Callable[[int], None]
 """Told the number of frames read since its previous call."""
 
 
-@dataclass(frozen=True)
-class ReplaySettings:
-    """The monitor options of `replay` (`options.add_monitor_options`) that configure the
-    monitor, as plain values a worker process can rebuild the monitor from. File names
-    must name the same files on every worker."""
-
-    rig: str | None = None
-    dbc: str | None = None
-    nodes: tuple[int, ...] | None = None
-    rate: float | None = None
-    thresholds: str | None = None
-    key: str | None = None
-
-    @classmethod
-    def from_args(cls, args: argparse.Namespace) -> ReplaySettings:
-        return cls(**{name: getattr(args, name, None) for name in cls.__dataclass_fields__})
-
-    def namespace(self) -> argparse.Namespace:
-        """The options as `monitor.app.options` reads them."""
-        return argparse.Namespace(**{name: getattr(self, name)
-                                     for name in self.__dataclass_fields__})
-
-
-@dataclass(frozen=True)
-class MonitorSetup:
-    """What the options build: the rig and the monitor's configuration, shared by every log
-    of a process, and each log's decoder."""
-
-    settings: ReplaySettings
-    rig: Rig
-    cfg: MonitorConfig
-    shared_decoder: MotorDatabase | RigCodec | None = None
-    """Without a SecOC key a decoder keeps no state between frames beyond its DBC: one
-    serves every log (parsing the DBC takes longer than a short log)."""
-
-    def decoder(self) -> MotorDatabase | RigCodec:
-        """The decoder for the next log: the shared one, or with a key a fresh one (SecOC
-        freshness must not carry from one log into another)."""
-        if self.shared_decoder is not None:
-            return self.shared_decoder
-        return options.database(self.settings.namespace(), self.rig)
-
-
-@lru_cache(maxsize=4)
-def monitor_setup(settings: ReplaySettings) -> MonitorSetup:
-    """The setup of `settings`, built once per process (raises `MonitorError` on a bad
-    option, as the command line does)."""
-    ns = settings.namespace()
-    rig = options.rig(ns)
-    cfg = options.monitor_config(ns, rig)
-    shared = options.database(ns, rig) if settings.key is None else None
-    return MonitorSetup(settings, rig, cfg, shared)
+class ReplaySettings(MonitorSettings):
+    """The monitor options of `replay` (`monitor.app.options.add_monitor_options`) that
+    configure the monitor, as plain values a worker process rebuilds the monitor from
+    (`monitor_setup`)."""
 
 
 @dataclass
@@ -283,6 +232,8 @@ def columnar_engine(path: Path, setup: MonitorSetup, open_sinks: Callable[[], li
     checked and estimated as arrays; the same events and counters as `per_frame_engine`).
     A decoder it cannot take (SecOC keeps per-frame freshness state) goes to
     `per_frame_engine`, said once per process in the log."""
+    # the columnar engine takes seconds to import (its compiled kernels): only a replay that
+    # runs it pays them, never the live daemon, whose command line imports this module
     from monitor.columnar import columnar_obstacle, read_chunks, replay_chunks
 
     db = setup.decoder()

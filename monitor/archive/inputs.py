@@ -1,10 +1,11 @@
 """Which logs a `replay PATH...` names, and where each log's outputs go.
 
 A PATH is a file (taken as given: a missing or unsupported one becomes a failed row of the
-summary, with `read_log`'s reason), a directory (every .log, .asc and .blf file below it,
-recursively, in name order) or a glob pattern (`*`, `?`, `[...]`, `**` for any depth; its
-matching logs, and the logs below matching directories). A directory or pattern that holds
-no log is a failed row too. The same file named twice is replayed once.
+summary, with `read_log`'s reason), a directory (every log below it of a format we read,
+`monitor.bus.logfile.LOG_FORMATS`, recursively, in name order) or a glob pattern (`*`, `?`,
+`[...]`, `**` for any depth; its matching logs, and the logs below matching directories). A
+directory or pattern that holds no log is a failed row too. The same file named twice is
+replayed once.
 
 Output names mirror the logs' paths below the deepest directory they all share, the log's
 suffix kept (`rigA/day1/run.log` -> `rigA/day1/run.log.events.jsonl`), so logs with the
@@ -19,7 +20,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from monitor.app.replay import LOG_SUFFIXES
+from monitor.bus.logfile import log_format, suffix_list
 
 __all__ = ["EVENTS_SUFFIX", "RRD_SUFFIX", "LogInput", "find_logs"]
 
@@ -46,7 +47,7 @@ class LogInput:
 
 
 def _is_log(path: str) -> bool:
-    return path.lower().endswith(LOG_SUFFIXES)
+    return log_format(path) is not None
 
 
 def _logs_below(directory: str) -> Iterator[str]:
@@ -70,7 +71,7 @@ def _expand(arg: str) -> tuple[list[str], str | None]:
     if os.path.isdir(arg):
         found = list(_logs_below(arg))
         return found, None if found else (f"{arg}: directory holds no "
-                                          f"{', '.join(LOG_SUFFIXES)} file")
+                                          f"{suffix_list()} file")
     return [arg], None
 
 

@@ -15,7 +15,6 @@ virtual environment).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import multiprocessing
 import time
@@ -25,12 +24,10 @@ from contextlib import contextmanager, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from monitor.app import outputs
 from monitor.archive.engine import (
     FrameProgress,
     MonitorSetup,
     PerFileEngine,
-    ReplaySettings,
     columnar_engine,
     monitor_setup,
 )
@@ -39,6 +36,7 @@ from monitor.archive.progress import EXTRA_HINT, ProgressBar, progress_bar
 from monitor.archive.result import LogResult, failed_result, log_result
 from monitor.archive.summary import summary_rows, write_csv, write_parquet
 from monitor.errors import MonitorError, UsageError, one_line
+from monitor.setup import MonitorSettings, event_lines, fault_unit, recording_sink
 from monitor.sinks.base import Sink
 from monitor.sinks.rerun import recording_parts
 
@@ -66,14 +64,13 @@ def _open_outputs(events: Path | None, rrd: Path | None,
             if events is not None:
                 events.parent.mkdir(parents=True, exist_ok=True)
                 events.unlink(missing_ok=True)  # event_lines appends: start this run's file
-                sink = outputs.event_lines(str(events), to_stdout=False,
-                                           fault_unit=outputs.fault_unit(setup.rig, setup.cfg))
+                sink = event_lines(events, to_stdout=False,
+                                   fault_unit=fault_unit(setup.rig, setup.cfg))
                 if sink is not None:
                     sinks.append(sink)
             if rrd is not None:
                 rrd.parent.mkdir(parents=True, exist_ok=True)
-                recording = outputs.rerun_sink(argparse.Namespace(rrd=str(rrd), connect=None),
-                                               setup.cfg, replay=True, rig=setup.rig)
+                recording = recording_sink(setup.cfg, setup.rig, rrd=rrd, replay=True)
                 if recording is not None:
                     sinks.append(recording)
         except BaseException:
@@ -85,7 +82,7 @@ def _open_outputs(events: Path | None, rrd: Path | None,
     return open_sinks
 
 
-def replay_one(path: Path, settings: ReplaySettings, *, events: Path | None = None,
+def replay_one(path: Path, settings: MonitorSettings, *, events: Path | None = None,
                rrd: Path | None = None, engine: PerFileEngine = columnar_engine,
                progress: FrameProgress | None = None) -> LogResult:
     """One log through `engine`: its events as JSON lines to `events`, its recording to
@@ -182,7 +179,7 @@ def _size(path: Path) -> int:
         return 0
 
 
-def run_archive(logs: Sequence[LogInput], settings: ReplaySettings, out: Path, *,
+def run_archive(logs: Sequence[LogInput], settings: MonitorSettings, out: Path, *,
                 rrd: bool = False, jobs: int = 1, cluster: str | None = None,
                 engine: PerFileEngine = columnar_engine, show_progress: bool | None = None,
                 fleet_png: bool = True) -> ArchiveRun:
@@ -204,7 +201,7 @@ def run_archive(logs: Sequence[LogInput], settings: ReplaySettings, out: Path, *
         if not result.ok:
             _log.warning("log failed: %s", result.reason)
 
-    def task(log: LogInput) -> tuple[Path, ReplaySettings, Path, Path | None]:
+    def task(log: LogInput) -> tuple[Path, MonitorSettings, Path, Path | None]:
         return (log.path, settings, log.events_path(out),
                 log.rrd_path(out) if rrd else None)
 

@@ -48,6 +48,8 @@ from monitor.errors import one_line
 if TYPE_CHECKING:
     import can
 
+    from monitor.bus.canopen import CanopenNode
+
 __all__ = ["Resolver", "RigCodec", "RigMessage", "RigSecOC", "RigSync", "load_rig_dbcs"]
 
 
@@ -132,6 +134,9 @@ class RigCodec:
         self.source = source
         self.specs: dict[str, RigMessage] = {m.name: m for m in messages}
         self.sync = sync
+        self.drives: tuple[CanopenNode, ...] = ()
+        """A CANopen rig's drives, whose EMCY, heartbeat and statusword frames the engines
+        read beside the rig's messages (`monitor.bus.cia402.drive_watch`)."""
         self._routes: dict[tuple[int, bool], _Route] = {}
         self._by_name: dict[tuple[str, int], tuple[_Route, int]] = {}
         self._sync_streams = {m.secoc.sync_kind: m.secoc.stream

@@ -10,9 +10,10 @@ the per-file engine: `db` the rig's decoder (`monitor.rig.build_decoder`), `cfg`
 final state, and whether the columnar path ran (`columnar`, else `fallback` says why).
 A file that cannot be read raises `LogReadError` (a `MonitorError`, one line).
 
-Per chunk (`reader.read_chunks`: candump .log, .asc and .blf by compiled scanners that hand
-what they do not take to python-can's readers; under NUMBA_DISABLE_JIT .asc and .blf by
-python-can):
+Per chunk (`reader.read_chunks`: every format of `monitor.bus.logfile.LOG_FORMATS`, each by
+its module, laid out as python-can's ``can/io``: candump .log, .asc and .blf by compiled
+scanners that hand what they do not take to python-can's readers, .mf4 as asammdf's columns,
+.trc by python-can; under NUMBA_DISABLE_JIT all but candump by python-can):
 
 1. `decode.RouteTable` routes every frame by (ID, extended) with the per-frame codec's own
    routes, checks length, E2E profile 2 (`e2e`: CRC-8/AUTOSAR by a table generated from and

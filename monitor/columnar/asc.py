@@ -1,4 +1,4 @@
-"""Vector ASC logs read into `FrameChunk`s by a compiled line scanner.
+"""Vector ASC logs (``.asc``, ``.asc.gz``) read into `FrameChunk`s by a compiled line scanner.
 
 python-can's `can.io.ASCReader` matches regular expressions and builds one `can.Message` per
 line (about 70,000 frames/s), which caps a columnar replay of an ASC archive far below the
@@ -26,8 +26,9 @@ python-can would fail on, and any byte a text file read by python-can would see 
 (non-ASCII, a lone carriage return, the separators that Python's ``str.split`` counts as
 space) -- sends its whole block through python-can's own reader, so the frames and any
 error are exactly python-can's. Damage (a line python-can cannot read or that is no text, a
-last line without its line end, no End TriggerBlock) is said as the per-frame path says it
-(`monitor.bus.logfile`), at the same line.
+last line without its line end, a gzip stream cut short or damaged, no End TriggerBlock)
+is said as the per-frame path says it (`monitor.bus.logfile`), at the same line. A
+gzip-compressed log is scanned as it is decompressed.
 """
 
 from __future__ import annotations
@@ -35,26 +36,37 @@ from __future__ import annotations
 import io
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TextIO, cast
+from typing import IO, TextIO, cast
 
 import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.bus.logfile import LogError, asc_unfinished, damaged, log_encoding
-from monitor.columnar.reader import (
+from monitor.bus.logfile import (
+    LogError,
+    asc_unfinished,
+    damaged,
+    gzip_damage,
+    log_encoding,
+    open_binary,
+)
+from monitor.columnar.chunk import (
     CLASSIC_WIDTH,
     FD_WIDTH,
-    POW10,
     FrameChunk,
+    empty_chunk,
+    reader_chunks,
+)
+from monitor.columnar.text import (
+    POW10,
+    StreamBroken,
     count_lines,
     cut_line_error,
-    empty_chunk,
     is_space,
     line_blocks,
     needs_python,
     python_can_block,
-    reader_chunks,
+    read_block,
     split_cut_line,
     stripped_line,
     text_block,
@@ -62,28 +74,32 @@ from monitor.columnar.reader import (
 from monitor.errors import one_line
 from monitor.estimation.jit import njit
 
-__all__ = ["asc_chunks"]
+__all__ = ["asc_chunks", "read"]
 
 _HEAD_BYTES = 1 << 20  # the header must end within this much of the file's start
 _READ_BYTES = 1 << 24  # text scanned per call (about 220,000 classic lines)
 _FD_LENGTHS = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64], np.int64)
 
 
-def asc_chunks(path: Path, chunk_frames: int) -> Iterator[FrameChunk]:
-    """The frames of the ASC file at `path` in chunks (`read_chunks` for ``.asc``)."""
+def read(path: Path, chunk_frames: int) -> Iterator[FrameChunk]:
+    """The frames of the ASC file at `path` in chunks (`read_chunks` for ``.asc``,
+    ``.asc.gz``). Opens the file now: a file that cannot be opened raises here."""
     try:
-        fh = path.open("rb")
+        fh = open_binary(path)
     except OSError as exc:
         raise LogError(f"{path}: cannot read log ({one_line(exc)})") from None
     return _chunks(path, fh, chunk_frames)
 
 
-def _chunks(path: Path, fh: io.BufferedReader, chunk_frames: int) -> Iterator[FrameChunk]:
+asc_chunks = read
+
+
+def _chunks(path: Path, fh: IO[bytes], chunk_frames: int) -> Iterator[FrameChunk]:
     encoding = log_encoding()  # what python-can opens the file with
     with fh:
-        head = fh.read(_HEAD_BYTES)
-        header = _header(head)
-        if header is None:  # python-can reads the file
+        head, broken = read_block(fh, _HEAD_BYTES)
+        header = None if broken is not None else _header(head)
+        if header is None:  # python-can reads the file (and says where a gzip broke)
             fh.close()
             yield from reader_chunks(path, chunk_frames)
             return
@@ -92,7 +108,14 @@ def _chunks(path: Path, fh: io.BufferedReader, chunk_frames: int) -> Iterator[Fr
         line = count_lines(head[:offset])  # lines before the block
         frames = 0
         fh.seek(offset)
-        for block in line_blocks(fh, _READ_BYTES):
+        blocks = line_blocks(fh, _READ_BYTES)
+        while True:
+            try:
+                block = next(blocks, None)
+            except StreamBroken as stream:
+                raise gzip_damage(path, stream.cause, frames=frames, line=line + 1) from None
+            if block is None:
+                break
             text, cut = split_cut_line(block)
             if text:
                 for chunk in _block(path, text, base, base_name, encoding, line, frames):

@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from monitor.bus.logfile import READ_ERRORS, blf_damage, damaged, malformed, open_reader
-from monitor.columnar.reader import (
+from monitor.columnar.chunk import (
     CLASSIC_WIDTH,
     FD_WIDTH,
     FrameChunk,
@@ -46,7 +46,7 @@ from monitor.columnar.reader import (
 )
 from monitor.estimation.jit import njit
 
-__all__ = ["blf_chunks"]
+__all__ = ["blf_chunks", "read"]
 
 _OBJ_HEADER = struct.Struct("<4sHHLL")  # signature, header size, version, size, type
 _CONTAINER = struct.Struct("<H6xL4x")  # compression method, uncompressed size
@@ -66,6 +66,9 @@ def blf_chunks(path: Path, chunk_frames: int) -> Iterator[FrameChunk]:
     reader = open_reader(path)
     assert isinstance(reader, can.io.BLFReader)
     return _chunks(path, reader, chunk_frames)
+
+
+read = blf_chunks
 
 
 def _chunks(path: Path, reader: can.io.BLFReader, chunk_frames: int) -> Iterator[FrameChunk]:

@@ -35,8 +35,8 @@ from numpy.typing import NDArray
 
 from monitor.bus.codec import MotorDatabase, RejectReason
 from monitor.bus.rigcodec import RigCodec
+from monitor.columnar.chunk import FrameChunk
 from monitor.columnar.e2e import profile2_ok
-from monitor.columnar.reader import FrameChunk
 from monitor.columnar.signals import SignalExtractor, payload_integers
 
 __all__ = ["REASONS", "DecodedChunk", "NotColumnar", "Route", "RouteTable"]

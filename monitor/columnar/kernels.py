@@ -24,11 +24,9 @@ from numpy.typing import NDArray
 from monitor.diagnosis.classifier import reported_state
 from monitor.estimation.jit import njit
 from monitor.pipeline import periods
+from monitor.pipeline.feed import TICK_S
 
 __all__ = ["CLS_PARAMS", "CLS_STATE", "TICK_S", "admit", "classify", "ticks"]
-
-TICK_S = 0.05
-"""Bus time between timeout checks: `monitor.app.replay.TICK_S` (a test checks they agree)."""
 
 F8 = NDArray[np.float64]
 I8 = NDArray[np.int64]
@@ -41,14 +39,18 @@ CLS_PARAMS = ("f1", "f2", "f1_up", "f1_down", "f2_up", "f2_down", "dwell", "mm_a
               "mm_hi", "mm_dwell", "p", "publish_period", "silence_timeout", "withhold")
 
 
+# The period is an argument, not the module-level TICK_S: numba would compile that in as a
+# constant, and its on-disk cache is keyed on this file alone, so a new period in
+# `monitor.pipeline.feed` would leave a stale kernel behind.
 @njit
-def ticks(t: F8, last: F8, out_idx: I8) -> int:
-    """Frames after which `feed_log` ticks: ``t - last_tick >= TICK_S``. `last[0]` carries
-    the last tick's time between chunks; returns how many indices were written."""
+def ticks(t: F8, last: F8, out_idx: I8, period: float) -> int:
+    """Frames after which `feed_log` ticks: ``t - last_tick >= period`` (`TICK_S`).
+    `last[0]` carries the last tick's time between chunks; returns how many indices were
+    written."""
     k = 0
     lt = last[0]
     for i in range(t.shape[0]):
-        if t[i] - lt >= 0.05:
+        if t[i] - lt >= period:
             lt = t[i]
             out_idx[k] = i
             k += 1

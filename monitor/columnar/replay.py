@@ -20,6 +20,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from monitor.bus.cia402 import (
+    IGNORED_NOT_OPERATIONAL,
+    drive_watch,
+    report_counter,
+    report_level,
+    report_text,
+)
 from monitor.bus.faults import describe_error_frame
 from monitor.columnar import kernels as K
 from monitor.columnar.decode import REASONS, DecodedChunk, NotColumnar, RouteTable
@@ -39,6 +46,7 @@ from monitor.pipeline.events import (
     DiagnosisEvent,
     SampleColumns,
 )
+from monitor.pipeline.feed import replay_frames
 from monitor.pipeline.samples import delayed, held_column, no_past
 from monitor.sinks.base import Sink
 
@@ -47,6 +55,7 @@ __all__ = ["ReplayResult", "columnar_obstacle", "replay_chunks", "replay_file"]
 log = logging.getLogger("motor_monitor")
 
 _STATES = tuple(HealthState)
+_UNKNOWN_ID = REASONS.index("unknown_id")
 
 
 @dataclass
@@ -122,6 +131,10 @@ class _Replay:
         self.nodes: dict[int, _Node] = {}
         self.cls_prm = _cls_params(cfg, self.model.p)
         self.tracker: dict[int, int] = {}
+        self.drives = drive_watch(db)  # a CANopen rig's drives, as the per-frame engine
+        self.held: set[int] = set()  # nodes whose drive said it was not operational
+        self.resumed: set[int] = set()  # ... and is again, no sample admitted since
+        self.resume_rows: dict[int, NDArray[np.int64]] = {}  # this chunk's resumptions
         self.last_tick = np.array([-math.inf])
         self.offset = 0
         self.events: list[DiagnosisEvent] = []
@@ -167,6 +180,25 @@ class _Replay:
                     reason = REASONS[code]
                     cnt.inc(C.rejected(reason), k)
                     self._warn(reason, f"frame rejected ({reason}): {k} in a chunk")
+        # a CANopen rig's drives: their frames are no rig message (unknown_id), read in
+        # order; `gate` holds, per node, the rows after which the drive's operational state
+        # changed, from `gate_start` at the chunk's start (the per-frame engine's rule)
+        gate: dict[int, list[tuple[int, bool]]] = {}
+        gate_start: dict[int, bool] = {}
+        if self.drives is not None:
+            watch = self.drives
+            now = {nd: watch.operational(nd) for nd in watch.nodes}
+            gate_start = dict(now)
+            for i in np.flatnonzero((dec.code == _UNKNOWN_ID) & ~c.error).tolist():
+                m = c.message(i)
+                for r in watch.feed(m.arbitration_id, bytes(m.data), float(c.t[i])):
+                    cnt.inc(report_counter(r))
+                    events.append((2 * (self.offset + i), -1, len(events),
+                                   BusEvent(r.t, report_text(r), report_level(r))))
+                    state = watch.operational(r.node)
+                    if state != now[r.node]:
+                        now[r.node] = state
+                        gate.setdefault(r.node, []).append((i, state))
         acc = np.flatnonzero(dec.code == 0)
         routes = self.table.routes
         r_kind = np.array([r.kind for r in routes] or [""], dtype=object)
@@ -190,6 +222,27 @@ class _Replay:
             if (~ok).any():
                 cnt.inc(C.IGNORED_NODE, int((~ok).sum()))
             acc, ra, node = acc[ok], ra[ok], node[ok]
+        self.resume_rows = {}
+        if self.drives is not None and len(acc):
+            ok = np.ones(len(acc), dtype=bool)
+            for nd in np.unique(node).tolist():
+                if nd not in gate_start:
+                    continue
+                sel = node == nd
+                changes = gate.get(nd, [])
+                rows = np.array([i for i, _ in changes], np.int64)
+                after = np.array([gate_start[nd], *(v for _, v in changes)], dtype=bool)
+                mine = after[np.searchsorted(rows, acc[sel], side="right")]
+                ok[sel] = mine
+                blocked_before = np.concatenate([[nd in self.held], ~mine[:-1]])
+                self.resume_rows[nd] = acc[sel][mine & blocked_before]
+                if mine[-1]:
+                    self.held.discard(nd)
+                else:
+                    self.held.add(nd)
+            if (~ok).any():
+                cnt.inc(IGNORED_NOT_OPERATIONAL, int((~ok).sum()))
+                acc, ra, node = acc[ok], ra[ok], node[ok]
         first_pos: dict[int, int] = {}
         if len(node):
             uniq, first = np.unique(node, return_index=True)
@@ -247,7 +300,7 @@ class _Replay:
             drop[np.flatnonzero(has_c)[rep]] = True
             acc, ra, node = acc[~drop], ra[~drop], node[~drop]
         tick_idx = np.zeros(n, np.int64)
-        nt = K.ticks(c.t, self.last_tick, tick_idx)
+        nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S)
         tick_idx = tick_idx[:nt]
         order_of = {nd: k for k, nd in enumerate(self.nodes)}
         for nd, nm in self.nodes.items():
@@ -280,6 +333,27 @@ class _Replay:
         self._warn("errframe-" + ",".join(names), text)
         events.append((2 * (self.offset + i), -1, len(events),
                        BusEvent(float(c.t[i]), text, "ERROR" if severe else "WARN")))
+
+    def _resume(self, node: int, rows: NDArray[np.int64], status: NDArray[np.int64],
+                kk: NDArray[np.int64], restart: NDArray[np.bool_], jitter: NDArray[np.bool_],
+                had_last: bool) -> None:
+        """The first sample admitted after the node's drive is operational again restarts
+        the estimator (the per-frame engine's `_resumed`): its state is not the plant's."""
+        resumed = self.resume_rows.get(node, np.zeros(0, np.int64))
+        pending = node in self.resumed
+        p = 0
+        for j in np.flatnonzero(status == 0).tolist():
+            while p < len(resumed) and resumed[p] <= rows[j]:
+                pending, p = True, p + 1
+            if pending and had_last:
+                restart[j], kk[j], jitter[j] = True, 1, False
+            pending, had_last = False, True
+        if p < len(resumed):
+            pending = True
+        if pending:
+            self.resumed.add(node)
+        else:
+            self.resumed.discard(node)
 
     def _node_chunk(self, nm: _Node, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
                     ra: NDArray[np.int64], lost_all: NDArray[np.int64],
@@ -326,8 +400,11 @@ class _Replay:
         restart = np.zeros(len(oi), np.bool_)
         jitter = np.zeros(len(oi), np.bool_)
         cand = wrap_all[fr[oi]]
+        had_last = not math.isnan(nm.last_admit[0])
         K.admit(t_o, lost_all[fr[oi]], cand, seen[oi], nm.last_admit, cfg.rate, cfg.max_gap_s,
                 cfg.silence_timeout_s, cfg.jitter_fraction, status, kk, restart, jitter)
+        if self.drives is not None:
+            self._resume(nm.node, fr[oi], status, kk, restart, jitter, had_last)
         if cand.any():
             n_rep = int((status[cand] == 3).sum())
             n_wrap = int(cand.sum()) - n_rep
@@ -515,8 +592,8 @@ def replay_chunks(chunks: Iterable[FrameChunk], db: Any, cfg: MonitorConfig | No
 def replay_file(path: str | Path, db: Any, cfg: MonitorConfig | None = None,
                 sink: Sink | None = None, *, chunk_frames: int = DEFAULT_CHUNK_FRAMES
                 ) -> ReplayResult:
-    """Replay the bus log at `path` (candump .log, .asc, .blf) through decode, estimation
-    and diagnosis, a chunk of `chunk_frames` frames at a time, into `sink`.
+    """Replay the bus log at `path` (any of `monitor.bus.logfile.LOG_FORMATS`) through
+    decode, estimation and diagnosis, a chunk of `chunk_frames` frames at a time, into `sink`.
 
     `db` is the rig's frame decoder (`MotorDatabase` or `RigCodec`, as
     `monitor.rig.build_decoder` makes it), `cfg` the monitor's configuration. Gives the
@@ -576,9 +653,6 @@ def _per_frame(path: Path, db: Any, cfg: MonitorConfig, sink: Sink, why: str) ->
 
 
 def _feed(pipe: Any, path: Path) -> int:
-    """`monitor.app.replay.feed_log` of `read_log(path)`, python-can's reader, exactly the
-    per-frame path (imported late: that module may import this package)."""
-    from monitor.app.replay import feed_log
-    from monitor.bus.logfile import read_log
-
-    return int(feed_log(pipe, read_log(path)))
+    """`monitor.pipeline.feed.replay_frames`: `feed_log` of `read_log(path)`, python-can's
+    reader, exactly the per-frame path."""
+    return int(replay_frames(pipe, path))

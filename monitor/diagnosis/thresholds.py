@@ -119,7 +119,7 @@ def _toml_float(value: float) -> str:
 
 THRESHOLDS_HEADER = "# motor-monitor diagnosis thresholds"
 """How a thresholds file `save_thresholds` wrote begins: `calibrate` replaces a file that
-begins so without --force (`monitor.app.paths`)."""
+begins so without --force (`monitor.runtime.paths`)."""
 
 
 def save_thresholds(

@@ -59,6 +59,37 @@ Per sample k (the paper's order, made sound where Liu et al. 2020 is ambiguous o
    functions are scale-free, and averaged over the test's window: one sample of x_e is
    mostly measurement noise; the average follows a persistent discrepancy, which is what
    a fault makes.
+8. Bias states (`bias`; our extension, not the paper's): a load or an offset the model
+   lacks is a constant the outputs show, which gamma^ cannot take where it sits on its
+   bound (a load raises a motor's current: gamma < 0) and takes wrongly where it can (a
+   0.4 loss under a constant load read 0.32). The filter's state is the plant's followed
+   by biases (`DiscreteModel.bias_plan`): one per output, y = C x + D u_F + b ("output"),
+   or one per actuator, x(k+1) = A x + B (u_F + b) ("input"), each a slow random walk
+   (q_b = T / (info window^2), `BiasPlan.q`, window 1 h by default), only where the pair
+   augmented with them is observable (the PBH rank at z = 1; "auto" takes output, else
+   input, else none with a log line; an explicit kind that is not is refused). At a
+   constant input a bias and gamma are not told apart (both are constants in the
+   outputs): they are told apart by when they may change. A bias changes at a *bias
+   event*: the structure test (20) fired, and the jump of gamma located at the onset
+   leaves the bounds of (28) by more than min_jump while the bounds reduce it below
+   min_jump -- a change gamma cannot take -- for the second time within 10 dwell times
+   (a burst of noise fires the test too, and what a bias learns from one stays: gamma^,
+   faster, takes up the difference). Then the biases are re-opened at the onset (their
+   variance raised by that of BIAS_SIGMA0 output sigmas) and the samples since are
+   processed again (mode 0: gamma is not re-opened). Every other change goes to gamma^,
+   so a fault is never learnt as a bias. Between events a bias barely moves: a faster
+   random walk integrates the innovations' small positive mean that the bound of gamma
+   leaves on a healthy plant (noise below 0 is clipped), lifting gamma^ off its bound
+   with it -- with a 1 s window a healthy motor's gamma^ crept from 0.013 to 0.04 within 5
+   minutes. The biases start at their random walk's stationary variance, so healthy
+   running does not move them; a load present from the start is taken by the first
+   event. They are held apart from gamma in the two-stage coupling (their rows of V stay
+   0): coupled, a bias learns d x^ / d gamma, the sensitivity M of the innovation to
+   gamma decays, gamma^ becomes unobservable and drifts with the rules' switching while
+   the bias follows it (a 0.4 loss under a load drifted to 0.33 in 10 s). Where the input
+   varies, the outputs tell a bias and gamma apart as well. The fuzzy inputs stay the
+   plant's states; a bias is reported in `EstimatorOutput.bias`, the events counted in
+   `FuzzyUKF.bias_events`.
 
 Why it is built this way -- what failed on a small, stiff, back-EMF dominated motor (a
 24 V servo at 1 kHz: J = 2e-5, b = 1e-5, Ke = Ki = 0.03, Ra = 1, La = 1e-3, sensor sigma
@@ -160,6 +191,7 @@ from numpy.typing import NDArray
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem, fire, infer
 from monitor.estimation.jit import njit
 from monitor.estimation.model import (
+    BIAS_WINDOW_S,
     ESTIMATOR_LIMIT_BYTES,
     DiscreteModel,
     ModelError,
@@ -192,12 +224,20 @@ _log = logging.getLogger(__name__)
 # ring and the consequents' common variance in st). An ahead-of-time build of another
 # layout has the same signature but would misread the buffers, so select_kernel refuses it.
 # 4: the adapted output-noise excess in st and in every ring slot, its weight in prm.
-KERNEL_LAYOUT = 4
+# 5: the filter's state may hold bias states after the plant's (x, P, V, z of the augmented
+# dimension n): the fuzzy inputs are the first centres.shape[0] entries of z, and V is 0 on
+# the bias rows.
+KERNEL_LAYOUT = 5
 
 # The adaptive output noise (step 5b) lets a sample raise the output noise by at most
 # (this - 1) times itself, times the forgetting weight: a burst the mean-shift test has not
 # caught yet moves R by a bounded step, and a fitting model loses < 1 % to the cap.
 _NOISE_CLIP = 9.0
+
+# A bias event (step 8) needs the change gamma cannot take seen twice, the second time within
+# this many dwell times of the first: a burst of noise that fires the test (3.7 sigma) is
+# seldom followed by another within 2 s, a load that the outputs keep showing is.
+_BIAS_CONFIRM = 10.0
 
 
 def kernel_layout() -> int:
@@ -243,6 +283,13 @@ class FuzzyUKFConfig:
     noise_window: time constant of that learning, seconds (per received sample, like
         nis_window): much longer than the classifier's dwell and the onset window, so a
         fault -- a mean shift that gamma^ explains within them -- moves R little.
+    bias: slowly varying bias states beside the plant's (step 8 of the module docstring):
+        "output" (an offset per output), "input" (a load or offset per actuator), "auto"
+        (output where observable, else input, else none) or "none"
+        (`DiscreteModel.bias_plan`; an explicit kind the outputs cannot observe is refused).
+    bias_window: seconds over which a bias follows a slow drift (its random walk); a
+        step is taken at once by a bias event (step 8). Long, so that the bound of gamma^
+        does not lift gamma^ on a healthy plant through the bias.
     """
 
     alpha: float = 1e-4
@@ -263,6 +310,8 @@ class FuzzyUKFConfig:
     P0: float | None = None
     adaptive_noise: bool = True
     noise_window: float = 2.0
+    bias: str = "auto"
+    bias_window: float = BIAS_WINDOW_S
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
 
 
@@ -278,6 +327,7 @@ class EstimatorOutput:
     y_hat: predicted output before the update; y_est: output of the final estimate,
     C x^ + D u (1 - gamma^). nis: normalised innovation squared.
     innovation: whitened innovation L^-1 nu (L L' = S_tot), per output. rules: rule count.
+    bias: the estimated bias states (`FuzzyUKF.bias_plan`; empty without).
     """
 
     x_hat: Array
@@ -288,6 +338,7 @@ class EstimatorOutput:
     y_hat: Array
     innovation: Array
     y_est: Array
+    bias: Array = field(default_factory=lambda: np.zeros(0))
     nis: float = 0.0
     rules: int = 0
     structure_event: bool = False
@@ -426,7 +477,8 @@ def _fuzzy_ukf_step(
     # 1. fuzzy output (51) at the previous input. gamma holds the previous output; the
     # rules fired by the new input may give another, and the state estimate follows
     # gamma^ whichever way it changes (two-stage: x^ = x_bar + V gamma^)
-    nf = fire(z, centres, counts, max_mf, rule_idx, rule_w)
+    # the fuzzy inputs are the plant's states, the first ones of z (bias states follow)
+    nf = fire(z[:centres.shape[0]], centres, counts, max_mf, rule_idx, rule_w)
     infer(cons, rule_idx, rule_w, nf, uf)
     for a in range(m):
         if not hi[a] > lo[a]:
@@ -625,11 +677,16 @@ def _fuzzy_ukf_step(
         for k in range(nf):
             new_out += rule_w[k] * cons[rule_idx[k], a]
         dg[a] = new_out - old_out
-    # two-stage coupling: V = (I - K C) V^- + K D diag(u); x^ += V dgamma
+    # two-stage coupling: V = (I - K C) V^- + K D diag(u); x^ += V dgamma. The bias states
+    # (after the plant's nx = centres.shape[0]) are held apart from gamma (V = 0 there):
+    # coupled, a bias would follow every change of gamma^ and take over what gamma^
+    # explained -- at a constant input the two are not told apart -- as soon as the bias
+    # has had its window to adapt (step 8)
+    nx = centres.shape[0]
     for r in range(n):
         for a in range(m):
             acc = 0.0
-            if hi[a] > lo[a]:
+            if hi[a] > lo[a] and r < nx:
                 for c in range(n):
                     acc += IKC[r, c] * Vp[c, a]
                 for c in range(p):
@@ -759,10 +816,11 @@ def _reprocess_loop(
     blocks: Array, coefs: Array, bidx: IntArray, ring: Array, first: int, count: int, ring_len: int,
     o_u: int, o_y: int, o_dt: int, prm: Array, st: Array, centres: Array, counts: IntArray,
     cons: Array, var: Array, rule_idx: IntArray, rule_w: Array, wk: Array, out: Array,
-    n: int, m: int, p: int, max_mf: int, u: Array, y: Array,
+    n: int, m: int, p: int, max_mf: int, u: Array, y: Array, first_mode: float,
 ) -> None:
     """Samples first .. first + count - 1 of the ring again through `_fuzzy_ukf_step`, the
-    first with a structure event (mode 2), the others without the test (mode 0): what
+    first in first_mode (2: a structure event of gamma; 0: none, a bias event having
+    re-opened the biases), the others without the test (mode 0): what
     `FuzzyUKF._reprocess` does one Python call per sample, in one compiled call."""
     for t in range(count):
         k = first + t
@@ -773,7 +831,7 @@ def _reprocess_loop(
             y[r] = row[o_y + r]
         prm[0] = row[o_dt]
         prm[5] = coefs[bidx[t]]
-        prm[8] = 2.0 if t == 0 else 0.0
+        prm[8] = first_mode if t == 0 else 0.0
         prm[10] = float(k % ring_len)
         _fuzzy_ukf_step(blocks[bidx[t]], u, y, prm, st, centres, counts, cons, var, rule_idx,
                         rule_w, wk, out, n, m, p, max_mf)
@@ -998,19 +1056,27 @@ class FuzzyUKF:
         cfg = config or FuzzyUKFConfig()
         self.model = model
         self.config = cfg
-        n, m, p = model.n, model.m, model.p
+        # the filter's state: the plant's observable states, then the bias states (step 8)
+        self.bias_plan = model.bias_plan(cfg.bias, cfg.bias_window)
+        nx, m, p = model.n, model.m, model.p
+        n = nx + self.bias_plan.count
+        self._nx = nx
         self._dims = (n, m, p)
         # the model check sized the default estimator with the same rule; a configuration
-        # with more MFs or a longer onset window is sized again here, before allocating
-        need = sum(estimator_bytes(n, m, p, model.T, max_mf=cfg.fuzzy.max_mf,
-                                   onset_window=cfg.onset_window))
+        # with more MFs, a longer onset window or bias states is sized again here, before
+        # allocating (the rule base spans the plant's states, the ring the filter's)
+        rules, _ = estimator_bytes(nx, m, p, model.T, max_mf=cfg.fuzzy.max_mf,
+                                   onset_window=cfg.onset_window)
+        _, ring = estimator_bytes(n, m, p, model.T, max_mf=cfg.fuzzy.max_mf,
+                                  onset_window=cfg.onset_window)
+        need = rules + ring
         if need > ESTIMATOR_LIMIT_BYTES:
             raise ModelError(f"the estimator of {n} observable states at {1.0 / model.T:g} Hz "
                              f"would need {need / 2**30:.3g} GiB a node (at most "
                              f"{ESTIMATOR_LIMIT_BYTES / 2**30:g}): fewer MFs (max_mf) or a "
                              "shorter onset window")
         w = sigma_weights(n, cfg.alpha, cfg.beta)
-        self.fuzzy = SelfConstructingFuzzySystem(n, m, cfg.fuzzy, 0.0, cfg.var_rule)
+        self.fuzzy = SelfConstructingFuzzySystem(nx, m, cfg.fuzzy, 0.0, cfg.var_rule)
         # Actuators without a loss of effectiveness (not in model.fault_inputs) get the
         # bounds [0, 0]: their gamma stays exactly 0 and the kernel leaves them out.
         self._known = [a for a in range(m) if a not in model.fault_inputs]
@@ -1036,7 +1102,11 @@ class FuzzyUKF:
         self.x = self._st[:n]
         self.P = self._st[n:n + n * n].reshape(n, n)
         self.V = self._st[n + n * n:n + n * n + n * m].reshape(n, m)
-        self.z = self._st[n + n * n + n * m:head - m - p]
+        self._zall = self._st[n + n * n + n * m:head - m - p]
+        self.z = self._zall[:nx]  # the fuzzy input: the plant's part
+        self.bias = self.x[nx:]  # the bias states (step 8)
+        self._bias_q = self.bias_plan.q
+        self._bias_var0 = self.bias_plan.var0
         self.common_var = self._st[head - m - p:head - p]
         self.noise_excess = self._st[head - p:head]  # rx: R + diag(rx) is the output noise
         self.common_var[self._faulty] = cfg.var0
@@ -1048,12 +1118,15 @@ class FuzzyUKF:
         if x0 is not None:
             x0a = np.asarray(x0, dtype=float)
             if x0a.shape == (model.n_full,):
-                self.x[:] = model.Wobs @ x0a
-            elif x0a.shape == (n,):
-                self.x[:] = x0a
+                self.x[:nx] = model.Wobs @ x0a
+            elif x0a.shape == (nx,):
+                self.x[:nx] = x0a
             else:
-                raise ValueError(f"x0 must have {model.n_full} (full) or {n} (observable) entries")
-        self.P[:] = _initial_covariance_of(model) if cfg.P0 is None else np.eye(n) * cfg.P0
+                raise ValueError(f"x0 must have {model.n_full} (full) or {nx} (observable) "
+                                 "entries")
+        self.P[:nx, :nx] = _initial_covariance_of(model) if cfg.P0 is None \
+            else np.eye(nx) * cfg.P0
+        self.P[nx:, nx:] = np.diag(self.bias_plan.var_start)
         self._needs_init = x0 is None
         self._wk = np.zeros(_work_size(n, m, p))
         self._out = np.zeros(m + 3 * n + 4 * p + 4)
@@ -1061,15 +1134,16 @@ class FuzzyUKF:
         self._stats = ob[m + 3 * n + 2 * p:m + 3 * n + 2 * p + 4]
         self._ebar = ob[m + 3 * n + 2 * p + 4:m + 3 * n + 3 * p + 4]
         self.out = EstimatorOutput(
-            x_hat=self.x,
-            x_tilde=ob[m + n:m + 2 * n],
-            x_e=ob[m + 2 * n:m + 3 * n],
+            x_hat=self.x[:nx],
+            x_tilde=ob[m + n:m + n + nx],
+            x_e=ob[m + 2 * n:m + 2 * n + nx],
             gamma=ob[:m],
-            fault=ob[m:m + n],
+            fault=ob[m:m + nx],
             y_hat=ob[m + 3 * n:m + 3 * n + p],
             innovation=ob[m + 3 * n + p:m + 3 * n + 2 * p],
             y_est=ob[m + 3 * n + 3 * p + 4:],
             rules=self.fuzzy.rule_count,
+            bias=self.bias,
         )
         self._u = np.zeros(m)
         self._y = np.zeros(p)
@@ -1084,16 +1158,17 @@ class FuzzyUKF:
         self._faulty_idx = np.array(self._faulty, dtype=np.int64)
         self.steps = 0
         self.structure_events = 0
+        self.bias_events = 0  # changes of a load or an offset (step 8)
+        self._bias_armed_until = -math.inf  # a first sight of one waits for a second
 
     def _block(self, dt: float) -> tuple[Array, float]:
         """Model matrices for a step of dt packed flat, and the NIS averaging coefficient."""
         blk = self._blocks.get(dt)
         if blk is not None:
             return blk
-        A, B, Q = self.model.at(dt)
-        md = self.model
-        flat = np.concatenate([A.ravel(), B.ravel(), Q.ravel(), md.C.ravel(), md.D.ravel(),
-                               md.R.ravel()])
+        A, B, Q, C, D = self._matrices(dt)
+        flat = np.concatenate([A.ravel(), B.ravel(), Q.ravel(), C.ravel(), D.ravel(),
+                               self.model.R.ravel()])
         # The averaging weight of the innovation (test (20), the NIS, the fuzzy input) is
         # that of one sample period even after lost samples (dt = k T): the statistic
         # chi (2 - c) / c assumes the stationary variance c / (2 - c) of the average,
@@ -1107,6 +1182,23 @@ class FuzzyUKF:
             self._blocks.clear()
         self._blocks[dt] = entry
         return entry
+
+    def _matrices(self, dt: float) -> tuple[Array, Array, Array, Array, Array]:
+        """(A, B, Q, C, D) of the filter's state for a step of dt: the model's (`at`), with
+        the bias states (step 8) appended as random walks, [[A, B_d], [0, I]], [B; 0],
+        diag(Q, q dt), [C, D_d], D."""
+        md = self.model
+        A, B, Q = md.at(dt)
+        nb = self.bias_plan.count
+        if nb == 0:
+            return A, B, Q, md.C, md.D
+        nx = self._nx
+        Bd, Dd = self.bias_plan.entry(self.bias_plan.kind, B, md.D)
+        Aa = np.block([[A, Bd], [np.zeros((nb, nx)), np.eye(nb)]])
+        Ba = np.vstack([B, np.zeros((nb, B.shape[1]))])
+        Qa = scipy.linalg.block_diag(Q, np.diag(self._bias_q * dt))
+        Ca = np.hstack([md.C, Dd])
+        return Aa, Ba, Qa, Ca, md.D
 
     @property
     def repairs(self) -> int:
@@ -1194,8 +1286,9 @@ class FuzzyUKF:
         no time update, so it cannot be processed again from the state before it.
         """
         self._needs_init = False
+        nx = self._nx
         try:
-            st = start_state(self.model, u, y, self.P.copy())
+            st = start_state(self.model, u, y, self.P[:nx, :nx].copy())
             Ls = np.linalg.cholesky(st.S) if st.measured and st.S is not None else None
         except np.linalg.LinAlgError:
             # a start the float range does not hold (a model or a sample at its edge: the
@@ -1204,11 +1297,16 @@ class FuzzyUKF:
             try:
                 x0, V0 = steady_start(self.model, u, y)
             except np.linalg.LinAlgError:
-                x0, V0 = np.zeros_like(self.x), np.zeros_like(self.V)
-            st, Ls = StartState(False, x0, V0, self.P.copy()), None
-        self.x[:] = st.x
-        self.V[:] = st.V
-        self.P[:] = st.P
+                x0, V0 = np.zeros(nx), np.zeros((nx, self._dims[1]))
+            st, Ls = StartState(False, x0, V0, self.P[:nx, :nx].copy()), None
+        # the plant's start; the bias states start at 0, uncorrelated, with their prior
+        self.x[:nx] = st.x
+        self.x[nx:] = 0.0
+        self.V[:nx] = st.V
+        self.V[nx:] = 0.0
+        self.P[:] = 0.0
+        self.P[:nx, :nx] = st.P
+        self.P[nx:, nx:] = np.diag(self.bias_plan.var_start)
         if not st.measured:
             return False
         assert st.x_prior is not None and st.y_prior is not None
@@ -1260,8 +1358,6 @@ class FuzzyUKF:
             return g, info
         # Without the JIT (the hardened service's AOT kernel, or interpreted): the same
         # statistics with numpy, every onset of the window at once, then the candidates'
-        md = self.model
-        C, D = md.C, md.D
         eye = np.eye(n)
         W = np.zeros((count, n, f))
         ga = np.zeros((count, f))
@@ -1269,7 +1365,7 @@ class FuzzyUKF:
         for t in range(count):
             i = first + t
             u = self._field(i, "u")[F]
-            A, B, _ = md.at(float(self._field(i, "dt")[0]))
+            A, B, _, C, D = self._matrices(float(self._field(i, "dt")[0]))
             K = self._field(i, "K").reshape(n, p)
             Sti = self._field(i, "Sti").reshape(p, p)
             nu = self._field(i, "nu")
@@ -1337,15 +1433,19 @@ class FuzzyUKF:
         return first + int(cands[best]), sol[best], models
 
     def _reprocess(self, j: int, k: int, first: int,
-                   models: tuple[Array, Array, IntArray]) -> None:
-        """Back to the state before sample j, a structure event there, samples j..k again
-        (k - j < ring_len samples; in one compiled call with the JIT). models: the model
-        blocks of samples first..k (`_ring_models`)."""
+                   models: tuple[Array, Array, IntArray], bias: bool = False) -> None:
+        """Back to the state before sample j, a structure event there -- of gamma, or with
+        bias True of the biases (their variance raised by var0, step 8) -- and samples j..k
+        again (k - j < ring_len samples; in one compiled call with the JIT). models: the
+        model blocks of samples first..k (`_ring_models`)."""
         n, m, p = self._dims
+        nx = self._nx
         self.x[:] = self._field(j, "x")
         self.P[:] = self._field(j, "P").reshape(n, n)
+        if bias:
+            self.P[nx:, nx:] += np.diag(self._bias_var0)
         self.V[:] = self._field(j, "V").reshape(n, m)
-        self.z[:] = self._field(j, "z")
+        self._zall[:] = self._field(j, "z")
         self._ebar[:] = self._field(j, "ebar")
         self.out.gamma[:] = self._field(j, "gamma")
         self.common_var[:] = self._field(j, "vc")
@@ -1360,12 +1460,25 @@ class FuzzyUKF:
                             self._ring_len, rf["u"][0], rf["y"][0], rf["dt"][0], self._prm,
                             self._st, fz.centres, fz.counts, fz.cons, fz.var, fz.rule_idx,
                             fz.rule_w, self._wk, self._out, n, m, p, fz.max_mf, self._u,
-                            self._y)
+                            self._y, 0.0 if bias else 2.0)
             return
         for i in range(j, k + 1):
             self._u[:] = self._field(i, "u")
             self._y[:] = self._field(i, "y")
-            self._run(i, float(self._field(i, "dt")[0]), 2.0 if i == j else 0.0)
+            self._run(i, float(self._field(i, "dt")[0]), 2.0 if i == j and not bias else 0.0)
+
+    def _beyond_bounds(self, gamma: Array, jump: Array) -> bool:
+        """Whether the filter has bias states and the jump leaves the bounds of (28) by
+        more than min_jump for some fault actuator: a change gamma cannot take."""
+        if self.bias_plan.count == 0:
+            return False
+        m = self._dims[1]
+        lo = self._prm[12:12 + m]
+        hi = self._prm[12 + m:12 + 2 * m]
+        F = self._faulty
+        g = gamma[F] + jump
+        out = np.maximum(lo[F] - g, g - hi[F])
+        return bool(F) and bool(np.any(out > self.config.min_jump))
 
     def _negligible(self, gamma: Array, jump: Array) -> bool:
         """Whether the jump, projected on the bounds of (28), is below min_jump for every
@@ -1390,17 +1503,32 @@ class FuzzyUKF:
         """
         k = self.steps
         j, jump, models = self._onset(k)
-        if self._negligible(self._field(j, "gamma"), jump):
+        g_j = self._field(j, "gamma")
+        if self._negligible(g_j, jump):
             # a jump that the bounds of (28) reduce to less than min_jump -- typically
             # evidence for a gamma below 0 where a fault-free actuator's estimate sits on
             # that bound -- is no change of the loss of effectiveness: it has been looked
-            # at (the dwell restarts), nothing is re-learnt
+            # at (the dwell restarts). Where it leaves the bounds by more than min_jump and
+            # the filter has bias states, it is a change of the load or an offset (step 8):
+            # the biases are re-opened at its onset and the samples since processed again
             self._ebar[:] = 0.0
             self._last_event = self._time
+            if self._beyond_bounds(g_j, jump):
+                if self._time > self._bias_armed_until:
+                    # the first sight of it: a burst of noise fires the test as well, and
+                    # a bias learnt from one is kept (gamma^ takes the difference) --
+                    # what persists fires the test again after the dwell time
+                    self._bias_armed_until = self._time + _BIAS_CONFIRM * self.config.dwell
+                    return False
+                self._bias_armed_until = -math.inf
+                self._reprocess(j, k, k - len(models[2]) + 1, models, bias=True)
+                self._onset_floor = j + 1
+                self.bias_events += 1
             return False
         self._reprocess(j, k, k - len(models[2]) + 1, models)
         self._onset_floor = j + 1
         self._last_event = self._time
+        self._bias_armed_until = -math.inf
         self.structure_events += 1
         fz = self.fuzzy
         v = int(np.argmax(np.abs(self.z)))

@@ -14,7 +14,9 @@ imported, `numba_cache_dir` chooses a directory the user owns and hands it to nu
 (``NUMBA_CACHE_DIR``): ``$NUMBA_CACHE_DIR`` if set (the systemd unit sets its
 CacheDirectory=), else ``$XDG_CACHE_HOME/motor-monitor/numba``, else
 ``~/.cache/motor-monitor/numba``. When none of them can be written, the kernels are
-compiled without a cache (every start compiles them again; nothing fails).
+compiled without a cache (every start compiles them again; nothing fails). The install
+fills that directory (`monitor.estimation.kernels_aot`, run by scripts/setup-venv.sh), so
+the daemon's first start loads its kernels instead of compiling them.
 """
 
 from __future__ import annotations

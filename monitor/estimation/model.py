@@ -68,6 +68,9 @@ Array = NDArray[np.float64]
 FaultInputs = Sequence[int | str] | None
 
 __all__ = [
+    "BIAS_MODES",
+    "BIAS_WINDOW_S",
+    "BiasPlan",
     "ContinuousDescriptor",
     "DCMotorParameters",
     "DiscreteDescriptor",
@@ -641,6 +644,73 @@ def estimator_bytes(n: int, m: int, p: int, T: float, *, max_mf: int = ESTIMATOR
     return rules, ring
 
 
+BIAS_MODES: tuple[str, ...] = ("auto", "none", "input", "output")
+"""The estimator's bias states (`DiscreteModel.bias_plan`, the rig's `[model] bias`)."""
+
+BIAS_WINDOW_S = 3600.0
+"""Seconds over which a bias follows a slow drift by default (`BiasPlan.q`); a step goes
+through a bias event."""
+
+BIAS_SIGMA0 = 10.0
+"""A bias event (a change of a load or an offset) re-opens the bias to a standard deviation
+of this many output noise sigmas (its effect on the outputs)."""
+
+
+@dataclass(frozen=True)
+class BiasPlan:
+    """Slowly varying biases beside the state, each a random walk (the estimator's
+    augmented state [x; b]; our extension, not the paper's).
+
+    kind "input": one per actuator, x(k+1) = A x + B (u_F + b), y = C x + D (u_F + b): a
+    load or an offset of the drive, in the input's units. kind "output": one per output,
+    y = C x + D u_F + b: a sensor offset, or at steady state any load. "none": no bias.
+    info[i] = h_i' R^-1 h_i is what one sample of the outputs tells about bias i at steady
+    state (h_i: its steady-state gain to the outputs; on an integrating plant, the
+    outputs' response to it held over 100 periods). Its random walk,
+    q[i] = T / (info[i] window^2) per second, makes the filter follow a slow drift of the
+    bias with a gain of about T / window per sample (a scalar random walk's stationary
+    Kalman gain is sqrt(q T info)); a step is taken by a bias event, which re-opens the
+    variance to `var0` (`monitor.estimation.fuzzy_ukf`, step 8).
+    """
+
+    kind: Literal["none", "input", "output"]
+    info: Array
+    T: float
+    window: float
+
+    @property
+    def count(self) -> int:
+        return int(self.info.shape[0])
+
+    @property
+    def q(self) -> Array:
+        """Random-walk intensity of each bias, its units^2 per second."""
+        return np.asarray(self.T / (self.info * self.window**2), np.float64)
+
+    @property
+    def var0(self) -> Array:
+        """Variance each bias is re-opened to by a bias event (`BIAS_SIGMA0`)."""
+        return np.asarray(BIAS_SIGMA0**2 / self.info, np.float64)
+
+    @property
+    def var_start(self) -> Array:
+        """Initial variance of each bias: the stationary variance of its random walk,
+        T / (info window), so that healthy running does not move it."""
+        return np.asarray(self.T / (self.info * self.window), np.float64)
+
+    @staticmethod
+    def entry(kind: str, B: Array, D: Array) -> tuple[Array, Array]:
+        """(B_d, D_d): how the biases enter the state step over dt (B: the model's input
+        matrix for that step) and the outputs."""
+        n = B.shape[0]
+        p = D.shape[0]
+        if kind == "input":
+            return B, D
+        if kind == "output":
+            return np.zeros((n, p)), np.eye(p)
+        return np.zeros((n, 0)), np.zeros((p, 0))
+
+
 def _check_period(T: float) -> float:
     if not (isinstance(T, (int, float, np.floating)) and math.isfinite(T) and T > 0):
         raise ModelError(f"sample period must be a positive number of seconds, got {T!r}",
@@ -799,6 +869,7 @@ class DiscreteModel:
     _cache: dict[int, tuple[Array, Array, Array, Array, Array]] = field(
         default_factory=dict, repr=False
     )
+    _bias_plans: dict[tuple[str, float], BiasPlan] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         self.T = _check_period(self.T)
@@ -1027,6 +1098,81 @@ class DiscreteModel:
     def at(self, dt: float) -> tuple[Array, Array, Array]:
         A, B, Q, _, _ = self.full_at(dt)
         return A, B, Q
+
+    def bias_plan(self, mode: str, window: float) -> BiasPlan:
+        """The slowly varying biases the estimator adds to its state for `mode` (one of
+        BIAS_MODES), each observable with the model's state (see `BiasPlan`), computed once
+        per (mode, window).
+
+        "output" (one offset per output) and "input" (one bias per actuator) are refused
+        with a one-line ModelError (key "bias") where the outputs cannot tell the biases
+        from the state: rank [[A - I, B_d], [C, D_d]] < n + n_b on the observable part (the
+        PBH test at z = 1 of the pair augmented with the biases, which are modes at z = 1).
+        "auto" takes "output" where it is observable, else "input", else none, the last
+        with one log line. `window`: seconds over which a bias follows a slow drift (its
+        random-walk intensity, `BiasPlan.q`)."""
+        key = (mode, float(window))
+        hit = self._bias_plans.get(key)
+        if hit is not None:
+            return hit
+        if mode not in BIAS_MODES:
+            raise ModelError(f"bias must be one of {', '.join(BIAS_MODES)}, got {mode!r}", "bias")
+        if not (math.isfinite(window) and window > 0.0):
+            raise ModelError(f"the bias window must be a positive number of seconds, got "
+                             f"{window!r}", "bias")
+        plan: BiasPlan | None = None
+        if mode == "none":
+            plan = BiasPlan("none", np.zeros(0), self.T, window)
+        elif mode in ("output", "input"):
+            plan, why = self._bias_try(mode, window)
+            if plan is None:
+                raise ModelError(why, "bias")
+        else:
+            why_out = why_in = ""
+            plan, why_out = self._bias_try("output", window)
+            if plan is None:
+                plan, why_in = self._bias_try("input", window)
+            if plan is None:
+                _log.warning("bias = \"auto\": no bias state: %s; %s", why_out, why_in)
+                plan = BiasPlan("none", np.zeros(0), self.T, window)
+        self._bias_plans[key] = plan
+        return plan
+
+    def _bias_try(self, kind: str, window: float) -> tuple[BiasPlan | None, str]:
+        """(the plan of `kind`, "") if its biases are observable with the state, else
+        (None, why)."""
+        with _numerics(f"the observability test of the {kind} biases"):
+            A, B, _ = self.at(self.T)
+            n, m, p = self.n, self.m, self.p
+            Bd, Dd = BiasPlan.entry(kind, B, self.D)
+            nb = Bd.shape[1]
+            M = np.block([[A - np.eye(n), Bd], [self.C, Dd]])
+            rank = np.linalg.matrix_rank(M, tol=1e-9 * max(1.0, float(np.abs(M).max())))
+            if rank < n + nb:
+                if kind == "output":
+                    why = ("bias = \"output\": an offset on each output is not told apart from "
+                           "the state (the outputs see an integrator: A has an eigenvalue at "
+                           "1), so it is not observable; use \"input\", \"auto\" or \"none\"")
+                else:
+                    why = (f"bias = \"input\": a constant bias on each of the {m} inputs is not "
+                           f"told apart from the state by the {p} output(s) (rank "
+                           "[[A - I, B], [C, D]] < n + m), so it is not observable; use "
+                           "\"output\", \"auto\" or \"none\"")
+                return None, why
+            # what the outputs show of a unit bias held over the window, per bias: its
+            # steady-state gain on a stable plant, a finite measure on an integrating one
+            if kind == "output":
+                H = np.eye(p)
+            elif np.linalg.cond(np.eye(n) - A) < 1e12:
+                H = self.C @ np.linalg.solve(np.eye(n) - A, B) + self.D
+            else:  # an integrating plant: the response to the bias held over 100 periods
+                _, Bw, _ = self.at(100.0 * self.T)
+                H = self.C @ Bw + self.D
+            info = np.einsum("pb,pq,qb->b", H, np.linalg.inv(self.R), H)
+        if not (np.all(np.isfinite(info)) and np.all(info > 0.0)):
+            return None, f"bias = \"{kind}\": a bias does not reach the outputs"
+        return BiasPlan(cast(Literal["input", "output"], kind), np.asarray(info, np.float64),
+                        self.T, window), ""
 
     @cached_property
     def dc_gain(self) -> Array:

@@ -131,21 +131,26 @@ def unscented_transform(
 def chol_lower(P: Array, L: Array) -> int:
     """Lower Cholesky factor of P into L; returns the number of clamped pivots.
 
-    A pivot below floor = 1e-12 * max(diag P, 1e-300) is clamped to the floor: a
-    positive semi-definite P that round-off made slightly indefinite still yields a
-    usable factor, and the clamp is counted instead of producing NaN.
+    Pivot j below floor_j = 1e-12 * max(P_jj, 1e-12 max(diag P), 1e-300) is clamped to
+    the floor: a positive semi-definite P that round-off made slightly indefinite still
+    yields a usable factor, and the clamp is counted instead of producing NaN. The floor
+    is relative to the pivot's own diagonal, where the round-off of its elimination is: a
+    state known far better than the others in their units (a slow bias beside a wide
+    speed, step 8 of `monitor.estimation.fuzzy_ukf`) is no round-off.
     """
     n = P.shape[0]
     dmax = 0.0
     for i in range(n):
         if P[i, i] > dmax:
             dmax = P[i, i]
-    floor = 1e-12 * max(dmax, 1e-300)
+    base = max(1e-12 * dmax, 1e-300)
     repairs = 0
     for j in range(n):
         s = P[j, j]
         for k in range(j):
             s -= L[j, k] * L[j, k]
+        pj = P[j, j]
+        floor = 1e-12 * (pj if pj > base else base)  # a NaN diagonal: the base
         if not s > floor:  # also catches NaN
             s = floor
             repairs += 1

@@ -81,8 +81,8 @@ class Identification:
     def to_png(self, path: str | Path) -> None:
         """Measured against simulated output on the hold-out, innovation autocorrelation
         and input cross-correlation with their bands. Needs matplotlib (UsageError if
-        missing, from experiments.plotting.pyplot)."""
-        from experiments.plotting import pyplot
+        missing, from monitor.plotting.pyplot)."""
+        from monitor.plotting import pyplot
 
         plt = pyplot()
         rep = self.report
@@ -177,8 +177,9 @@ def _fit_black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
     try:
         fit = fit_state_space(u, y, T, order, ntr)
         n = fit.order
+        Ac, Bc, C, Qc = _balanced_scale(fit.Ac, fit.Bc, fit.C, 0.5 * (fit.Qc + fit.Qc.T))
         model = ContinuousDescriptor(
-            E=np.eye(n), A=fit.Ac, B=fit.Bc, C=fit.C, Qc=0.5 * (fit.Qc + fit.Qc.T), R=fit.R,
+            E=np.eye(n), A=Ac, B=Bc, C=C, Qc=Qc, R=fit.R,
             state_names=tuple(f"x{i + 1}" for i in range(n)), input_names=names[0],
             output_names=names[1])
     except IdentifyError:
@@ -195,7 +196,28 @@ def _fit_black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
         "form": fit.form,
         "function_evaluations": fit.nfev,
     }
-    return _Candidate("state_space", model, fit.q, n, None, dict(fit.invariants), extra)
+    return _Candidate("state_space", model, float(np.trace(Qc)) / n, n, None,
+                      dict(fit.invariants), extra)
+
+
+def _balanced_scale(Ac: Array, Bc: Array, C: Array, Qc: Array
+                    ) -> tuple[Array, Array, Array, Array]:
+    """The same model in states scaled so that each state's row of B and column of C have
+    the same norm: x = S z with S diagonal gives S^-1 Ac S, S^-1 B, C S and S^-1 Qc S^-1.
+
+    The fit's coordinates can leave B some 1e-4 and C some 1e2 (the subspace's state
+    scale); the estimator's test that a loss shows in the outputs (the rank of
+    [[A - I, B], [C, D]] against a tolerance relative to its largest entry) then calls a
+    slow plant sampled fast unobservable (a smallest singular value of 1e-10 of the
+    largest where the balanced states give 1e-4). A diagonal scale changes neither the
+    input-output behaviour nor the filter: the estimator normalises each state by its own
+    standard deviation."""
+    b = np.linalg.norm(Bc, axis=1)
+    c = np.linalg.norm(C, axis=0)
+    ok = (b > 0) & (c > 0) & np.isfinite(b) & np.isfinite(c)
+    s = np.where(ok, np.sqrt(np.where(ok, b, 1.0) / np.where(ok, c, 1.0)), 1.0)
+    return (Ac * s[None, :] / s[:, None], Bc / s[:, None], C * s[None, :],
+            Qc / np.outer(s, s))
 
 
 def _black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,

@@ -40,7 +40,7 @@ A node's `Diagnosis` is due on every change of its state or of its model-mismatc
 both are reported) and at a steady rate (the bus publisher sink turns it into a
 MonitorDiagnosis frame).
 
-What comes out goes to one `monitor.sinks.Sink` (a `FanOut` for several): typed events
+What comes out goes to one `monitor.pipeline.sink.Sink` (a `FanOut` for several): typed events
 from `monitor.pipeline.events`, never Rerun calls or CAN frames. Interface outages and
 kernel socket drops are reported to the pipeline by the application (`interface_failed`,
 `interface_back`, `socket_drops`), so every counter is written here.
@@ -52,12 +52,19 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import can
 import numpy as np
 
-from monitor.bus.codec import Decoded, Rejected
+from monitor.bus.cia402 import (
+    IGNORED_NOT_OPERATIONAL,
+    drive_watch,
+    report_counter,
+    report_level,
+    report_text,
+)
+from monitor.bus.codec import Decoded, Rejected, RejectReason
 from monitor.bus.counters import CounterOutcome, CounterTracker
 from monitor.bus.faults import describe_error_frame
 from monitor.diagnosis import (
@@ -88,10 +95,7 @@ from monitor.pipeline.events import (
 )
 from monitor.pipeline.periods import counter_periods, wrapped
 from monitor.pipeline.samples import delayed, hold, input_delay_problem, no_past
-from monitor.sinks import base as sinks
-
-if TYPE_CHECKING:
-    from monitor.sinks.base import Sink
+from monitor.pipeline.sink import Sink
 
 __all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 
@@ -244,14 +248,16 @@ class MonitorPipeline:
         publisher); by default the pipeline starts its own."""
         self.db = db
         self.cfg = cfg or MonitorConfig()
-        # the module, not the class: sinks import the events of this package
-        self.sink: Sink = sink if sink is not None else sinks.Sink()
+        self.sink: Sink = sink if sink is not None else Sink()
         self.counters = counters if counters is not None else Counters()
         self.nodes: dict[int, NodeMonitor] = {}
         self._warn = _RateLimitedLog()
         self._last_counters_t = -math.inf
         self._model = self.cfg.plant().discretize(1.0 / self.cfg.rate)
         self.tracker = CounterTracker()
+        self._drives = drive_watch(db)  # a CANopen rig's drives: EMCY, heartbeat, statusword
+        self._held: set[int] = set()  # nodes whose drive said it was not operational
+        self._resumed: set[int] = set()  # ... and is again: its next sample restarts
         # Load the compiled kernels now, not on the first frame of a live bus.
         # (the structure event's onset search and re-processing too: a JIT compile in the
         # middle of a flood would stall the daemon for seconds)
@@ -284,6 +290,11 @@ class MonitorPipeline:
             self.counters.inc(C.rejected(reason))
             self._warn.warn(reason, f"frame rejected ({reason}, id 0x{res.arbitration_id:X}): "
                                     f"{res.detail}")
+            if self._drives is not None and res.reason == RejectReason.UNKNOWN_ID:
+                for r in self._drives.feed(msg.arbitration_id, bytes(msg.data),
+                                           float(msg.timestamp)):
+                    self.counters.inc(report_counter(r))
+                    self.sink.on_bus_event(BusEvent(r.t, report_text(r), report_level(r)))
             return
         self._dispatch(res)
 
@@ -313,6 +324,14 @@ class MonitorPipeline:
         if wanted is not None and d.node not in wanted:
             self.counters.inc(C.IGNORED_NODE)
             return
+        if self._drives is not None:
+            if not self._drives.operational(d.node):
+                self.counters.inc(IGNORED_NOT_OPERATIONAL)  # the drive says it is not driving
+                self._held.add(d.node)
+                return
+            if d.node in self._held:  # the estimate from before is not the plant's now
+                self._held.discard(d.node)
+                self._resumed.add(d.node)
         nm = self._node(d.node)
         lost = self._check_counter(d, nm)
         if lost is None:
@@ -372,7 +391,7 @@ class MonitorPipeline:
             if not dt > 0.0:
                 self.counters.inc(C.TIME_NON_MONOTONIC)
                 return
-            if dt > self.cfg.max_gap_s:
+            if dt > self.cfg.max_gap_s or nm.node in self._resumed:
                 self.counters.inc(C.ESTIMATOR_RESTARTS)
                 nm.restart()
                 flag_cause = "restart"
@@ -383,6 +402,7 @@ class MonitorPipeline:
                 if k > 1:
                     self.counters.inc(C.SAMPLES_PREDICTED_THROUGH, k - 1)
         nm.last_t = t
+        self._resumed.discard(nm.node)
         y = nm.y
         for i, v in enumerate(outputs):
             y[i] = v

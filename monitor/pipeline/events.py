@@ -112,7 +112,7 @@ class DiagnosisEvent:
 
     `fault_input` is what `Diagnosis.fault_input` is, in `fault_input_unit`. A reader of
     an events file also takes the line of an older monitor, which names it ``fault_volts``
-    and has no unit (`monitor.app.paths`).
+    and has no unit (`monitor.runtime.paths`).
     """
 
     t: float

@@ -29,8 +29,15 @@ from monitor.bus.rigcodec import (
 )
 from monitor.bus.secoc import SecOCLayout, SyncLayout
 from monitor.errors import MonitorError, one_line
-from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, ModelError, dc_motor
-from monitor.rig.spec import ProtectionSpec, Rig, SignalRef
+from monitor.estimation.model import (
+    BIAS_WINDOW_S,
+    ContinuousDescriptor,
+    DCMotorParameters,
+    ModelError,
+    dc_motor,
+)
+from monitor.rig.errors import RigError
+from monitor.rig.spec import ProtectionSpec, Rig, SignalRef, builtin_rig, model_of
 
 __all__ = ["build_decoder", "build_model", "builtin_difference", "check_rig", "is_builtin_bus",
            "signal_units", "unit_factor"]
@@ -165,8 +172,6 @@ def builtin_difference(rig: Rig) -> str | None:
     the layout, the signals, the truth, the protection and SecOC; units are compared by
     `build_decoder`, by their conversion, since that needs the DBC. (The nodes, the model,
     the rate and the diagnosis are the pipeline's, served alike by either decoder.)"""
-    from monitor.rig.load import builtin_rig  # load imports this module
-
     ours = builtin_rig()
     if len(rig.dbc) != len(ours.dbc):
         return "bus.dbc"
@@ -425,7 +430,15 @@ class _Bus:
 
 
 def _load(rig: Rig, fail: Fail) -> Database:
-    """The rig's DBC files as one database (a mistake: one line on bus.dbc)."""
+    """The rig's DBC files as one database (a mistake: one line on bus.dbc); a CANopen
+    rig's PDOs as the same description (`monitor.bus.canopen`)."""
+    if rig.canopen is not None:
+        from monitor.rig.canopen import canopen_database, file_key  # CANopen rigs only
+
+        try:
+            return canopen_database(rig.canopen)
+        except CodecError as exc:
+            raise fail(file_key(rig.canopen), str(exc)) from None
     try:
         return load_rig_dbcs(rig.dbc)
     except CodecError as exc:
@@ -499,17 +512,20 @@ def build_decoder(rig: Rig, *, secoc_key: bytes | None = None,
         _tell_once(rig, f"not our bus as the built-in rig describes it ({differs}): read by "
                         f"the rig codec, so {'; '.join(extras.values())}")
     try:
-        return RigCodec(db, ", ".join(p.name for p in rig.dbc), bus.messages, bus.resolve,
-                        bus.nodes, sync=bus.sync, secoc_key=secoc_key)
+        codec = RigCodec(db, ", ".join(p.name for p in rig.dbc), bus.messages, bus.resolve,
+                         bus.nodes, sync=bus.sync, secoc_key=secoc_key)
     except CodecError as exc:
         raise fail("bus", str(exc)) from None
+    if rig.canopen is not None:  # the engines read what the drives say about themselves
+        from monitor.rig.canopen import watch_canopen
+
+        watch_canopen(codec, rig.canopen)
+    return codec
 
 
 def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
     """The rig's continuous model (`model.discretize(1 / rig.rate)` for the estimator); a
     rig without one is refused (`model_of`)."""
-    from monitor.rig.load import model_of
-
     fail = fail or _default_fail(rig)
     spec, rate = model_of(rig)
     try:
@@ -539,7 +555,9 @@ def check_rig(rig: Rig, fail: Fail) -> Rig:
         return rig
     model = build_model(rig, fail)
     try:
-        model.discretize(1.0 / rig.rate)
+        # the estimator's bias states (`[model] bias`): an explicit kind the outputs
+        # cannot observe is refused here, in one line
+        model.discretize(1.0 / rig.rate).bias_plan(rig.model.bias, BIAS_WINDOW_S)
     except ModelError as exc:
         raise fail(f"model.{exc.key}" if exc.key else "model", str(exc)) from None
     if model.B.shape[1] != len(rig.inputs) or model.C.shape[0] != len(rig.outputs):
@@ -553,8 +571,6 @@ def _default_fail(rig: Rig) -> Fail:
     shown = str(rig.source) if rig.source is not None else "<built-in rig>"
 
     def fail(key: str, problem: str) -> MonitorError:
-        from monitor.rig.load import RigError
-
         return RigError(f"rig file {shown}: {key}: {problem}")
 
     return fail

@@ -15,10 +15,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
-from monitor.errors import MonitorError
+from monitor.estimation.model import BIAS_MODES
 from monitor.files import MIB, UserFileError, read_user_toml, shown_path, user_file_problem
 from monitor.pipeline.samples import input_delay_problem
+from monitor.rig.check import check_rig
+from monitor.rig.errors import NO_MODEL, RigError
 from monitor.rig.spec import (
+    CanopenSpec,
     DiagnosisSpec,
     LayoutSpec,
     ModelSpec,
@@ -27,6 +30,8 @@ from monitor.rig.spec import (
     SecOCSpec,
     SignalRef,
     SyncSpec,
+    builtin_rig,
+    model_of,
 )
 
 __all__ = ["MAX_RATE_HZ", "MIN_RATE_HZ", "NO_MODEL", "RigError", "builtin_rig", "load_rig",
@@ -39,10 +44,6 @@ _MATRICES = ("E", "A", "B", "C", "D", "Q", "R")
 RIG_FILE_LIMIT = 16 * MIB
 """The largest rig file read: room for the matrices of a model of a few hundred states
 (a 200-state A is about 1 MB of TOML), far below what would exhaust the monitor."""
-
-
-class RigError(MonitorError, ValueError):
-    """A rig file that cannot serve (one line: file, key, problem)."""
 
 
 class _Table:
@@ -114,40 +115,6 @@ def load_rig(path: str | Path, *, model_optional: bool = False) -> Rig:
     return parse_rig(doc, source=p, model_optional=model_optional)
 
 
-NO_MODEL = ("missing: the rig has no model yet; learn it from a healthy capture with "
-            "motor-monitor identify CAPTURE --rig RIG --out LEARNED.toml, then give "
-            "--rig LEARNED.toml")
-"""What is wrong with a rig without [model] wherever a model is needed."""
-
-
-def model_of(rig: Rig) -> tuple[ModelSpec, float]:
-    """The rig's model and rate; one `RigError` line (`NO_MODEL`) for a rig whose model is
-    still to be learned (`load_rig(model_optional=True)`)."""
-    if rig.model is None or rig.rate is None:
-        shown = str(rig.source) if rig.source is not None else "<rig>"
-        raise RigError(f"rig file {shown}: model: {NO_MODEL}")
-    return rig.model, rig.rate
-
-
-def builtin_rig() -> Rig:
-    """Our own bus and the paper's motor: what every command uses without --rig. The same
-    rig is written out as rigs/motor.toml (a test keeps the two equal)."""
-    from monitor.bus.codec import default_dbc_path
-
-    return Rig(
-        dbc=(default_dbc_path(),),
-        layout=LayoutSpec("name_suffix"),
-        inputs=(SignalRef("MotorVoltage", "VoltageCommand", "V"),),
-        outputs=(SignalRef("MotorCurrent", "ArmatureCurrent", "A"),),
-        truth=SignalRef("SimTruth", "TrueGamma"),
-        protection={m: ProtectionSpec("e2e_profile2", "Counter", "CRC")
-                    for m in ("MotorVoltage", "MotorCurrent")},
-        model=ModelSpec(),
-        rate=100.0,
-        diagnosis=DiagnosisSpec(),
-    )
-
-
 def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None,
               model_optional: bool = False) -> Rig:
     """A `Rig` from a parsed TOML document; `source` names the file in errors and anchors
@@ -160,25 +127,43 @@ def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None,
     top = _Table(doc, "", fail)
     bus = top.table("bus", required=True)
     base = source.resolve().parent if source is not None else Path.cwd()
-    dbc_value = bus.take("dbc", (str, list))
-    dbc_list = [dbc_value] if isinstance(dbc_value, str) else dbc_value
-    if not dbc_list or not all(isinstance(d, str) for d in dbc_list):
-        raise fail("bus.dbc", "must be a file name or an array of file names")
-    dbc = tuple((base / d) for d in dbc_list)
-    for i, d in enumerate(dbc):
-        if (problem := user_file_problem(d)) is not None:
-            raise fail(f"bus.dbc[{i}]" if isinstance(dbc_value, list) else "bus.dbc",
-                       f"{shown_path(d)}: {problem}")
-    layout = _layout(bus, fail)
-    nodes = _nodes(bus.take("nodes", (str, list), "all"), fail)
+    protocol = bus.take("protocol", str, "dbc")
+    canopen: CanopenSpec | None = None
+    dbc: tuple[Path, ...]
+    nodes: tuple[int, ...] | None
+    if protocol == "canopen":
+        from monitor.rig.canopen import canopen_bus  # the canopen library: CANopen rigs only
+
+        canopen = canopen_bus(bus, base, fail)
+        dbc, layout, nodes = (canopen.file,), LayoutSpec("name_suffix"), canopen.nodes
+    elif protocol == "dbc":
+        dbc_value = bus.take("dbc", (str, list))
+        dbc_list = [dbc_value] if isinstance(dbc_value, str) else dbc_value
+        if not dbc_list or not all(isinstance(d, str) for d in dbc_list):
+            raise fail("bus.dbc", "must be a file name or an array of file names")
+        dbc = tuple((base / d) for d in dbc_list)
+        for i, d in enumerate(dbc):
+            if (problem := user_file_problem(d)) is not None:
+                raise fail(f"bus.dbc[{i}]" if isinstance(dbc_value, list) else "bus.dbc",
+                           f"{shown_path(d)}: {problem}")
+        layout = _layout(bus, fail)
+        nodes = _nodes(bus.take("nodes", (str, list), "all"), fail)
+    else:
+        raise fail("bus.protocol", f"must be dbc or canopen, got {protocol!r}")
     bus.done()
 
     signals = top.table("signals", required=True)
-    inputs = _refs(signals, "inputs", fail)
-    outputs = _refs(signals, "outputs", fail)
+    by_object = canopen is not None  # a CANopen signal names an object; its PDO is found
+    inputs = _refs(signals, "inputs", fail, by_object)
+    outputs = _refs(signals, "outputs", fail, by_object)
     truth_t = signals.take("truth", dict, None)
-    truth = None if truth_t is None else _ref(_Table(truth_t, "signals.truth", fail))
+    truth = (None if truth_t is None
+             else _ref(_Table(truth_t, "signals.truth", fail), by_object))
     signals.done()
+    if canopen is not None:
+        from monitor.rig.canopen import canopen_refs
+
+        inputs, outputs, truth = canopen_refs(canopen, inputs, outputs, truth, fail)
     out_msgs = {r.message for r in outputs}
     if len(out_msgs) > 1:
         raise fail("signals.outputs", "every output must come in one message (the one whose "
@@ -212,10 +197,8 @@ def parse_rig(doc: Mapping[str, Any], *, source: Path | None = None,
     top.done()
     rig = Rig(dbc=dbc, layout=layout, inputs=inputs, outputs=outputs, truth=truth,
               protection=protection, model=model, rate=rate, diagnosis=diagnosis,
-              nodes=nodes, source=source, secoc=secoc)
-    from monitor.rig.check import check_rig  # the DBC and the model, checked against the rig
-
-    return check_rig(rig, fail)
+              nodes=nodes, source=source, secoc=secoc, canopen=canopen)
+    return check_rig(rig, fail)  # the DBC and the model, checked against the rig
 
 
 def _layout(bus: _Table, fail: Callable[[str, str], RigError]) -> LayoutSpec:
@@ -261,14 +244,17 @@ def _nodes(value: str | list[Any], fail: Callable[[str, str], RigError]
     return tuple(sorted(set(value)))
 
 
-def _ref(t: _Table) -> SignalRef:
-    ref = SignalRef(t.take("message", str), t.take("signal", str), t.take("unit", str, None))
+def _ref(t: _Table, by_object: bool = False) -> SignalRef:
+    """A signal reference; `by_object` (a CANopen rig): the message (the PDO) may be left
+    out, `monitor.rig.canopen.canopen_refs` finds it."""
+    message = t.take("message", str, "") if by_object else t.take("message", str)
+    ref = SignalRef(message, t.take("signal", str), t.take("unit", str, None))
     t.done()
     return ref
 
 
-def _refs(signals: _Table, name: str, fail: Callable[[str, str], RigError]
-          ) -> tuple[SignalRef, ...]:
+def _refs(signals: _Table, name: str, fail: Callable[[str, str], RigError],
+          by_object: bool = False) -> tuple[SignalRef, ...]:
     items = signals.take(name, list)
     if not items:
         raise fail(f"signals.{name}", "needs at least one signal")
@@ -276,7 +262,7 @@ def _refs(signals: _Table, name: str, fail: Callable[[str, str], RigError]
     for i, item in enumerate(items):
         if not isinstance(item, dict):
             raise fail(f"signals.{name}[{i}]", "must be a table {message = ..., signal = ...}")
-        refs.append(_ref(_Table(item, f"signals.{name}[{i}]", fail)))
+        refs.append(_ref(_Table(item, f"signals.{name}[{i}]", fail), by_object))
     return tuple(refs)
 
 
@@ -389,8 +375,11 @@ def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
         raise fail("model.input_delay", problem)
     adaptive = t.take("adaptive_noise", bool, True)
     window = t.number("noise_window_s", 2.0, positive=True)
+    bias = t.take("bias", str, "auto")
+    if bias not in BIAS_MODES:
+        raise fail("model.bias", f"must be one of {', '.join(BIAS_MODES)}, got {bias!r}")
     return replace(spec, input_delay=delay, adaptive_noise=adaptive,
-                   noise_window_s=window), rate
+                   noise_window_s=window, bias=bias), rate
 
 
 def _model_kind(t: _Table, kind: str, rate: float, m: int, p: int,

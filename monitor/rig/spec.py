@@ -12,8 +12,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-__all__ = ["DiagnosisSpec", "LayoutSpec", "ModelSpec", "ProtectionSpec", "Rig", "SecOCSpec",
-           "SignalRef", "SyncSpec"]
+from monitor.rig.errors import NO_MODEL, RigError
+
+__all__ = ["CanopenSpec", "DiagnosisSpec", "LayoutSpec", "ModelSpec", "ObjectScale", "PdoSpec",
+           "ProtectionSpec", "Rig", "SecOCSpec", "SignalRef", "SyncSpec", "builtin_rig",
+           "model_of"]
 
 LayoutKind = Literal["name_suffix", "id_bits", "explicit"]
 ProtectionKind = Literal["none", "e2e_profile2"]
@@ -99,7 +102,9 @@ class ModelSpec:
     matrices (`state_space`, continuous or discrete, descriptor E optional); `input_delay`:
     the estimator's step for output sample k takes the input held at sample k - input_delay
     (`monitor.pipeline.samples`); `adaptive_noise`: the estimator learns output noise above
-    R from its innovations over `noise_window_s` (`monitor.estimation.fuzzy_ukf`, step 5b)."""
+    R from its innovations over `noise_window_s` (`monitor.estimation.fuzzy_ukf`, step 5b);
+    `bias`: the estimator's bias states for a load or an offset the model lacks ("auto",
+    "none", "input", "output"; `monitor.estimation.fuzzy_ukf`, step 8)."""
 
     kind: ModelKind = "dc_motor"
     motor: Mapping[str, float] = field(default_factory=dict)  # J, b, Ke, Ki, Ra, La
@@ -113,6 +118,7 @@ class ModelSpec:
     input_delay: int = 0
     adaptive_noise: bool = True
     noise_window_s: float = 2.0
+    bias: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -130,10 +136,48 @@ class DiagnosisSpec:
 
 
 @dataclass(frozen=True)
+class PdoSpec:
+    """A PDO's mapping and communication as the rig file sets them (`[bus.pdo.TPDO1]`),
+    over what the EDS or DCF says; None: the file's. `objects`: (index, subindex) in
+    order; `transmission`: the transmission type (1..240 every n-th SYNC, 254/255 on the
+    event timer); `cob_id`: the COB-ID of node 1's PDO, the node's ID added for the others
+    (the pre-defined connection set's rule)."""
+
+    name: str  # "TPDO1".."TPDO512", "RPDO1".."RPDO512"
+    enabled: bool | None = None
+    objects: tuple[tuple[int, int], ...] | None = None
+    transmission: int | None = None
+    event_timer_ms: int | None = None
+    cob_id: int | None = None
+
+
+@dataclass(frozen=True)
+class ObjectScale:
+    """The scaling of an object's raw value to its physical value (`factor`, in `unit`),
+    as the rig file sets it (`[bus.objects."0x606C"]`), over the EDS and CiA 402's."""
+
+    factor: float | None = None
+    unit: str | None = None
+
+
+@dataclass(frozen=True)
+class CanopenSpec:
+    """A CANopen bus (`[bus] protocol = "canopen"`): the drive's EDS or DCF file, the node
+    IDs, and what the rig file sets over the file: PDOs and the scaling of objects (keyed
+    by (index, subindex)). The bus description the codec reads is built from it by
+    `monitor.bus.canopen`."""
+
+    file: Path
+    nodes: tuple[int, ...]
+    pdos: tuple[PdoSpec, ...] = ()
+    objects: Mapping[tuple[int, int], ObjectScale] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class Rig:
     """A whole rig; `source` is the file it came from (None: the built-in default); `model`
     and `rate` are None for a rig whose model is still to be learned (`identify`'s input,
-    `load_rig(model_optional=True)`; `monitor.rig.load.model_of` refuses it elsewhere)."""
+    `load_rig(model_optional=True)`; `model_of` refuses it elsewhere)."""
 
     dbc: tuple[Path, ...]
     layout: LayoutSpec
@@ -147,6 +191,7 @@ class Rig:
     nodes: tuple[int, ...] | None = None
     source: Path | None = None
     secoc: SyncSpec | None = None  # the sync message, when a message has SecOC
+    canopen: CanopenSpec | None = None  # a CANopen bus: `dbc` then holds its EDS or DCF
 
     @property
     def messages(self) -> tuple[str, ...]:
@@ -163,3 +208,33 @@ class Rig:
     def output_message(self) -> str:
         """The message whose arrival is one sample: it carries every output."""
         return self.outputs[0].message
+
+
+def model_of(rig: Rig) -> tuple[ModelSpec, float]:
+    """The rig's model and rate; one `RigError` line (`NO_MODEL`) for a rig whose model is
+    still to be learned (`load_rig(model_optional=True)`)."""
+    if rig.model is None or rig.rate is None:
+        shown = str(rig.source) if rig.source is not None else "<rig>"
+        raise RigError(f"rig file {shown}: model: {NO_MODEL}")
+    return rig.model, rig.rate
+
+
+def builtin_rig() -> Rig:
+    """Our own bus and the paper's motor: what every command uses without --rig. The same
+    rig is written out as rigs/motor.toml (a test keeps the two equal)."""
+    # the codec (cantools) only when the built-in rig is asked for: the rig's data model
+    # alone imports nothing of the bus
+    from monitor.bus.codec import default_dbc_path
+
+    return Rig(
+        dbc=(default_dbc_path(),),
+        layout=LayoutSpec("name_suffix"),
+        inputs=(SignalRef("MotorVoltage", "VoltageCommand", "V"),),
+        outputs=(SignalRef("MotorCurrent", "ArmatureCurrent", "A"),),
+        truth=SignalRef("SimTruth", "TrueGamma"),
+        protection={m: ProtectionSpec("e2e_profile2", "Counter", "CRC")
+                    for m in ("MotorVoltage", "MotorCurrent")},
+        model=ModelSpec(),
+        rate=100.0,
+        diagnosis=DiagnosisSpec(),
+    )

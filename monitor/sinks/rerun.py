@@ -320,7 +320,7 @@ class RerunSink(RecordingOutlet):
     same path are deleted at start: they would merge into this one.
 
     ``signals`` names the inputs and outputs (entities, legends; default: our bus's): the
-    rig's, `monitor.app.outputs.plant_signals`.
+    rig's, `monitor.setup.plant_signals`.
     """
 
     def __init__(

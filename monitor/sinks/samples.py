@@ -70,7 +70,7 @@ _VERSION = b"1"
 
 CSV_FIRST = "t_s,node,"
 CSV_LAST = ",nis,state,model_mismatch"
-"""How a samples CSV header begins and ends (how `monitor.app.paths` recognises one)."""
+"""How a samples CSV header begins and ends (how `monitor.runtime.paths` recognises one)."""
 
 _STATE_LABELS = np.array([s.label for s in HealthState], dtype=object)
 

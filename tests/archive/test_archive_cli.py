@@ -15,6 +15,7 @@ from monitor.archive import run as archive_run
 from monitor.archive.engine import EngineRun, MonitorSetup, NodeStats, ReplaySettings
 from monitor.archive.inputs import find_logs
 from monitor.archive.run import run_archive
+from monitor.bus.logfile import suffix_list
 from monitor.pipeline.events import DiagnosisEvent
 from monitor.sinks.base import Sink
 from tests.archive.conftest import read_csv, read_parquet, run_cli
@@ -70,7 +71,7 @@ def test_output_names_below_the_deepest_common_directory(tree: Path) -> None:
         ("", f"{tree / 'zz*'}: no log matches this pattern")]
     (empty := tree / "empty").mkdir()
     [only] = find_logs([str(empty)])
-    assert only.problem is not None and "holds no .log, .asc, .blf file" in only.problem
+    assert only.problem is not None and f"holds no {suffix_list()} file" in only.problem
 
 
 def test_missing_unsupported_and_unmatched_are_rows_not_the_end(
@@ -88,7 +89,7 @@ def test_missing_unsupported_and_unmatched_are_rows_not_the_end(
     assert reasons == {
         str(tree / "missing.log"): f"{tree / 'missing.log'}: no such file",
         str(tree / "c" / "y" / "notes.txt"):
-            f"{tree / 'c/y/notes.txt'}: unsupported log format (use .log, .asc, .blf)",
+            f"{tree / 'c/y/notes.txt'}: unsupported log format (use {suffix_list()})",
         str(tree / "nothing*.blf"): f"{tree / 'nothing*.blf'}: no log matches this pattern",
     }
 

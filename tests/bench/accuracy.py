@@ -10,6 +10,9 @@ abrupt losses >= 0.3 at 100 Hz (onset to first alarm; the table shows the worst 
 scenario, '*' for a missed onset), the median delay until the right class is reported,
 false alarms per hour of fault-free running, classification accuracy outside 0.5 s after
 each true transition. A table, then the figures as JSON on the last line.
+
+`--methods fuzzy_ukf,fuzzy_ukf:bias=none` compares the fuzzy UKF with FuzzyUKFConfig
+overrides ("name=value;..." after the colon) side by side in one run.
 """
 
 from __future__ import annotations
@@ -25,10 +28,12 @@ import numpy as np
 
 from experiments.scoring import score_run
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier
-from monitor.estimation.model import DCMotorParameters, dc_motor
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
+from monitor.estimation.model import DCMotorParameters, DiscreteModel, dc_motor
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import Scenario, scenario_from_dict
-from tests.bench.common import METHODS
+from tests.bench.common import METHODS, GammaEstimator
+from tests.bench.realistic import config_overrides
 
 DWELL_S = 0.03
 
@@ -87,12 +92,31 @@ def cases(quick: bool) -> list[Case]:
     return c
 
 
+class _ConfiguredFuzzyUKF:
+    """The fuzzy UKF with a non-default configuration (a method "fuzzy_ukf:k=v;...")."""
+
+    def __init__(self, model: DiscreteModel, x0: Any, cfg: FuzzyUKFConfig) -> None:
+        self.est = FuzzyUKF(model, cfg, x0=x0)
+
+    def step(self, u: Any, y: Any, dt: float) -> Any:
+        return self.est.step(u, y, dt).gamma
+
+
+def _estimator(method: str, model: DiscreteModel, x0: Any) -> GammaEstimator:
+    base, _, spec = method.partition(":")
+    if not spec:
+        return METHODS[method](model, x0)
+    if base != "fuzzy_ukf":
+        raise SystemExit(f"--methods: overrides only for fuzzy_ukf, got {method!r}")
+    return _ConfiguredFuzzyUKF(model, x0, config_overrides(spec.replace(";", ",")))
+
+
 def run_case(case: Case, method: str) -> dict[str, Any]:
     T = 1.0 / case.rate
     plant_model = dc_motor(DCMotorParameters(La=case.la), q=1.44 * case.scenario.process,
                            r=case.scenario.current_sigma**2)
     run = simulate(plant_model, case.scenario, T, seed=case.seed)
-    est = METHODS[method](plant_model.discretize(T), run.x[0])
+    est = _estimator(method, plant_model.discretize(T), run.x[0])
     clf = OnlineClassifier(DEFAULT_THRESHOLDS, dwell_s=DWELL_S, hysteresis=0.02)
     N = len(run.t)
     g = np.empty(N)

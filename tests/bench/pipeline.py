@@ -1,14 +1,17 @@
 """Pipeline throughput benchmark: `python -m tests.bench.pipeline [--frames N] [--stages ...]`.
 
 `--stages` picks stages (default: all): decode, pipeline, pipeline+rerun, columnar+rerun,
-and the log readers alone, read-log, read-asc, read-blf (`monitor.columnar.read_chunks` on
-the same frames as candump .log, Vector .asc and .blf, the latter two written and read by
-python-can), e.g. ``--frames 10000000 --stages decode,columnar+rerun`` for the memory over
-10^7 frames.
+mf4+rerun, and the log readers alone, read-log, read-asc, read-blf, read-mf4
+(`monitor.columnar.read_chunks` on the same frames as candump .log, Vector .asc and .blf,
+the latter two written and read by python-can, and an ASAM MDF4 .mf4 written by asammdf),
+read-mf4-python-can (python-can's `MF4Reader` alone on that .mf4, message by message),
+e.g. ``--frames 10000000 --stages decode,columnar+rerun`` for the memory over 10^7 frames.
 
 The columnar replay (`monitor.columnar.replay_file`, with Rerun on) runs in the same run on
 the same frames written to a candump .log (the file read is part of its time), beside the
 per-frame pipeline and cantools' per-frame decoding; its memory is sampled at every chunk.
+mf4+rerun is the same replay of the same frames written to an .mf4 (asammdf's columns read
+a chunk at a time), beside read-mf4-python-can, python-can's reader of that file alone.
 
 Frames per second in replay through decode, estimation, diagnosis and Rerun batching,
 side by side in one run with cantools decoding alone and with the pipeline without Rerun,
@@ -43,10 +46,12 @@ from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.rerun import REPLAY_BATCH_SIZE, REPLAY_PART_BYTES, RerunSink, recording_parts
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario
+from tests.log_readers import write_mf4
 
 BUS_LIMIT_FPS = 1_000_000 / 111  # 8-byte standard frames, no stuff bits: the upper bound
-STAGES = ("decode", "pipeline", "pipeline+rerun", "columnar+rerun", "read-log", "read-asc",
-          "read-blf")
+STAGES = ("decode", "pipeline", "pipeline+rerun", "columnar+rerun", "mf4+rerun", "read-log",
+          "read-asc", "read-blf", "read-mf4", "read-mf4-python-can")
+MF4_TARGET_FPS = 200_000
 
 
 def _rss_mb() -> float:
@@ -91,6 +96,36 @@ def _write_log(base: list[can.Message], period: float, n: int, path: Path) -> No
                 f.writelines(lines)
                 lines = []
         f.writelines(lines)
+
+
+def _write_mf4(base: list[can.Message], period: float, n: int, path: Path) -> None:
+    """The benchmark's frames as an MF4 file written by asammdf, column by column (the
+    frames of `_stream`: the base run repeated, shifted by `period`)."""
+    reps = -(-n // len(base))
+    shift = np.repeat(np.arange(reps) * period, len(base))[:n]
+    t = np.tile([m.timestamp - base[0].timestamp for m in base], reps)[:n] + shift
+    ids = np.tile([m.arbitration_id for m in base], reps)[:n]
+    length = np.tile([len(m.data) for m in base], reps)[:n]
+    payload = np.zeros((len(base), 8), np.uint8)
+    for i, m in enumerate(base):
+        payload[i, :len(m.data)] = np.frombuffer(bytes(m.data), np.uint8)
+    write_mf4(path, t, ids, np.tile(payload, (reps, 1))[:n], length)
+
+
+def _python_can_mf4(path: Path, n: int) -> dict[str, object]:
+    """python-can's MF4Reader alone: frames per second as messages."""
+    rss = [_rss_mb()]
+    t0 = time.perf_counter()
+    frames = 0
+    with can.io.MF4Reader(str(path)) as reader:
+        for _ in reader:
+            frames += 1
+            if frames % 100_000 == 0:
+                rss.append(_rss_mb())
+    el = time.perf_counter() - t0
+    rss.append(_rss_mb())
+    assert frames == n, (path, frames, n)
+    return {"fps": n / el, "rss_mb": rss, "file_mb": path.stat().st_size / 2**20}
 
 
 class _RSS(Sink):
@@ -207,6 +242,17 @@ def main() -> None:
                 results[kind] = _run(kind, db, base, period, args.frames, Path(td))
             elif kind == "columnar+rerun":
                 results[kind] = _columnar(db, log, args.frames, Path(td))
+            elif kind in ("mf4+rerun", "read-mf4", "read-mf4-python-can"):
+                mf4 = Path(td) / "bench.mf4"
+                if not mf4.exists():
+                    _write_mf4(base, period, args.frames, mf4)
+                    replay_file(head, db, MonitorConfig(nodes=(0,)))  # asammdf imported
+                if kind == "mf4+rerun":
+                    results[kind] = _columnar(db, mf4, args.frames, Path(td))
+                elif kind == "read-mf4":
+                    results[kind] = _read(mf4, args.frames)
+                else:
+                    results[kind] = _python_can_mf4(mf4, args.frames)
             elif kind == "read-log":
                 results[kind] = _read(log, args.frames)
             else:
@@ -235,6 +281,13 @@ def main() -> None:
             per = float(results["pipeline+rerun"]["fps"])  # type: ignore[arg-type]
             ratios["columnar_over_per_frame"] = col / per
             print(f"columnar/per-frame {col / per:.2f}x")
+    if "mf4+rerun" in results:
+        mf4_fps = float(results["mf4+rerun"]["fps"])  # type: ignore[arg-type]
+        ratios.update(mf4_target_fps=MF4_TARGET_FPS, mf4_meets_target=mf4_fps >= MF4_TARGET_FPS)
+        if "read-mf4-python-can" in results:
+            alone = float(results["read-mf4-python-can"]["fps"])  # type: ignore[arg-type]
+            ratios["mf4_replay_over_python_can_reader"] = mf4_fps / alone
+            print(f"mf4 replay/python-can's MF4Reader alone {mf4_fps / alone:.2f}x")
     print(json.dumps({"benchmark": "pipeline", "frames": args.frames,
                       "bus_limit_fps": BUS_LIMIT_FPS, "ratios": ratios, "results": results}))
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from monitor.estimation.fuzzy_ukf import FuzzyUKF
 from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, dc_motor
 from monitor.identify import Identification, IdentifyError, identify, prbs
 from monitor.identify.lti import d2c, dsim
-from sim_ecu.plant import simulate
+from sim_ecu.plant import SimulatedRun, simulate
 from sim_ecu.scenario import BUILTIN_SCENARIOS, FaultSegment, Scenario
 from tests.identify.captures import (
     SMALL_MOTOR,
@@ -33,8 +35,11 @@ T1 = 0.01  # Table-1 motor at 100 Hz
 TS = 0.001  # small motor at 1 kHz
 
 
+Table1 = tuple[Identification, np.ndarray, np.ndarray]
+
+
 @pytest.fixture(scope="module")
-def table1() -> tuple[Identification, np.ndarray, np.ndarray]:
+def table1() -> Table1:
     u = prbs(60.0, T1, level=220.0, amplitude=40.0, clock=0.3, seed=3)
     y = capture(dc_motor(), T1, u, seed=3)
     return identify(u, y, T1), u, y
@@ -49,7 +54,8 @@ def small() -> Identification:
 
 @pytest.fixture(scope="module")
 def mimo() -> Identification:
-    u = prbs(60.0, T1, level=[1.0, -0.5], amplitude=[1.0, 1.0], clock=0.3, seed=4)
+    u = prbs(60.0, T1, level=np.array([1.0, -0.5]), amplitude=np.array([1.0, 1.0]),
+             clock=0.3, seed=4)
     y = capture(two_by_two(), T1, u, seed=4, sigma=0.01)
     return identify(u, y, T1)
 
@@ -70,7 +76,7 @@ def _rel_step_error(true: ContinuousDescriptor, est: ContinuousDescriptor, t_end
 # ---- accuracy against the true plant
 
 
-def test_table1_motor_transfer_function_within_a_few_percent(table1) -> None:
+def test_table1_motor_transfer_function_within_a_few_percent(table1: Table1) -> None:
     ident, _, _ = table1
     assert ident.kind == "dc_motor"  # "auto" on one input and one output, good fit
     assert ident.report["auto"]["reason"].startswith("dc_motor")
@@ -80,7 +86,7 @@ def test_table1_motor_transfer_function_within_a_few_percent(table1) -> None:
     assert _rel_step_error(dc_motor(), ident.model, 3.0, T1) < 0.03
 
 
-def test_small_motor_at_1khz_parameters_and_transfer_function(small) -> None:
+def test_small_motor_at_1khz_parameters_and_transfer_function(small: Identification) -> None:
     assert small.kind == "dc_motor"
     m = small.motor
     assert m is not None and m.J == SMALL_MOTOR.J
@@ -115,7 +121,7 @@ def test_wrong_inertia_gives_the_same_current_model() -> None:
     assert ident.report["whiteness"]["passed"]
 
 
-def test_two_by_two_black_box(mimo) -> None:
+def test_two_by_two_black_box(mimo: Identification) -> None:
     assert mimo.kind == "state_space"
     assert mimo.order == 3
     assert mimo.report["order_selection"]["given"] is False
@@ -132,7 +138,8 @@ def test_two_by_two_black_box(mimo) -> None:
 
 
 def test_black_box_of_a_given_order() -> None:
-    u = prbs(30.0, T1, level=[1.0, -0.5], amplitude=[1.0, 1.0], clock=0.3, seed=6)
+    u = prbs(30.0, T1, level=np.array([1.0, -0.5]), amplitude=np.array([1.0, 1.0]),
+             clock=0.3, seed=6)
     y = capture(two_by_two(), T1, u, seed=6, sigma=0.01)
     ident = identify(u, y, T1, kind="state_space", order=3, run_filter=False)
     assert ident.order == 3 and ident.model.A.shape == (3, 3)
@@ -145,7 +152,7 @@ def test_black_box_of_a_given_order() -> None:
 # ---- the report
 
 
-def test_report_is_json_with_the_practitioner_checks(table1) -> None:
+def test_report_is_json_with_the_practitioner_checks(table1: Table1) -> None:
     ident, _, _ = table1
     rep = json.loads(ident.to_json())
     for key in ("fit", "whiteness", "cross_correlation", "parameters", "noise",
@@ -161,7 +168,8 @@ def test_report_is_json_with_the_practitioner_checks(table1) -> None:
 
 
 @pytest.mark.parametrize("which", ["table1", "small", "mimo"])
-def test_innovations_are_white_with_unit_variance(which: str, request) -> None:
+def test_innovations_are_white_with_unit_variance(which: str,
+                                                  request: pytest.FixtureRequest) -> None:
     got = request.getfixturevalue(which)
     ident = got[0] if isinstance(got, tuple) else got
     rep = ident.report
@@ -177,7 +185,7 @@ def test_innovations_are_white_with_unit_variance(which: str, request) -> None:
     assert max(rep["fuzzy_ukf"]["gamma_mean_holdout"]) < 0.05
 
 
-def test_png(table1, tmp_path) -> None:
+def test_png(table1: Table1, tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
     ident, _, _ = table1
     out = tmp_path / "ident.png"
@@ -188,7 +196,7 @@ def test_png(table1, tmp_path) -> None:
 # ---- the identified model in the estimator
 
 
-def _gamma_rmse(model: ContinuousDescriptor, run, T: float) -> float:
+def _gamma_rmse(model: ContinuousDescriptor, run: SimulatedRun, T: float) -> float:
     est = FuzzyUKF(model.discretize(T))
     # u[k] is applied from t[k]; the filter applies its input over the interval ending at
     # the sample, so y[k] goes with u[k-1].
@@ -197,7 +205,8 @@ def _gamma_rmse(model: ContinuousDescriptor, run, T: float) -> float:
     return float(np.sqrt(np.mean((g - run.gamma[:, 0]) ** 2)))
 
 
-def test_fuzzy_ukf_diagnoses_as_well_as_with_the_true_model(table1, small) -> None:
+def test_fuzzy_ukf_diagnoses_as_well_as_with_the_true_model(table1: Table1,
+                                                             small: Identification) -> None:
     ident, _, _ = table1
     run = simulate(dc_motor(), BUILTIN_SCENARIOS["fault-outage-recovery"], T1, seed=7)
     true_rmse = _gamma_rmse(dc_motor(), run, T1)
@@ -213,7 +222,7 @@ def test_fuzzy_ukf_diagnoses_as_well_as_with_the_true_model(table1, small) -> No
 # ---- refusals
 
 
-def _refusal(u: np.ndarray, y: np.ndarray, T: float, **kw) -> str:
+def _refusal(u: np.ndarray, y: np.ndarray, T: float, **kw: Any) -> str:
     with pytest.raises(IdentifyError) as info:
         identify(u, y, T, run_filter=False, **kw)
     msg = str(info.value)
@@ -241,7 +250,7 @@ def test_refuses_a_short_capture_and_says_how_long() -> None:
     assert "too short" in msg and "at least 10 s" in msg
 
 
-def test_refuses_a_capture_with_a_fault_in_the_middle(table1) -> None:
+def test_refuses_a_capture_with_a_fault_in_the_middle(table1: Table1) -> None:
     _, u, _ = table1
     gamma = np.zeros_like(u)
     gamma[u.shape[0] // 2:] = 0.5  # abrupt 50 % loss of effectiveness
@@ -250,7 +259,7 @@ def test_refuses_a_capture_with_a_fault_in_the_middle(table1) -> None:
     assert "changes within the capture" in msg and "healthy" in msg
 
 
-def test_refuses_non_finite_samples(table1) -> None:
+def test_refuses_non_finite_samples(table1: Table1) -> None:
     _, u, y = table1
     y = y.copy()
     y[250] = np.nan
@@ -258,7 +267,7 @@ def test_refuses_non_finite_samples(table1) -> None:
     assert "non-finite" in msg and "2.500 s" in msg
 
 
-def test_refuses_bad_arguments(table1) -> None:
+def test_refuses_bad_arguments(table1: Table1) -> None:
     _, u, y = table1
     assert "kind" in _refusal(u, y, T1, kind="arx")
     assert "state_space" in _refusal(np.hstack([u, u]), np.hstack([y, y]), T1,

@@ -11,6 +11,7 @@ from pathlib import Path
 import can
 import pytest
 
+from monitor.bus.rigcodec import RigCodec
 from monitor.rig import build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario, scenario_from_dict
@@ -24,7 +25,9 @@ def _capture(path: Path, scenario_toml: Path | None = None, *, steady: bool = Fa
     rig = load_rig(PRESS)
     scenario = (scenario_from_dict({"name": "steady", "duration": 60.0}) if steady
                 else load_scenario(scenario_toml or PRESS.parent / "press_excite.toml"))
-    ecu = RigECU(None, build_decoder(rig), rig, 1, scenario, seed=4)
+    codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec)  # a rig of its own DBC
+    ecu = RigECU(None, codec, rig, 1, scenario, seed=4)
     with can.Logger(str(path)) as log:
         for msg in ecu.frames(start_time=1.7e9):
             log(msg)
@@ -68,6 +71,7 @@ def test_identify_refuses_a_capture_without_excitation(tmp_path: Path) -> None:
 def test_identify_wants_a_node_when_the_capture_has_several(tmp_path: Path) -> None:
     rig = load_rig(PRESS)
     codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec)
     cap = tmp_path / "two.log"
     scenario = load_scenario(PRESS.parent / "press_excite.toml")
     with can.Logger(str(cap)) as log:

@@ -21,7 +21,8 @@ from sim_ecu.scenario import scenario_from_dict
 from tests.identify.test_identify_cli import BIN, PRESS, _capture, _identify
 
 T0 = 1.7e9
-GATING = {"replay_fault_free", "replay_model_mismatch", "replay_mean_nis"}
+GATING = {"replay_fault_free", "replay_gamma_margin", "replay_model_mismatch", "replay_mean_nis",
+          "fault_detection"}
 ADVISORY = {"holdout_fit", "whiteness", "cross_correlation", "consistency", "excitation"}
 
 
@@ -65,8 +66,9 @@ def test_a_healthy_capture_passes_every_gating_check(tmp_path: Path) -> None:
     assert not any(checks[n]["gating"] for n in ADVISORY)
     assert all({"check", "passed", "value", "limit", "advice"} <= set(c) for c in checks.values())
     assert checks["replay_fault_free"]["value"] == 0.0
-    lo, hi = checks["replay_mean_nis"]["limit"]  # type: ignore[misc]
-    assert lo < checks["replay_mean_nis"]["value"] < hi  # type: ignore[operator]
+    band, nis = checks["replay_mean_nis"]["limit"], checks["replay_mean_nis"]["value"]
+    assert isinstance(band, list) and isinstance(nis, float)
+    assert band[0] < nis < band[1]
     report = json.loads(out.with_suffix(".identify.json").read_text())
     assert set(report["replay"]["state_seconds"]) == {"fault_free"}
     assert report["replay"]["mismatch_seconds"] == 0.0

@@ -21,9 +21,10 @@ from pathlib import Path
 
 import pytest
 
-from monitor.app import replay as per_frame
 from monitor.app.options import monitor_config
+from monitor.bus.logfile import read_log
 from monitor.columnar.replay import replay_file
+from monitor.pipeline.feed import feed_log
 from monitor.rig import build_decoder, load_rig
 from tests.support.pipeline import pipeline
 from tests.support.rrd import outcome_total
@@ -52,7 +53,7 @@ echo "mtu0=$(cat /sys/class/net/vcan0/mtu) mtu1=$(cat /sys/class/net/vcan1/mtu)"
 python3 - > classic.out 2> classic.err <<'EOF'
 import logging, can
 logging.basicConfig(level=logging.INFO)
-from monitor.app.canbus import open_bus
+from monitor.runtime.canbus import open_bus
 rx = open_bus("socketcan", "vcan0")
 tx = open_bus("socketcan", "vcan0")
 tx.send(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
@@ -173,7 +174,7 @@ def test_fd_frames_on_vcan_are_counted_and_decoded(vcan: RunOnVcan, tmp_path: Pa
     r = load_rig(RIG)
     cfg = monitor_config(argparse.Namespace(nodes=(1,), rate=None, thresholds=None), r)
     pipe = pipeline(build_decoder(r), cfg)  # type: ignore[arg-type]
-    per_frame.feed_log(pipe, per_frame.read_log(raw))
+    feed_log(pipe, read_log(raw))
     col = replay_file(raw, build_decoder(r), cfg)
     assert col.counters == dict(pipe.counters)
     assert col.counters["frames/fd"] == rig["frames/fd"]

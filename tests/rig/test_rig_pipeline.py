@@ -10,8 +10,8 @@ import can
 import pytest
 
 from monitor.app.options import monitor_config
-from monitor.app.replay import feed_log
 from monitor.pipeline import DiagnosisEvent, MonitorPipeline
+from monitor.pipeline.feed import feed_log
 from monitor.rig import build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario

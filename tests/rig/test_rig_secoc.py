@@ -20,11 +20,11 @@ import pytest
 from cantools.autosar.secoc import verify_authenticator
 
 from monitor.app.options import monitor_config
-from monitor.app.replay import feed_log
 from monitor.bus.codec import Decoded, Rejected
 from monitor.bus.rigcodec import RigCodec
 from monitor.bus.secoc import SecOC
 from monitor.pipeline import DiagnosisEvent, MonitorPipeline
+from monitor.pipeline.feed import feed_log
 from monitor.rig import RigError, build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario

@@ -40,6 +40,7 @@ import sys
 import tempfile
 import time
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -180,7 +181,7 @@ def unavailable_reason() -> str | None:
 
 
 @contextlib.contextmanager
-def _locked(path: Path):
+def _locked(path: Path) -> Iterator[None]:
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
@@ -220,7 +221,8 @@ def ensure_aot_kernel() -> str:
     """Build the AOT estimator kernel on the host unless a current one is there: the guest
     mounts the project read-only and has no compiler. Returns "present" or "built"."""
     est = PROJECT_ROOT / "monitor" / "estimation"
-    sources = [est / "fuzzy_ukf.py", est / "kernels_aot.py"]
+    # the step kernel, the kernels it calls (compiled into the module) and the build
+    sources = [est / name for name in ("fuzzy_ukf.py", "ukf.py", "fuzzy.py", "kernels_aot.py")]
     newest_source = max(p.stat().st_mtime for p in sources)
     built = sorted(est.glob("_fuzzy_ukf_aot*.so"))
     check = ("from monitor.estimation.fuzzy_ukf import select_kernel; "
@@ -230,9 +232,9 @@ def ensure_aot_kernel() -> str:
                             cwd=PROJECT_ROOT, timeout=120, check=False)
         if ok.returncode == 0:
             return "present"
-    proc = subprocess.run([sys.executable, "-m", "monitor.estimation.kernels_aot"],
-                          capture_output=True, text=True, cwd=PROJECT_ROOT, timeout=600,
-                          check=False)
+    proc = subprocess.run(
+        [sys.executable, "-m", "monitor.estimation.kernels_aot", "--only", "aot"],
+        capture_output=True, text=True, cwd=PROJECT_ROOT, timeout=600, check=False)
     if proc.returncode != 0:
         raise GuestSetupError(f"cannot build the AOT kernel: {proc.stdout}{proc.stderr}")
     return "built"

@@ -356,7 +356,7 @@ def as_expected(got: str, want: str) -> bool:
 
 
 def probes(text: str) -> dict[str, str]:
-    return dict(m.groups() for m in re.finditer(r"^PROBE (\w+)=(.*)$", text, re.M))
+    return {m[1]: m[2] for m in re.finditer(r"^PROBE (\w+)=(.*)$", text, re.M)}
 
 
 def test_5_hardening_is_enforced_with_the_aot_kernel(guest: GuestRun) -> None:
@@ -505,12 +505,25 @@ def test_7_sim_ecu_drives_the_monitor_to_a_diagnosis(guest: GuestRun) -> None:
 # -- summary ----------------------------------------------------------------------------------
 
 
+#: The report's lines, one per check above (each test writes its own when it passes).
+REPORTED = ("timings", "1 networkd", "2 READY/STATUS", "3 watchdog", "4 SIGKILL",
+            "5 hardening", "6 LoadCredential", "7 sim-ecu")
+
+
 def test_zz_report(guest: GuestRun) -> None:
-    """Print what each check showed, what UML could not enforce, and the timings."""
+    """The report of the boot is whole: every check passed and said what it saw, the guest
+    was systemd as PID 1 and finished booting, and every directive the guest could not
+    enforce has its reason. Printed, and kept in the cache directory (last-report.txt)."""
+    version = guest.text("0-systemd-version.txt").strip()
+    boot = (guest.text("0-boot-time.txt").splitlines() or ["(no systemd-analyze time)"])[0]
     lines = [f"{k}: {v}" for k, v in sorted(REPORT.items())]
     lines += [f"not enforceable in UML: {k}: {v}" for k, v in NOT_ENFORCEABLE.items()]
-    lines.append(f"guest: {guest.text('0-systemd-version.txt').strip()}, "
-                 f"{guest.text('0-boot-time.txt').splitlines()[0]}")
+    lines.append(f"guest: {version}, {boot}")
     print("\n" + "\n".join(lines))
     harness.cache_dir().mkdir(parents=True, exist_ok=True)
     (harness.cache_dir() / "last-report.txt").write_text("\n".join(lines) + "\n")
+    missing = [k for k in REPORTED if not REPORT.get(k)]
+    assert not missing, f"checks that reported nothing (failed or did not run): {missing}"
+    assert re.match(r"systemd \d+ ", version), f"PID 1 was not systemd: {version!r}"
+    assert boot.startswith("Startup finished in "), f"the guest did not finish booting: {boot}"
+    assert all(NOT_ENFORCEABLE.values()), NOT_ENFORCEABLE

@@ -619,3 +619,20 @@ def write_capture(rig: Rig, tl: Timeline, runs: dict[int, NodeRun], path: Path,
                 is_extended_id=bool(ext_all[j]), dlc=8, data=data_all[j].tobytes(),
                 channel="can0"))
     return int(t_all.size)
+
+
+def identify_files(seed: int, d: Path, duration: float | None = None) -> Rig:
+    """Rig `seed`'s DBC, rig file (rig.dbc, rig.toml) and healthy minute (identify.log, or
+    `duration` seconds of it) in directory `d`: what `identify` is given, without the
+    scored runs (for tests of identify on one zoo rig)."""
+    rig = make_rig(seed)
+    tl = timelines(rig)[0]
+    if duration is not None:
+        tl = Timeline(tl.name, duration, tl.index)
+    runs = {n: simulate_run(rig, tl, n, quantise_input(rig, commands(rig, tl, n)))
+            for n in rig.nodes}
+    encode_output(rig, [runs[n].y for n in rig.nodes])
+    db_text = write_dbc(rig, d / "rig.dbc")
+    (d / "rig.toml").write_text(rig_toml(rig, "rig.dbc"))
+    write_capture(rig, tl, runs, d / "identify.log", db_text=db_text)
+    return rig

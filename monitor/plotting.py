@@ -1,4 +1,5 @@
-"""matplotlib for the experiments' figures, imported only when a figure is drawn."""
+"""matplotlib for the figures (identify's report, the experiments'), imported only when a figure
+is drawn: the daemon never imports it."""
 
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ import argparse
 import math
 from typing import NoReturn
 
-__all__ = ["OneLineParser", "nodes", "positive_float", "positive_int", "rate"]
+__all__ = ["OneLineParser", "add_rig_option", "nodes", "positive_float", "positive_int", "rate"]
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -17,6 +17,16 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def add_rig_option(p: argparse.ArgumentParser, *, model_optional: bool = False) -> None:
+    """--rig; `model_optional`: the command learns the model (a rig file without [model] is
+    taken, `monitor.setup.setup_rig(..., model_optional=True)`)."""
+    what = ("your DBC, node layout and signals; its [model], if any, is replaced"
+            if model_optional else "your DBC, node layout, signals and model")
+    p.add_argument("--rig", default=None, metavar="FILE",
+                   help=f"rig file: {what} (default: our bus and the paper's motor, "
+                   "rigs/motor.toml)")
 
 
 def positive_float(text: str) -> float:
