@@ -27,10 +27,6 @@ monitor reads through the codec, so the twin and the monitor read the same bits.
 
 from __future__ import annotations
 
-import math
-import threading
-from collections.abc import Iterator
-
 import can
 import numpy as np
 from canopen.emcy import EMCY_STRUCT
@@ -40,7 +36,7 @@ from monitor.bus.errors import CodecError
 from monitor.bus.rigcodec import RigCodec
 from monitor.errors import one_line
 from monitor.rig import Rig
-from sim_ecu.ecu import DEFAULT_MAX_CATCH_UP, ECUError, ECUStats, run_paced
+from sim_ecu.ecu import DEFAULT_MAX_CATCH_UP, ECUError, ECUStats
 from sim_ecu.rig_ecu import RigECU, _RigSimulation
 from sim_ecu.scenario import Scenario
 
@@ -83,27 +79,8 @@ class Cia402ECU(RigECU):
                         0x80 + node: "emcy", **{p.cob_id: p.name for p in pdos}}
         self.stats = self._new_stats()
 
-    def frames(self, duration: float | None = None, start_time: float = 0.0
-               ) -> Iterator[can.Message]:
-        """All frames of a fresh run (SYNC cycle k at ``start_time + k / rate``)."""
-        n = self.samples_for(self.scenario.duration if duration is None else duration)
-        self.stats = self._new_stats()
-        sim = _Cia402Simulation(self, self.stats)
-        for _ in range(n):
-            yield from sim.step(True, start_time)
-
-    def run(self, duration: float | None = None, stop: threading.Event | None = None
-            ) -> ECUStats:
-        """Send in real time until done (None: the scenario's duration; inf: forever) or
-        `stop` is set."""
-        if self.bus is None:
-            raise ECUError("run() needs a bus; use frames() offline")
-        d = self.scenario.duration if duration is None else duration
-        n = None if math.isinf(d) else self.samples_for(d)
-        self.stats = stats = self._new_stats()
-        return run_paced(self.bus, _Cia402Simulation(self, stats), stats, n, self.rate,
-                         self.node, stop, self.send_timeout, self.max_catch_up,
-                         lambda msg: self.kind_of[msg.arbitration_id])
+    def _simulation(self, stats: ECUStats) -> _RigSimulation:
+        return _Cia402Simulation(self, stats)
 
 
 class _Cia402Simulation(_RigSimulation):

@@ -88,7 +88,7 @@ class RigECU:
         """All frames of a fresh run (sample k at ``start_time + k / rate``)."""
         n = self.samples_for(self.scenario.duration if duration is None else duration)
         self.stats = self._new_stats()
-        sim = _RigSimulation(self, self.stats)
+        sim = self._simulation(self.stats)
         for _ in range(n):
             yield from sim.step(True, start_time)
 
@@ -101,9 +101,13 @@ class RigECU:
         d = self.scenario.duration if duration is None else duration
         n = None if math.isinf(d) else self.samples_for(d)
         self.stats = stats = self._new_stats()
-        return run_paced(self.bus, _RigSimulation(self, stats), stats, n, self.rate, self.node,
+        return run_paced(self.bus, self._simulation(stats), stats, n, self.rate, self.node,
                          stop, self.send_timeout, self.max_catch_up,
                          lambda msg: self.kind_of[msg.arbitration_id])
+
+    def _simulation(self, stats: ECUStats) -> _RigSimulation:
+        """A fresh pass through the scenario, counting into `stats`."""
+        return _RigSimulation(self, stats)
 
 
 class _RigSimulation:
