@@ -226,6 +226,21 @@ def _both_engines(rig: Rig, frames: list[can.Message], path: Path, chunk: int
     return res, columnar
 
 
+def test_frames_of_another_node_are_unknown_not_protocol(tmp_path: Path) -> None:
+    """The rig's drive is node 1: node 5's TPDO, node 5's heartbeat and an extended frame
+    are no traffic of this rig's protocol (a wrong node ID in the rig shows as unknown_id),
+    while node 1's SDO reply is; both engines count them alike (`_both_engines`)."""
+    frames, _ = _twin_frames()
+    t = frames[-1].timestamp
+    foreign = [can.Message(timestamp=t + 0.001 * k, arbitration_id=i, is_extended_id=x,
+                           data=bytes(8)) for k, (i, x) in
+               enumerate([(0x185, False), (0x705, False), (0x181, True), (0x581, False)])]
+    plain, _ = _both_engines(load_rig(EXAMPLE), frames, tmp_path / "plain.log", 997)
+    res, _ = _both_engines(load_rig(EXAMPLE), frames + foreign, tmp_path / "more.log", 997)
+    assert res.counters["rejected/unknown_id"] == 3
+    assert res.counters["ignored/canopen"] == plain.counters["ignored/canopen"] + 1
+
+
 @pytest.mark.parametrize("chunk", [61, 997, 262_144])
 def test_both_engines_diagnose_the_twin_alike(tmp_path: Path, chunk: int) -> None:
     frames, _ = _twin_frames()
@@ -245,6 +260,10 @@ def test_both_engines_diagnose_the_twin_alike(tmp_path: Path, chunk: int) -> Non
     assert res.counters["ignored/drive_not_operational"] == 201
     assert res.counters["estimator/restarts"] == 1
     assert res.counters["samples/estimated"] == 500
+    # NMT, SYNC, heartbeat, EMCY and the PDOs the rig does not read are the protocol's own
+    # traffic, not frames the monitor does not know
+    assert res.counters["ignored/canopen"] > 0
+    assert "rejected/unknown_id" not in res.counters
     # what the drive said, the same in both: in the bus events and the counters
     said = [(round(e.t - 1000.0, 2), e.level, e.text) for e in columnar.bus]
     assert said == [

@@ -26,9 +26,9 @@ from typing import Final, Literal
 
 from monitor.bus.canopen import CanopenNode
 
-__all__ = ["CIA_ERROR_NAMES", "IGNORED_NOT_OPERATIONAL", "DriveReport", "DriveWatch",
-           "cia402_state", "drive_watch", "emcy_name", "error_register_bits", "report_counter",
-           "report_level", "report_text"]
+__all__ = ["CIA_ERROR_NAMES", "IGNORED_NOT_OPERATIONAL", "IGNORED_PROTOCOL", "DriveReport",
+           "DriveWatch", "cia402_state", "drive_watch", "emcy_name", "error_register_bits",
+           "report_counter", "report_level", "report_text"]
 
 CIA_ERROR_NAMES: Final[Mapping[int, str]] = {
     0x0000: "error reset",
@@ -56,6 +56,14 @@ IGNORED_NOT_OPERATIONAL: Final = "ignored/drive_not_operational"
 """The counter of a node's frames not read while its drive is not `DriveWatch.operational`:
 what its outputs show then is the drive's state, not a loss of effectiveness, so the
 estimator waits (the node falls silent) until the drive is operational again."""
+IGNORED_PROTOCOL: Final = "ignored/canopen"
+"""The counter of the CANopen frames a rig's messages do not include: NMT, SYNC and TIME, and
+its drives' EMCY, heartbeat, SDO and PDOs the rig does not read (`DriveWatch.protocol_ids`).
+They are the protocol's own traffic on the bus, not frames the monitor does not know; the
+drives' EMCY, heartbeat and statusword are read (`DriveWatch.feed`) all the same."""
+_BROADCAST: Final = (0x000, 0x080, 0x100)  # NMT, SYNC, TIME (CiA 301's broadcast COB-IDs)
+_PER_NODE: Final = (0x080, 0x180, 0x200, 0x280, 0x300, 0x380, 0x400, 0x480, 0x500, 0x580,
+                    0x600, 0x700)  # EMCY, the four TPDO and RPDO pairs, SDO tx/rx, heartbeat
 HEARTBEAT_MARGIN: Final = 1.5
 """A heartbeat is lost after this many producer heartbeat times without one."""
 OPERATIONAL: Final = "OPERATIONAL"
@@ -120,12 +128,19 @@ class DriveWatch:
     def __init__(self, nodes: Iterable[CanopenNode]) -> None:
         self._drives: dict[int, _Drive] = {}
         self._status: dict[int, tuple[int, int]] = {}  # COB-ID -> (node, bit offset)
+        ids = set(_BROADCAST)
         for n in nodes:
             self._drives[n.node] = _Drive(n.heartbeat_ms / 1000.0)
+            ids.update(base + n.node for base in _PER_NODE)
+            ids.update(pdo.cob_id for pdo in n.pdos)
             for pdo in n.pdos:
                 for o in pdo.objects:
                     if pdo.transmit and (o.index, o.subindex) == (0x6041, 0) and o.length == 16:
                         self._status.setdefault(pdo.cob_id, (n.node, o.offset))
+
+        self.protocol_ids: frozenset[int] = frozenset(ids)
+        """The 11-bit COB-IDs of the CANopen protocol on this rig's bus (`IGNORED_PROTOCOL`):
+        one rule, which both engines consult for a frame no rig message takes."""
 
     @property
     def nodes(self) -> tuple[int, ...]:

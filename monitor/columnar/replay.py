@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from monitor.bus.cia402 import (
     IGNORED_NOT_OPERATIONAL,
+    IGNORED_PROTOCOL,
     drive_watch,
     report_counter,
     report_level,
@@ -173,7 +174,16 @@ class _Replay:
         for i in np.flatnonzero(c.error).tolist():
             self._error_frame(c, i, events)
         dec = self.table.decode(c)
-        rej = dec.code[(dec.code > 0) & ~c.error]
+        rejected = (dec.code > 0) & ~c.error
+        protocol = None
+        if self.drives is not None:  # the CANopen protocol's own frames (IGNORED_PROTOCOL)
+            protocol = ((dec.code == _UNKNOWN_ID) & ~c.error & ~c.extended
+                        & np.isin(c.arbitration_id, np.fromiter(self.drives.protocol_ids,
+                                                                np.int64)))
+            if protocol.any():
+                cnt.inc(IGNORED_PROTOCOL, int(protocol.sum()))
+                rejected &= ~protocol
+        rej = dec.code[rejected]
         if len(rej):
             for code, k in enumerate(np.bincount(rej).tolist()):
                 if k:

@@ -59,6 +59,7 @@ import numpy as np
 
 from monitor.bus.cia402 import (
     IGNORED_NOT_OPERATIONAL,
+    IGNORED_PROTOCOL,
     drive_watch,
     report_counter,
     report_level,
@@ -286,15 +287,17 @@ class MonitorPipeline:
             return
         res = self.db.decode_can(msg)
         if isinstance(res, Rejected):
-            reason = str(res.reason)
-            self.counters.inc(C.rejected(reason))
-            self._warn.warn(reason, f"frame rejected ({reason}, id 0x{res.arbitration_id:X}): "
-                                    f"{res.detail}")
-            if self._drives is not None and res.reason == RejectReason.UNKNOWN_ID:
-                for r in self._drives.feed(msg.arbitration_id, bytes(msg.data),
-                                           float(msg.timestamp)):
+            drives = self._drives
+            if drives is not None and res.reason == RejectReason.UNKNOWN_ID:
+                if not msg.is_extended_id and msg.arbitration_id in drives.protocol_ids:
+                    self.counters.inc(IGNORED_PROTOCOL)
+                else:
+                    self._rejected(res)
+                for r in drives.feed(msg.arbitration_id, bytes(msg.data), float(msg.timestamp)):
                     self.counters.inc(report_counter(r))
                     self.sink.on_bus_event(BusEvent(r.t, report_text(r), report_level(r)))
+            else:
+                self._rejected(res)
             return
         self._dispatch(res)
 
@@ -310,6 +313,12 @@ class MonitorPipeline:
         self._warn.warn("errframe-" + ",".join(names), text)
         self.sink.on_bus_event(BusEvent(float(msg.timestamp), text,
                                         "ERROR" if severe else "WARN"))
+
+    def _rejected(self, res: Rejected) -> None:
+        reason = str(res.reason)
+        self.counters.inc(C.rejected(reason))
+        self._warn.warn(reason, f"frame rejected ({reason}, id 0x{res.arbitration_id:X}): "
+                                f"{res.detail}")
 
     def _dispatch(self, d: Decoded) -> None:
         kind = d.kind

@@ -14,6 +14,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Final
 
+from monitor.bus.cia402 import IGNORED_PROTOCOL
+
 __all__ = ["Counters", "DecodeWatch", "bus_error", "decode_outcomes", "nothing_decoded",
            "rejected", "transition"]
 
@@ -102,6 +104,8 @@ _CAUSES: Final[Mapping[str, str]] = {
     BUS_ERROR_FRAMES: "only error frames: the bus itself is failing",
     IGNORED_NODE: "the frames are of other nodes: check the nodes asked for and [bus] node_bits",
     IGNORED_DIAGNOSIS: "only diagnosis frames (a monitor's output): check the rig",
+    IGNORED_PROTOCOL: "only CANopen protocol frames (NMT, SYNC, heartbeat, SDO, PDOs the rig "
+                      "does not read): check the rig's PDOs ([bus.pdo]) and node IDs",
     SAMPLES_NO_INPUT: "the outputs never follow an input frame: check [signals] inputs",
     SAMPLES_INPUT: "inputs but no output decoded: check [signals] outputs",
     SAMPLES_TRUTH: "no output decoded: check [signals] outputs",
