@@ -22,7 +22,7 @@ from monitor.bus.codec import MotorDatabase
 from monitor.bus.rigcodec import RigCodec
 from monitor.bus.secoc import load_key
 from monitor.diagnosis import Thresholds, load_thresholds
-from monitor.errors import MonitorError
+from monitor.errors import MonitorError, UsageError
 from monitor.estimation.fuzzy_ukf import FuzzyUKFConfig
 from monitor.pipeline import MonitorConfig, PlantSignals
 from monitor.rig import Rig, build_decoder, build_model, builtin_rig, load_rig, model_of
@@ -63,6 +63,9 @@ def setup_rig(rig_file: str | Path | None, *, dbc: str | Path | None = None,
     `model_optional`: a rig file without [model] is taken (`load_rig`), for the command that
     learns one."""
     found = load_rig(rig_file, model_optional=model_optional) if rig_file else builtin_rig()
+    if dbc and found.canopen is not None:
+        raise UsageError(f"--dbc {dbc}: the rig {found.source} is a CANopen rig, described "
+                         "by its EDS or DCF ([bus] eds / dcf), not by a DBC")
     return replace(found, dbc=(Path(dbc),)) if dbc else found
 
 

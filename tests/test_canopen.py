@@ -27,6 +27,7 @@ from monitor.rig import Rig, RigError, build_decoder, load_rig
 from monitor.sinks.base import Sink
 from sim_ecu.cia402 import EMCY_OUTAGE, STATUS_FAULT, STATUS_OPERATION_ENABLED, Cia402ECU
 from sim_ecu.scenario import scenario_from_dict
+from tests.support.cli_cases import CliCase, run_cli_case
 
 ROOT = Path(__file__).resolve().parents[1]
 EDS = ROOT / "tests" / "data" / "eds"
@@ -390,3 +391,12 @@ def test_a_drive_whose_heartbeat_stops_is_not_read(tmp_path: Path) -> None:
     assert res.counters["estimator/restarts"] == 1
     assert [e.state for e in res.events if e.kind == "health"] == [
         "fault_free", "no_data", "fault_free"]
+
+
+def test_a_dbc_for_a_canopen_rig_is_one_line(tmp_path: Path) -> None:
+    """--dbc would replace the bus description the EDS gives: refused, not ignored."""
+    case = CliCase("dbc_canopen", "--dbc with a CANopen rig", (
+        "motor-monitor", "replay", str(tmp_path / "none.log"), "--rig", str(EXAMPLE),
+        "--dbc", str(EXAMPLE.parents[1] / "dbc" / "motor.dbc")), "is a CANopen rig")
+    outcome = run_cli_case(case, tmp_path, timeout=60)
+    assert outcome.clean, (outcome.returncode, outcome.lines)
