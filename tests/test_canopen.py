@@ -6,6 +6,8 @@ twin read by the `canopen` library's own `Network` as a master reads a drive (py
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -24,9 +26,11 @@ from monitor.pipeline import MonitorPipeline
 from monitor.pipeline.events import BusEvent, DiagnosisEvent
 from monitor.pipeline.feed import feed_log
 from monitor.rig import Rig, RigError, build_decoder, load_rig
+from monitor.runtime.paths import is_own_file
 from monitor.sinks.base import Sink
 from sim_ecu.cia402 import EMCY_OUTAGE, STATUS_FAULT, STATUS_OPERATION_ENABLED, Cia402ECU
 from sim_ecu.scenario import scenario_from_dict
+from tests.support import BIN
 from tests.support.cli_cases import CliCase, run_cli_case
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -400,3 +404,30 @@ def test_a_dbc_for_a_canopen_rig_is_one_line(tmp_path: Path) -> None:
         "--dbc", str(EXAMPLE.parents[1] / "dbc" / "motor.dbc")), "is a CANopen rig")
     outcome = run_cli_case(case, tmp_path, timeout=60)
     assert outcome.clean, (outcome.returncode, outcome.lines)
+
+
+def test_the_events_carry_what_the_drive_says(tmp_path: Path) -> None:
+    """`replay --events` of the twin: the drive's reports are lines of kind drive between the
+    health transitions (an EMCY explains the node's silence), the same in both engines, and
+    the file is still recognised as the monitor's own (so `run --events` appends to it)."""
+    frames, _ = _twin_frames()
+    log = tmp_path / "cia402.log"
+    with can.Logger(str(log)) as lg:
+        for m in frames:
+            lg.on_message_received(m)
+    lines = {}
+    for engine in ("columnar", "per-frame"):
+        ev = tmp_path / f"{engine}.jsonl"
+        done = subprocess.run([str(BIN / "motor-monitor"), "replay", str(log), "--rig",
+                               str(EXAMPLE), "--engine", engine, "--events", str(ev)],
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        lines[engine] = [json.loads(x) for x in ev.read_text().splitlines()]
+        assert is_own_file(ev, "events")
+    assert lines["columnar"] == lines["per-frame"]
+    kinds = [(e["kind"], e.get("report") or e["state"]) for e in lines["columnar"]]
+    emcy = kinds.index(("drive", "emcy"))
+    assert ("health", "no_data") in kinds[emcy:]  # the drive said so before the node fell silent
+    said = [e for e in lines["columnar"] if e["kind"] == "drive"]
+    assert {e["report"] for e in said} >= {"emcy", "nmt", "cia402"}
+    assert said[[e["report"] for e in said].index("emcy")]["value"] == EMCY_OUTAGE

@@ -25,8 +25,6 @@ from monitor.bus.cia402 import (
     IGNORED_PROTOCOL,
     drive_watch,
     report_counter,
-    report_level,
-    report_text,
 )
 from monitor.bus.faults import describe_error_frame
 from monitor.columnar import kernels as K
@@ -46,6 +44,7 @@ from monitor.pipeline.events import (
     Diagnosis,
     DiagnosisEvent,
     SampleColumns,
+    drive_event,
 )
 from monitor.pipeline.feed import replay_frames
 from monitor.pipeline.samples import delayed, held_column, no_past
@@ -204,7 +203,7 @@ class _Replay:
                 for r in watch.feed(m.arbitration_id, bytes(m.data), float(c.t[i])):
                     cnt.inc(report_counter(r))
                     events.append((2 * (self.offset + i), -1, len(events),
-                                   BusEvent(r.t, report_text(r), report_level(r))))
+                                   drive_event(r)))
                     state = watch.operational(r.node)
                     if state != now[r.node]:
                         now[r.node] = state

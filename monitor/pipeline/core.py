@@ -62,8 +62,6 @@ from monitor.bus.cia402 import (
     IGNORED_PROTOCOL,
     drive_watch,
     report_counter,
-    report_level,
-    report_text,
 )
 from monitor.bus.codec import Decoded, Rejected, RejectReason
 from monitor.bus.counters import CounterOutcome, CounterTracker
@@ -93,6 +91,7 @@ from monitor.pipeline.events import (
     DiagnosisEvent,
     InputSample,
     Sample,
+    drive_event,
 )
 from monitor.pipeline.periods import counter_periods, wrapped
 from monitor.pipeline.samples import delayed, hold, input_delay_problem, no_past
@@ -295,7 +294,7 @@ class MonitorPipeline:
                     self._rejected(res)
                 for r in drives.feed(msg.arbitration_id, bytes(msg.data), float(msg.timestamp)):
                     self.counters.inc(report_counter(r))
-                    self.sink.on_bus_event(BusEvent(r.t, report_text(r), report_level(r)))
+                    self.sink.on_bus_event(drive_event(r))
             else:
                 self._rejected(res)
             return

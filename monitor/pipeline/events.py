@@ -11,10 +11,12 @@ from typing import Final
 import numpy as np
 from numpy.typing import NDArray
 
+from monitor.bus.cia402 import DriveReport, report_level, report_text
 from monitor.diagnosis.classifier import HealthState
 
-__all__ = ["HEALTH", "MODEL_MISMATCH", "BusEvent", "Diagnosis", "DiagnosisEvent", "InputSample",
-           "PlantSignals", "Sample", "SampleColumns"]
+__all__ = ["DRIVE", "HEALTH", "MODEL_MISMATCH", "BusEvent", "Diagnosis", "DiagnosisEvent",
+           "DriveEvent", "InputSample", "PlantSignals", "Sample", "SampleColumns",
+           "drive_event"]
 
 
 @dataclass(frozen=True)
@@ -175,6 +177,34 @@ class BusEvent:
     t: float
     text: str
     level: str = "WARN"  # INFO, WARN or ERROR
+
+
+DRIVE: Final = "drive"
+"""The `kind` of a `DriveEvent`'s line in the events."""
+
+
+@dataclass(frozen=True, slots=True)
+class DriveEvent(BusEvent):
+    """What a CANopen drive says about itself (`monitor.bus.cia402.DriveReport`): an EMCY,
+    its NMT state, the loss of its heartbeat, its CiA 402 state. Shown where bus events are
+    (the recording puts it on its node), and, unlike them, a line of the events beside the
+    diagnosis (`to_json`, kind ``drive``): a drive's own Fault explains what the monitor
+    reports of its node."""
+
+    node: int = 0
+    report: str = ""  # the report's kind: emcy, nmt, heartbeat_lost, cia402
+    value: int = 0  # the EMCY error code, the NMT state, the statusword
+
+    def to_json(self) -> str:
+        return json.dumps({"t": self.t, "node": self.node, "kind": DRIVE,
+                           "report": self.report, "value": self.value, "text": self.text,
+                           "level": self.level}, separators=(",", ":"))
+
+
+def drive_event(report: DriveReport) -> DriveEvent:
+    """The event of a drive's report: the one form both engines give it."""
+    return DriveEvent(report.t, report_text(report), report_level(report), node=report.node,
+                      report=report.kind, value=report.value)
 
 
 _STATES = tuple(HealthState)

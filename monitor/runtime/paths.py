@@ -288,7 +288,7 @@ def _png(p: _Probe) -> bool:
 
 
 def _is_event(line: bytes) -> bool:
-    from monitor.pipeline.events import DiagnosisEvent
+    from monitor.pipeline.events import DiagnosisEvent, DriveEvent
 
     try:
         doc = json.loads(line)
@@ -299,8 +299,9 @@ def _is_event(line: bytes) -> bool:
     # before that without the model-mismatch flag): `run --events` goes on appending to
     # such a file
     older = fields - {"fault_input", "fault_input_unit"} | {"fault_volts"}
+    drive = set(json.loads(DriveEvent(0.0, "").to_json()))  # what a drive says (kind drive)
     return isinstance(doc, dict) and set(doc) in (fields, older,
-                                                  older - {"model_mismatch", "kind"})
+                                                  older - {"model_mismatch", "kind"}, drive)
 
 
 def _events(p: _Probe) -> bool:

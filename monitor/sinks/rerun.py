@@ -92,6 +92,7 @@ from numpy.typing import NDArray
 from monitor.pipeline.events import (
     BusEvent,
     DiagnosisEvent,
+    DriveEvent,
     InputSample,
     PlantSignals,
     Sample,
@@ -229,7 +230,9 @@ class RecordingOutlet(Sink):
         self.log_event(event.node, event.t, event.text, event.level)
 
     def on_bus_event(self, event: BusEvent) -> None:
-        self.log_event(-1, event.t, event.text, event.level)
+        # what a drive says of itself goes beside its node's diagnosis
+        node = event.node if isinstance(event, DriveEvent) else -1
+        self.log_event(node, event.t, event.text, event.level)
 
     def on_counters(self, t: float, counters: Mapping[str, int]) -> None:
         self.log_counters(t, counters)
