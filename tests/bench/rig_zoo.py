@@ -467,14 +467,14 @@ def details(results: list[RigResult]) -> str:
     return "\n".join(out)
 
 
-def _clean(x: Any) -> Any:
+def json_safe(x: Any) -> Any:
     """JSON-safe: non-finite floats become null, floats rounded."""
     if isinstance(x, float):
         return round(x, 4) if math.isfinite(x) else None
     if isinstance(x, dict):
-        return {k: _clean(v) for k, v in x.items()}
+        return {k: json_safe(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
+        return [json_safe(v) for v in x]
     return x
 
 
@@ -487,7 +487,7 @@ def figures(results: list[RigResult]) -> dict[str, Any]:
         for x in [*row["runs"], row["self_check"]]:
             if x is not None:
                 x.pop("summary")
-        rows.append(_clean(row))
+        rows.append(json_safe(row))
     return {
         "rigs": len(results),
         "identified": sum(r.identified for r in results),

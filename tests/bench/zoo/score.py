@@ -60,7 +60,8 @@ Event = tuple[float, str, bool]  # (t, state, model-mismatch flag)
 
 
 def read_events(path: Path) -> tuple[dict[int, list[Event]], int]:
-    """Per node, its transitions (t, new state, mismatch flag); and unreadable lines."""
+    """Per node, its transitions (t, new state, mismatch flag); and unreadable lines. A
+    drive's own reports (kind ``drive``) are no transition."""
     out: dict[int, list[Event]] = {}
     bad = 0
     if not path.exists():
@@ -70,6 +71,8 @@ def read_events(path: Path) -> tuple[dict[int, list[Event]], int]:
             continue
         try:
             ev = json.loads(line)
+            if ev.get("kind") == "drive":  # what a CANopen drive says: no state of the node
+                continue
             state = str(ev["state"])
             flag = bool(ev.get("model_mismatch", False)) or state == "model_mismatch"
             out.setdefault(int(ev["node"]), []).append((float(ev["t"]), state, flag))
