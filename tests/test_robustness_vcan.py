@@ -418,15 +418,22 @@ def test_flood_is_survived_counted_and_bounded(boot_b: BootB) -> None:
 
 @pytest.mark.vcan
 def test_flood_every_frame_has_one_outcome_and_no_sample_is_lost(boot_b: BootB) -> None:
-    """At each counter snapshot the outcome counters add up, and the rows recorded up to its
+    """At each counter snapshot the outcome counters add up (but a last one the SIGKILL
+    provably tore: some of its counters not written), and the rows recorded up to its
     time are at least the estimated-sample counter (equal when the snapshot was taken at a
     sample; the snapshot goes to disk after its samples, so a SIGKILL cannot reverse that)."""
     _require(boot_b)
     snaps = boot_b.snaps
     assert len(snaps) >= 10
     t, _ = boot_b.gamma()
+    last = len(snaps) - 1
     for i in range(len(snaps)):
         c = snaps.at(i)
+        if i == last and not set(snaps.at(i - 1)) <= set(c):
+            # The SIGKILL ends the run and may land inside the flush of the last snapshot,
+            # whose counters are a chunk each: a counter the previous snapshot had is
+            # missing (counters never fall back to 0), so this write was torn, not miscounted.
+            continue
         assert c.get("frames/received", 0) == outcome_total(c), c
         rows = int(np.count_nonzero(t <= snaps.t[i] + 1e-7))
         assert rows >= c.get("samples/estimated", 0), (i, rows, c.get("samples/estimated", 0))
