@@ -137,11 +137,7 @@ class _Cia402Simulation(_RigSimulation):
 
     def step(self, emit: bool, time_base: float) -> list[can.Message]:
         ecu, plant = self.ecu, self.plant
-        k = self.k
-        t = k / ecu.rate
-        t_in = min(t, self.last_scenario_time)
-        u, gamma = self._u(t_in), self._gamma(t_in)
-        y = plant.output(u, gamma)
+        k, t, u, gamma, y = self.sample()
         ts = time_base + t
         node = ecu.node
         msgs: list[can.Message] = []

@@ -146,13 +146,18 @@ class _RigSimulation:
         ratio = self.ecu.input_rate / self.ecu.rate
         return k == 0 or math.floor(k * ratio + 1e-9) != math.floor((k - 1) * ratio + 1e-9)
 
-    def step(self, emit: bool, time_base: float) -> list[can.Message]:
-        ecu, plant = self.ecu, self.plant
+    def sample(self) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray]:
+        """This step's sample index k, its time, the scenario's input and gamma (held after
+        its end) and the plant's output."""
         k = self.k
-        t = k / ecu.rate
+        t = k / self.ecu.rate
         t_in = min(t, self.last_scenario_time)
         u, gamma = self._u(t_in), self._gamma(t_in)
-        y = plant.output(u, gamma)
+        return k, t, u, gamma, self.plant.output(u, gamma)
+
+    def step(self, emit: bool, time_base: float) -> list[can.Message]:
+        ecu, plant = self.ecu, self.plant
+        k, t, u, gamma, y = self.sample()
         changed = float(u[0]) != self.last_u
         self.last_u = float(u[0])
         names = [ecu.out_name]

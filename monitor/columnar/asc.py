@@ -62,6 +62,7 @@ from monitor.columnar.text import (
     StreamBroken,
     count_lines,
     cut_line_error,
+    hexval,
     is_space,
     line_blocks,
     needs_python,
@@ -173,14 +174,8 @@ def _block(path: Path, text: bytes, base: int, base_name: str, encoding: str, li
 @njit
 def _digit(ch: int, base: int) -> int:
     """The value of an ASCII digit in `base` (10 or 16), else -1."""
-    if 48 <= ch <= 57:
-        return ch - 48
-    if base == 16:
-        if 65 <= ch <= 70:
-            return ch - 55
-        if 97 <= ch <= 102:
-            return ch - 87
-    return -1
+    d = hexval(ch)
+    return d if d < base else -1
 
 
 @njit
