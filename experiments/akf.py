@@ -16,7 +16,7 @@ implementations. gamma is not clipped: the KF does not know it is a fraction.
 Start-up is the fuzzy UKF's, so that the two are compared on the estimation and not on
 their first samples: without an x0 the filter starts from the fault-free steady state of
 the first input with the cross-covariance that the unknown gamma gives it,
-Pxg = V P0_gamma with V = d x_ss / d gamma (`monitor.estimation.fuzzy_ukf.steady_start`),
+Pxg = V P0_gamma with V = d x_ss / d gamma (`monitor.estimation.start.steady_start`),
 and the state block of the covariance is in the state's own units: the stationary
 Kalman covariance (`initial_covariance`) unless P0 is given. An x = 0 start with P0 = 1
 (the former default) reads a 24 V servo's 790 rad/s as a 40 % loss of effectiveness for
@@ -33,13 +33,16 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.estimation.fuzzy_ukf import initial_covariance, steady_start
+from monitor.estimation.layout import UKF_SCRATCH, Table
 from monitor.estimation.model import DiscreteModel
+from monitor.estimation.start import initial_covariance, steady_start
 from monitor.estimation.ukf import sigma_weights, ukf_predict, ukf_update
 
 Array = NDArray[np.float64]
 
 __all__ = ["AugmentedKFConfig", "AugmentedKalmanFilter"]
+
+_SCRATCH = Table("AKF", UKF_SCRATCH, 0)  # in the order _akf_step takes them
 
 
 @dataclass(frozen=True)
@@ -54,8 +57,12 @@ class AugmentedKFConfig:
 
 @numba.njit(cache=True, nogil=True)
 def _akf_step(A: Array, B: Array, Q: Array, C: Array, D: Array, R: Array, u: Array, y: Array,
-              qg: float, delta: float, wi: float, x: Array, P: Array, wk: Array,
-              Aa: Array, ba: Array, Qa: Array, Ca: Array, yoff: Array, out_nu: Array) -> int:
+              qg: float, delta: float, wi: float, x: Array, P: Array,
+              scratch: tuple[Array, ...], Aa: Array, ba: Array, Qa: Array, Ca: Array,
+              yoff: Array, out_nu: Array) -> int:
+    """One sample of the Kalman filter on [x; gamma]; scratch: the UKF's
+    (`layout.UKF_SCRATCH` of the augmented state, in its order)."""
+    L, d, xp, Pp, Ls, s, dy, Pyy, Pyy_inv, Pxy, K, IKC, T1 = scratch
     n = A.shape[0]
     m = B.shape[1]
     p = C.shape[0]
@@ -85,20 +92,6 @@ def _akf_step(A: Array, B: Array, Q: Array, C: Array, D: Array, R: Array, u: Arr
             Ca[r, n + a] = -D[r, a] * u[a]
             acc += D[r, a] * u[a]
         yoff[r] = acc
-    o = 0
-    L = wk[o:o + N * N].reshape((N, N)); o += N * N
-    d = wk[o:o + N]; o += N
-    xp = wk[o:o + N]; o += N
-    Pp = wk[o:o + N * N].reshape((N, N)); o += N * N
-    Ls = wk[o:o + p * p].reshape((p, p)); o += p * p
-    s = wk[o:o + N]; o += N
-    dy = wk[o:o + p]; o += p
-    Pyy = wk[o:o + p * p].reshape((p, p)); o += p * p
-    Pyy_inv = wk[o:o + p * p].reshape((p, p)); o += p * p
-    Pxy = wk[o:o + N * p].reshape((N, p)); o += N * p
-    K = wk[o:o + N * p].reshape((N, p)); o += N * p
-    IKC = wk[o:o + N * N].reshape((N, N)); o += N * N
-    T1 = wk[o:o + N * N].reshape((N, N))
     rep = ukf_predict(x, P, Aa, ba, Qa, delta, wi, L, d, xp, Pp)
     rep += ukf_update(xp, Pp, Ca, yoff, R, y, delta, wi, L, Ls, s, dy, Pyy, Pyy_inv, Pxy, K,
                       out_nu, x, P, IKC, T1)
@@ -129,7 +122,8 @@ class AugmentedKalmanFilter:
         self._needs_init = x0 is None
         w = sigma_weights(N, alpha, beta)
         self._delta, self._wi = w.delta, w.wi
-        self._wk = np.zeros(5 * N * N + 3 * N + 3 * p * p + 2 * N * p + p)
+        work = np.zeros(_SCRATCH.size(N, 0, p))
+        self._scratch = tuple(_SCRATCH.view(work, f, N, 0, p) for f in _SCRATCH.names)
         self._Aa = np.zeros((N, N))
         self._ba = np.zeros(N)
         self._Qa = np.zeros((N, N))
@@ -154,8 +148,8 @@ class AugmentedKalmanFilter:
         md = self.model
         self.repairs += _akf_step(A, B, Q, md.C, md.D, md.R, self._u, self._y,
                                   self.config.q_gamma * dt, self._delta, self._wi, self.state,
-                                  self.P, self._wk, self._Aa, self._ba, self._Qa, self._Ca,
-                                  self._yoff, self.innovation)
+                                  self.P, self._scratch, self._Aa, self._ba, self._Qa,
+                                  self._Ca, self._yoff, self.innovation)
         return self.gamma
 
     def _init_from_sample(self) -> None:

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from monitor.columnar.asc import _header, _scan_asc
 from monitor.columnar.chunk import empty_chunk
-from monitor.estimation.jit import JIT_DISABLED
+from monitor.jit import JIT_DISABLED
 from tests.log_readers import columnar, per_frame, random_frames
 
 pytestmark = pytest.mark.skipif(JIT_DISABLED, reason="the scanner runs compiled only")

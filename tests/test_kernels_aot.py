@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from monitor.estimation.fuzzy_ukf import KERNEL_LAYOUT, FuzzyUKF, select_kernel
-from monitor.estimation.jit import JIT_DISABLED
 from monitor.estimation.kernels_aot import MODULE, build
 from monitor.estimation.model import ContinuousDescriptor, dc_motor
+from monitor.jit import JIT_DISABLED
 from sim_ecu.plant import SimulatedRun, simulate
 from sim_ecu.scenario import load_scenario, scenario_from_dict
 

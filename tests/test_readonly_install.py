@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from monitor.estimation.jit import CACHE_SUBDIR, JIT_DISABLED, numba_cache_dir
+from monitor.jit import CACHE_SUBDIR, JIT_DISABLED, numba_cache_dir
 from tests.archive.logs import ecu_frames, write_log
 
 pytestmark = pytest.mark.skipif(JIT_DISABLED, reason="numba compiles nothing: no cache")

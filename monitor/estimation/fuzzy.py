@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.estimation.jit import njit
+from monitor.jit import njit
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]

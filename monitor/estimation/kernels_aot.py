@@ -5,19 +5,19 @@ Nothing is compiled when the daemon starts, so its first frame is not seconds of
 source, the `@njit` functions of `monitor.estimation`:
 
 * the ahead-of-time build of the step kernel (`build`): numba's `pycc` compiles
-  `_fuzzy_ukf_step`, with the kernels it calls, into an ordinary extension module
+  `fuzzy_ukf_step`, with the kernels it calls, into an ordinary extension module
   (`monitor/estimation/_fuzzy_ukf_aot.*.so`) that the dynamic linker loads like any other.
   It is for the hardened service, which forbids memory both writable and executable
   (MemoryDenyWriteExecute=yes): there numba's JIT cannot run, and neither can the code it
   cached, which it maps executable the same way. Generic x86-64 code, no LLVM at run time;
   it needs a C compiler and the Python headers at install. The estimator picks it when the
-  JIT is off (`monitor.estimation.fuzzy_ukf.select_kernel`). numba 0.68 marks pycc "pending
+  JIT is off (`monitor.estimation.kernel.select_kernel`). numba 0.68 marks pycc "pending
   deprecation" with its replacement still in development; without the module the service
   falls back to the interpreted kernel (correct, about 40x slower).
 * the JIT cache, warmed (`warm_jit_cache`): every kernel the daemon compiles before its
   first frame -- the step kernel and what it calls (the UKF, the fuzzy system), the
   structure event's onset search and re-processing -- compiled by the same warm-up the
-  pipeline runs, into the cache directory the daemon reads (`monitor.estimation.jit`).
+  pipeline runs, into the cache directory the daemon reads (`monitor.jit`).
   The JIT daemon cannot take the AOT module instead: the event kernels call the step
   kernel inside numba, where an extension module's function cannot be called, and the
   cached code is tuned to this machine's CPU. numba keys the cache by the kernels' source
@@ -35,13 +35,13 @@ from pathlib import Path
 __all__ = ["MODULE", "SIGNATURE", "build", "main", "warm_jit_cache"]
 
 MODULE = "_fuzzy_ukf_aot"
-# (mdl, u, y, prm, st, centres, counts, cons, var, rule_idx, rule_w, wk, out, n, m, p, max_mf)
-# prm, st and wk are flat buffers whose layout (fuzzy_ukf.KERNEL_LAYOUT, see
-# _fuzzy_ukf_step) changes without changing the signature: a stale build is told apart by
-# its exported kernel_layout().
+# (mdl, u, y, prm, st, centres, counts, cons, var, rule_idx, rule_w, wk, out, lay, n, m, p,
+# max_mf). mdl, prm, st, wk and out are flat buffers whose layout (`layout.KERNEL_LAYOUT`,
+# derived from its tables) changes without changing the signature: a stale build is told
+# apart by its exported kernel_layout().
 SIGNATURE = (
     "void(f8[::1], f8[::1], f8[::1], f8[::1], f8[::1], f8[:, ::1], i8[::1], f8[:, ::1], "
-    "f8[:, ::1], i8[::1], f8[::1], f8[::1], f8[::1], i8, i8, i8, i8)"
+    "f8[:, ::1], i8[::1], f8[::1], f8[::1], f8[::1], i8[::1], i8, i8, i8, i8)"
 )
 
 
@@ -52,14 +52,14 @@ def build(out_dir: Path | None = None) -> Path:
         warnings.simplefilter("ignore")
         from numba.pycc import CC
 
-    from monitor.estimation.fuzzy_ukf import _fuzzy_ukf_step, kernel_layout
+    from monitor.estimation.kernel import fuzzy_ukf_step, kernel_layout
 
     target = Path(out_dir) if out_dir is not None else Path(__file__).resolve().parent
     target.mkdir(parents=True, exist_ok=True)
     cc = CC(MODULE)
     cc.output_dir = str(target)
     cc.verbose = False
-    py_func = getattr(_fuzzy_ukf_step, "py_func", _fuzzy_ukf_step)
+    py_func = getattr(fuzzy_ukf_step, "py_func", fuzzy_ukf_step)
     cc.export("fuzzy_ukf_step", SIGNATURE)(py_func)
     # the buffer layout the kernel reads, checked by select_kernel against a stale build
     cc.export("kernel_layout", "i8()")(kernel_layout)
@@ -80,7 +80,7 @@ def warm_jit_cache() -> Path | None:
     kernels' argument types do not depend on the plant's size, so the packaged DC motor
     warms them for every rig. Raises RuntimeError when no cache directory can be written
     (the kernels would then be compiled at every start)."""
-    from monitor.estimation import jit
+    from monitor import jit
 
     if jit.JIT_DISABLED:
         return None
@@ -88,10 +88,13 @@ def warm_jit_cache() -> Path | None:
     if directory is None:
         raise RuntimeError("no writable directory for numba's kernel cache (NUMBA_CACHE_DIR, "
                            "XDG_CACHE_HOME, ~/.cache)")
+    from monitor.diagnosis import rules
+    from monitor.diagnosis.thresholds import Thresholds
     from monitor.estimation.fuzzy_ukf import FuzzyUKF
     from monitor.estimation.model import dc_motor
 
     FuzzyUKF(dc_motor().discretize(0.01)).warm_up()
+    rules.warm_up(rules.params(Thresholds(0.15, 0.85)))  # the classifier's steps
     return directory
 
 

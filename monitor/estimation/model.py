@@ -63,6 +63,7 @@ import scipy.signal
 from numpy.typing import NDArray
 
 from monitor.errors import MonitorError, one_line
+from monitor.estimation.layout import RING
 
 Array = NDArray[np.float64]
 FaultInputs = Sequence[int | str] | None
@@ -620,12 +621,9 @@ ESTIMATOR_ONSET_WINDOW_S = 0.2  # FuzzyUKFConfig().onset_window
 
 
 def ring_slot_size(n: int, m: int, p: int) -> int:
-    """Floats per sample in the fuzzy UKF's onset ring: the state before the sample (x, P,
-    V, z, the innovation average, gamma^, the common variance), the sample (u, y, dt),
-    the filter's view of it under the old fault (K, S_tot^-1, nu) and the adapted output
-    noise before it. Here rather than in the estimator, so that the model check sizes the
-    estimator without importing it (numba)."""
-    return 2 * n + n * n + n * m + 4 * p + 3 * m + 1 + n * p + p * p
+    """Floats per sample in the fuzzy UKF's onset ring (`layout.RING`): the model check
+    sizes the estimator without importing it (numba)."""
+    return RING.size(n, m, p)
 
 
 def estimator_bytes(n: int, m: int, p: int, T: float, *, max_mf: int = ESTIMATOR_MAX_MF,

@@ -39,13 +39,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.estimation.jit import njit
+from monitor.jit import njit
 
 Array = NDArray[np.float64]
 
 __all__ = [
     "SigmaWeights",
     "chol_lower",
+    "mat_mul",
+    "mat_vec_add",
     "sigma_points",
     "sigma_weights",
     "spd_inverse",
@@ -187,6 +189,28 @@ def spd_inverse(S: Array, L: Array, Sinv: Array) -> int:
 
 
 @njit
+def mat_vec_add(M: Array, v: Array, sign: float, out: Array) -> None:
+    """out <- out + sign M v (sign +-1: exact), each row summed left to right from out: the
+    order of the sums the kernels' results depend on, to the bit."""
+    for r in range(M.shape[0]):
+        acc = out[r]
+        for c in range(M.shape[1]):
+            acc += sign * M[r, c] * v[c]
+        out[r] = acc
+
+
+@njit
+def mat_mul(A: Array, B: Array, out: Array) -> None:
+    """out <- A B, each entry summed left to right from 0."""
+    for r in range(A.shape[0]):
+        for c in range(B.shape[1]):
+            acc = 0.0
+            for k in range(A.shape[1]):
+                acc += A[r, k] * B[k, c]
+            out[r, c] = acc
+
+
+@njit
 def ukf_predict(
     x: Array, P: Array, A: Array, b: Array, Q: Array, delta: float, wi: float,
     L: Array, d: Array, x_out: Array, P_out: Array,
@@ -199,10 +223,8 @@ def ukf_predict(
     n = x.shape[0]
     rep = chol_lower(P, L)
     for r in range(n):
-        acc = b[r]
-        for c in range(n):
-            acc += A[r, c] * x[c]
-        x_out[r] = acc
+        x_out[r] = b[r]
+    mat_vec_add(A, x, 1.0, x_out)
     for r in range(n):
         for c in range(n):
             P_out[r, c] = Q[r, c]
@@ -244,10 +266,8 @@ def ukf_update(
         for r in range(n):
             s[r] = delta * L[r, i] if r >= i else 0.0
         for r in range(p):
-            acc = 0.0
-            for c in range(n):
-                acc += C[r, c] * s[c]
-            dy[r] = acc
+            dy[r] = 0.0
+        mat_vec_add(C, s, 1.0, dy)
         for r in range(p):
             for c in range(p):
                 Pyy[r, c] += 2.0 * wi * dy[r] * dy[c]
@@ -255,21 +275,12 @@ def ukf_update(
                 Pxy[c, r] += 2.0 * wi * s[c] * dy[r]
     rep += spd_inverse(Pyy, Ls, Pyy_inv)
     for r in range(p):
-        acc = y[r] - yoff[r]
-        for c in range(n):
-            acc -= C[r, c] * xp[c]
-        nu[r] = acc
+        nu[r] = y[r] - yoff[r]
+    mat_vec_add(C, xp, -1.0, nu)
+    mat_mul(Pxy, Pyy_inv, K)
     for r in range(n):
-        for c in range(p):
-            acc = 0.0
-            for k in range(p):
-                acc += Pxy[r, k] * Pyy_inv[k, c]
-            K[r, c] = acc
-    for r in range(n):
-        acc = xp[r]
-        for c in range(p):
-            acc += K[r, c] * nu[c]
-        x_out[r] = acc
+        x_out[r] = xp[r]
+    mat_vec_add(K, nu, 1.0, x_out)
     # Joseph form
     for r in range(n):
         for c in range(n):
@@ -277,12 +288,7 @@ def ukf_update(
             for k in range(p):
                 acc -= K[r, k] * C[k, c]
             IKC[r, c] = acc
-    for r in range(n):
-        for c in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += IKC[r, k] * Pp[k, c]
-            T1[r, c] = acc
+    mat_mul(IKC, Pp, T1)
     for r in range(n):
         for c in range(r, n):
             acc = 0.0

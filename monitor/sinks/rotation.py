@@ -1,12 +1,16 @@
-"""Week-long recordings: a directory of ``.rrd`` files rotated by size and age, with
-retention by count and total size."""
+"""A recording in several ``.rrd`` files: `RerunSink` splits a long one into parts by size
+(a replay), `RotatingRerunSink` writes week-long ones into a directory of files rotated by
+size and age, with retention by count and total size. Both go on into the next file with
+`RecordingSink.switch_file` (`_switch`: every file complete, of the same recording)."""
 
 from __future__ import annotations
 
+import glob
 import logging
 import time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import Any, Final
 
@@ -15,13 +19,85 @@ import rerun as rr
 from monitor.files import FileSeries
 from monitor.pipeline.events import PlantSignals
 from monitor.sinks.compact import Compactor, sweep
-from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet, RerunSink
+from monitor.sinks.outlet import RecordingOutlet
+from monitor.sinks.recording import DEFAULT_FLUSH_INTERVAL_S, RecordingSink
 
-__all__ = ["RotatingRerunSink"]
+__all__ = ["RerunSink", "RotatingRerunSink", "recording_parts"]
 
 _log = logging.getLogger(__name__)
 
 _RETRY_MAX_S: Final = 60.0
+
+
+def recording_parts(rrd_path: Path) -> list[Path]:
+    """`rrd_path` (if it exists) and the parts beside it that a ``part_bytes`` split wrote
+    (``<stem>-partNNNN.rrd``), in order."""
+    pattern = f"{glob.escape(rrd_path.stem)}-part[0-9][0-9][0-9][0-9]{glob.escape(rrd_path.suffix)}"
+    parts = sorted(rrd_path.parent.glob(pattern))
+    return ([rrd_path] if rrd_path.exists() else []) + parts
+
+
+def _switch(sink: RecordingSink, path: Path) -> Exception | None:
+    """Go on recording into `path` (`RecordingSink.switch_file`); the error that kept the
+    sink in its current file, if any."""
+    try:
+        sink.switch_file(path)
+    except (RuntimeError, OSError) as exc:
+        return exc
+    return None
+
+
+class RerunSink(RecordingSink):
+    """`RecordingSink` (the keyword arguments are its own) whose file may be split into parts.
+
+    ``part_bytes`` (a file without ``connect_url``) splits the recording into parts: once the
+    current file has reached that size (checked after each full batch), `switch_file` goes on
+    into ``<stem>-part0002.rrd``, ``-part0003``... beside ``rrd_path``, every part complete
+    (footer, styles, blueprint) and of the same recording, so the viewer opens one part or
+    all of them as one recording (`parts` lists them). Parts of an earlier recording to the
+    same path are deleted at start: they would merge into this one.
+    """
+
+    def __init__(self, *, part_bytes: int | None = None, **options: Any) -> None:
+        rrd_path = options.get("rrd_path")
+        if part_bytes is not None and (rrd_path is None or options.get("connect_url")
+                                       is not None or part_bytes < 1):
+            raise ValueError("part_bytes needs rrd_path, no connect_url, and a size >= 1")
+        self._part_bytes = part_bytes
+        self._part_due = False
+        if part_bytes is not None and rrd_path is not None:
+            for stale in recording_parts(Path(rrd_path)):
+                if stale != Path(rrd_path):
+                    stale.unlink(missing_ok=True)
+        super().__init__(**options)
+        self._parts: list[Path] = [] if self.rrd_path is None else [self.rrd_path]
+
+    @property
+    def parts(self) -> tuple[Path, ...]:
+        """The files recorded so far, in order (one unless ``part_bytes`` split them)."""
+        return tuple(self._parts)
+
+    def _after_full(self) -> None:
+        """After a full batch: whether the current file has reached ``part_bytes``. The next
+        part is opened by the next row added (`_before_rows`), so none is left empty."""
+        if self._part_bytes is None or self.rrd_path is None:
+            return
+        with suppress(OSError):
+            self._part_due = self.rrd_path.stat().st_size >= self._part_bytes
+
+    def _before_rows(self) -> None:
+        if not self._part_due:
+            return
+        self._part_due = False
+        first = self._parts[0]
+        path = first.with_name(f"{first.stem}-part{len(self._parts) + 1:04d}{first.suffix}")
+        exc = _switch(self, path)
+        if exc is not None:
+            _log.warning("rerun: cannot start the recording's next part %s (%s); recording "
+                         "goes on into %s", path, exc, self.rrd_path)
+            self._part_bytes = None
+            return
+        self._parts.append(path)
 
 
 class RotatingRerunSink(RecordingOutlet):
@@ -136,68 +212,32 @@ class RotatingRerunSink(RecordingOutlet):
             "nodes": nodes, "f1": f1, "f2": f2, "batch_size": batch_size,
             "flush_interval_s": flush_interval_s, "signals": signals,
         }
-        self._file = RerunSink(rrd_path=path, **common)
+        self._file = RecordingSink(rrd_path=path, **common)
         self._path = path
         self._opened = time.monotonic()
         # RERUN=off in the environment: no file is written, nothing to rotate
         self._enabled = rr.is_enabled(self._file.recording)
-        self._live: RerunSink | None = None
+        self._live: RecordingSink | None = None
         try:
             self._series.prune(self._path)
             if self.compactor is not None:
                 sweep(self.directory)
             if connect_url is not None:
-                self._live = RerunSink(connect_url=connect_url, **common)
+                self._live = RecordingSink(connect_url=connect_url, **common)
         except BaseException:
             self.close()
             raise
 
-    # -- the Sink protocol: forwarded to the file sink and the live stream ----------------------
+    # -- the column API (`RecordingOutlet`): forwarded to the file sink and the live stream ---
 
-    def add_sample(
-        self,
-        node: int,
-        t: float,
-        measured: float,
-        estimated: float,
-        gamma_hat: float,
-        rule_count: int,
-        health: int,
-        nis: float,
-        true_gamma: float | None = None,
-        model_mismatch: bool = False,
-        *,
-        outputs: Sequence[float] = (),
-        predicted: Sequence[float] = (),
-    ) -> None:
-        """Buffer one estimator sample (see `RerunSink.add_sample`)."""
-        for sink in self._sinks():
-            sink.add_sample(node, t, measured, estimated, gamma_hat, rule_count, health, nis,
-                            true_gamma, model_mismatch, outputs=outputs, predicted=predicted)
-
-    def add_input(self, node: int, t: float, value: float, index: int = 0) -> None:
-        for sink in self._sinks():
-            sink.add_input(node, t, value, index)
-
-    def log_event(self, node: int, t: float, text: str, level: str = "INFO") -> None:
-        for sink in self._sinks():
-            sink.log_event(node, t, text, level)
-
-    def log_counters(self, t: float, counters: Mapping[str, int]) -> None:
-        for sink in self._sinks():
-            sink.log_counters(t, counters)
+    def outlets(self) -> tuple[RecordingSink, ...]:
+        return self._sinks()
 
     def set_thresholds(self, f1: float, f2: float) -> None:
         """Change the thresholds (buffered samples keep the old ones; later files start with
         the new ones)."""
         for sink in self._sinks():
             sink.set_thresholds(f1, f2)
-
-    def maybe_flush(self, now_monotonic: float) -> None:
-        """Flush (and maybe rotate) if ``flush_interval_s`` has passed since the last flush."""
-        if now_monotonic - self._last_flush >= self._flush_interval_s:
-            self.flush()
-            self._last_flush = now_monotonic
 
     def flush(self) -> None:
         """Send all buffered data, then rotate if the current file is too big or too old."""
@@ -218,9 +258,8 @@ class RotatingRerunSink(RecordingOutlet):
         path = self._series.next_path()
         started = time.monotonic()
         old = self._path
-        try:
-            self._file.switch_file(path)
-        except (RuntimeError, OSError) as exc:
+        exc = _switch(self._file, path)
+        if exc is not None:
             _log.error(
                 "rerun sink: cannot start %s: %s; still recording to %s (retry in %.0f s)",
                 path,
@@ -269,15 +308,6 @@ class RotatingRerunSink(RecordingOutlet):
     # -- introspection ------------------------------------------------------------------------
 
     @property
-    def closed(self) -> bool:
-        return self._closed
-
-    @property
-    def flush_interval_s(self) -> float:
-        """`maybe_flush` flushes once this long has passed since the last flush."""
-        return self._flush_interval_s
-
-    @property
     def path(self) -> Path:
         """The file being written (after `close`: the last one written)."""
         return self._path
@@ -297,7 +327,7 @@ class RotatingRerunSink(RecordingOutlet):
 
     # -- internals --------------------------------------------------------------------------
 
-    def _sinks(self) -> tuple[RerunSink, ...]:
+    def _sinks(self) -> tuple[RecordingSink, ...]:
         return (self._file,) if self._live is None else (self._file, self._live)
 
     def _due(self, now: float) -> bool:

@@ -221,8 +221,8 @@ def ensure_aot_kernel() -> str:
     """Build the AOT estimator kernel on the host unless a current one is there: the guest
     mounts the project read-only and has no compiler. Returns "present" or "built"."""
     est = PROJECT_ROOT / "monitor" / "estimation"
-    # the step kernel, the kernels it calls (compiled into the module) and the build
-    sources = [est / name for name in ("fuzzy_ukf.py", "ukf.py", "fuzzy.py", "kernels_aot.py")]
+    # the step kernel, the kernels and layout it compiles in, the build, the numba switch
+    sources = [*est.glob("*.py"), PROJECT_ROOT / "monitor" / "jit.py"]
     newest_source = max(p.stat().st_mtime for p in sources)
     built = sorted(est.glob("_fuzzy_ukf_aot*.so"))
     check = ("from monitor.estimation.fuzzy_ukf import select_kernel; "

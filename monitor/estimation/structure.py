@@ -1,0 +1,350 @@
+"""Structure learning of the fuzzy UKF (20)-(22): the onset of a change, re-learning from
+it, and a new membership function where it shows.
+
+The kernel (`monitor.estimation.kernel`, step 5) runs the test (20) on every sample; when it
+fires, `structure_event` locates the change's onset over the ring of past samples
+(`locate_onset`, the GLR of Willsky and Jones 1976, compiled in `onset_glr`), goes back to
+the state before it and processes the samples since again with the event first
+(`reprocess`), then inserts a membership function (`SelfConstructingFuzzySystem.insert`,
+output-preserving (23)-(27)). A jump the bounds of (28) cannot take is a bias event
+(`monitor.estimation.bias`, step 8). Why (Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1),
+2020, made sound on a small, stiff, back-EMF dominated motor -- a 24 V servo at 1 kHz:
+J = 2e-5, b = 1e-5, Ke = Ki = 0.03, Ra = 1, La = 1e-3, sensor sigma 0.01 A):
+
+(a) The consequent update is exact only for the sensitivity M it is given. M = C V^- with
+    V = d x^ / d gamma accumulated since V last started is the innovation's response to
+    a gamma error held all that time -- right while gamma has not changed, wrong by orders
+    of magnitude after a change: on the servo a held 0.4 error shows as 0.1 A (the back
+    EMF takes the loss up), a 0.4 jump as -6 A on its first sample (La/Ra = 1 ms = T). The
+    former code adapted with the held M before testing, so the first sample after the loss
+    (600 sigma) moved gamma^ past its bound (clipped to 1) and x^ by V dgamma to the
+    outage's steady state (speed 0 with the rotor at 790 rad/s); then it reset V to 0 and
+    left P alone, so the filter was sure of a wrong speed: NIS in the thousands, gamma^
+    oscillating between 0 and 1, a structure event every dwell time.
+(b) A structure event is therefore a jump of gamma at the onset of the change. The test
+    fires some samples after it; the onset is located over a short ring of past samples
+    by the generalised likelihood ratio of Willsky and Jones (1976) -- for each candidate
+    onset j the signature M_i(j) of a jump there (the two-stage sensitivity started at j)
+    against the innovations since, the jump integrated out with its prior var_reopen --
+    and the filter goes back to its state before j and processes the samples since again,
+    with the event first: every consequent re-opened at the current output (f^ does not
+    jump: the intent of (23)-(27)), and the raise of gamma's variance from g0 to g1 done
+    the exact two-stage way, V <- V g0/g1, P <- P + V (g0 (g1 - g0) / g1) V' (the state
+    keeps the uncertainty the old gamma gave it; the new gamma acts from j on). The former
+    "V restarts at 0" is the limit g1 >> g0 of this, without its P term and samples late.
+    A jump that the bounds (28) reduce below min_jump is no event (typically noise pushing
+    a fault-free gamma^ below 0, where it sits on its bound).
+(g) Cost, bounded per sample whatever the frame loss (an unbounded cost starves a
+    one-CPU daemon under a CAN flood). A sample costs one kernel call (35)-(54) plus its
+    ring slot. The structure test (20) can fire at most once per dwell time (a negligible
+    jump restarts the dwell too), and only then does a sample pay for the onset search and
+    the re-processing, both over the ring: ring_len = onset_window / T + 1 samples, where a
+    lost stretch is one slot (one step of dt = k T), so loss never lengthens it. The search
+    is O(ring_len^2) up to `max_onsets` samples and two-stage above (a coarse grid of onsets,
+    then around its best: O(ring_len (max_onsets + 2 ring_len / max_onsets))); with the JIT
+    it and the re-processing (at most ring_len kernel calls) run compiled, one call each.
+    The estimator's restart after a long gap reuses the model's stationary covariance.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from monitor.estimation.bias import BIAS_CONFIRM, beyond_bounds
+from monitor.estimation.kernel import reprocess_loop
+from monitor.estimation.layout import MODEL, RING
+from monitor.jit import njit
+
+if TYPE_CHECKING:
+    from monitor.estimation.fuzzy_ukf import FuzzyUKF
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+__all__ = ["locate_onset", "negligible", "onset_glr", "onset_scores", "onset_stats",
+           "reprocess", "ring_models", "structure_event"]
+
+# Where the fields onset_glr reads start in `layout.offsets` (numba compiles them in)
+_R_U, _R_K, _R_STI, _R_NU = (RING.at(f) for f in ("u", "K", "Sti", "nu"))
+_A, _B, _C, _D = (MODEL.at(f) for f in ("A", "B", "C", "D"))
+
+
+@njit
+def onset_glr(
+    blocks: Array, bidx: IntArray, ring: Array, first: int, count: int, ring_len: int,
+    lay: IntArray, faulty: IntArray, n: int, m: int, p: int, cands: IntArray, g: Array,
+    info: Array,
+) -> None:
+    """The sufficient statistics of the onset search (20) over ring samples first ..
+    first + count - 1 (see `locate_onset`), in compiled code: for every candidate onset
+    first + cands[c] (cands sorted, in [0, count)), g[c] = sum_i M_i(c)' S_i^-1 nu_i and
+    info[c] = sum_i M_i(c)' S_i^-1 M_i(c), with the signature of a jump at the candidate
+    propagated through the filter as it ran (K, S_tot^-1, nu of each sample from the
+    ring, eqs (44)-(49)): W <- A W - B_F u (the response of the prior (35)-(39)),
+    M = C W - D_F u, W <- (I - K C) W + K D_F u. blocks[bidx[t]] is the flat model block of
+    sample first + t (`layout.MODEL`, one per distinct dt), the ring's slots `layout.RING`
+    (lay: `layout.offsets`). O(count len(cands) n^2 f) flops.
+    """
+    f = faulty.shape[0]
+    nc = cands.shape[0]
+    W = np.zeros((nc, n, f))
+    Wm = np.zeros((n, f))
+    Mi = np.zeros((p, f))
+    SM = np.zeros((p, f))
+    Du = np.zeros((p, f))
+    Bu = np.zeros((n, f))
+    o_u, o_K, o_Sti, o_nu = lay[_R_U], lay[_R_K], lay[_R_STI], lay[_R_NU]
+    oA, oB, oC, oD = lay[_A], lay[_B], lay[_C], lay[_D]
+    for c in range(nc):
+        for a in range(f):
+            g[c, a] = 0.0
+            for b in range(f):
+                info[c, a, b] = 0.0
+    for t in range(count):
+        row = ring[(first + t) % ring_len]
+        mdl = blocks[bidx[t]]
+        for a in range(f):
+            ua = row[o_u + faulty[a]]
+            for r in range(n):
+                Bu[r, a] = mdl[oB + r * m + faulty[a]] * ua
+            for r in range(p):
+                Du[r, a] = mdl[oD + r * m + faulty[a]] * ua
+        for c in range(nc):
+            if cands[c] > t:
+                break  # sorted: no later candidate has started yet
+            Wc = W[c]
+            for r in range(n):
+                for a in range(f):
+                    acc = -Bu[r, a]
+                    for q in range(n):
+                        acc += mdl[oA + r * n + q] * Wc[q, a]
+                    Wm[r, a] = acc
+            for r in range(p):
+                for a in range(f):
+                    acc = -Du[r, a]
+                    for q in range(n):
+                        acc += mdl[oC + r * n + q] * Wm[q, a]
+                    Mi[r, a] = acc
+            for r in range(p):
+                for a in range(f):
+                    acc = 0.0
+                    for q in range(p):
+                        acc += row[o_Sti + r * p + q] * Mi[q, a]
+                    SM[r, a] = acc
+            for a in range(f):
+                acc = 0.0
+                for r in range(p):
+                    acc += SM[r, a] * row[o_nu + r]
+                g[c, a] += acc
+                for b in range(f):
+                    acc = 0.0
+                    for r in range(p):
+                        acc += Mi[r, a] * SM[r, b]
+                    info[c, a, b] += acc
+            # W = (I - K C) Wm + K Du = Wm + K (Du - C Wm) = Wm - K Mi
+            for r in range(n):
+                for a in range(f):
+                    acc = Wm[r, a]
+                    for q in range(p):
+                        acc -= row[o_K + r * p + q] * Mi[q, a]
+                    Wc[r, a] = acc
+
+
+def ring_models(est: FuzzyUKF, first: int, count: int) -> tuple[Array, Array, IntArray]:
+    """The flat model blocks and NIS coefficients of the distinct dt among ring samples
+    first .. first + count - 1 (from the `_block` cache; k T after lost samples), and
+    each sample's index into them: a few blocks, not one per sample."""
+    L = est._ring_len
+    dts = est._ring[(first + np.arange(count)) % L, RING.span("dt", *est._dims)[0]]
+    if dts.min() == dts.max():  # no loss in the window: one block (the common case)
+        blk = est._block(float(dts[0]))
+        return blk[0][None, :], np.array([blk[1]]), np.zeros(count, np.int64)
+    uniq, inv = np.unique(dts, return_inverse=True)
+    entries = [est._block(d) for d in uniq.tolist()]
+    return (np.stack([e[0] for e in entries]), np.array([e[1] for e in entries]),
+            inv.astype(np.int64).reshape(-1))
+
+
+def onset_stats(est: FuzzyUKF, first: int, count: int, cands: IntArray,
+                 models: tuple[Array, Array, IntArray]) -> tuple[Array, Array]:
+    """(g, info) of the candidate onsets first + cands (see `locate_onset`)."""
+    n, m, p = est._dims
+    F = est._faulty
+    f = len(F)
+    if est.kernel_name == "jit":
+        g = np.zeros((len(cands), f))
+        info = np.zeros((len(cands), f, f))
+        onset_glr(models[0], models[2], est._ring, first, count, est._ring_len,
+                   est._lay, est._faulty_idx, n, m, p, cands, g, info)
+        return g, info
+    # Without the JIT (the hardened service's AOT kernel, or interpreted): the same
+    # statistics with numpy, every onset of the window at once, then the candidates'
+    eye = np.eye(n)
+    W = np.zeros((count, n, f))
+    ga = np.zeros((count, f))
+    ia = np.zeros((count, f, f))
+    for t in range(count):
+        i = first + t
+        u = est._field(i, "u")[F]
+        A, B, _, C, D = est._matrices(float(est._field(i, "dt")[0]))
+        K = est._field(i, "K").reshape(n, p)
+        Sti = est._field(i, "Sti").reshape(p, p)
+        nu = est._field(i, "nu")
+        Du = D[:, F] * u
+        Wm = A @ W[:t + 1] - B[:, F] * u
+        Mi = C @ Wm - Du
+        SM = Sti @ Mi
+        ga[:t + 1] += np.einsum("cpa,p->ca", SM, nu)
+        ia[:t + 1] += np.einsum("cpa,cpb->cab", Mi, SM)
+        W[:t + 1] = (eye - K @ C) @ Wm + K @ Du
+    return ga[cands], ia[cands]
+
+
+def onset_scores(g: Array, info: Array, vr: float) -> tuple[Array, Array]:
+    """Log marginal likelihood ratio of a jump at each candidate, and the jump."""
+    f = g.shape[1]
+    if f == 1:  # one fault actuator: the same formulas without batched LAPACK calls
+        d = info[:, 0, 0]
+        s1 = g / (d + 1.0 / vr)[:, None]
+        return 0.5 * g[:, 0] * s1[:, 0] - 0.5 * np.log1p(vr * d), s1
+    sol = np.asarray(np.linalg.solve(info + np.eye(f) / vr, g[..., None])[..., 0], np.float64)
+    score: Array = 0.5 * np.einsum("ca,ca->c", g, sol) \
+        - 0.5 * np.linalg.slogdet(np.eye(f) + vr * info)[1]
+    return score, sol
+
+
+def locate_onset(est: FuzzyUKF, k: int) -> tuple[int, Array, tuple[Array, Array, IntArray]]:
+    """The most likely onset of the change detected at sample k (20), the jump of
+    gamma there (one entry per fault actuator), and the model blocks of the samples from
+    the window's first to k (`ring_models`, for `reprocess`).
+
+    For every candidate onset j in the ring (after the previous event's), a jump of
+    gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
+    the sensitivity M_i(j) of the two-stage filter started at j (V = 0 before j). Its
+    marginal likelihood against no jump, with the prior dgamma ~ N(0, var_reopen), is
+    g' (I + 1/var_reopen)^-1 g / 2 - log det(1 + var_reopen I) / 2 (g = sum M' S^-1 nu,
+    I = sum M' S^-1 M): the generalised likelihood ratio of Willsky and Jones (1976)
+    with the jump integrated out. The largest wins; its jump is (I + 1/var_reopen)^-1 g.
+
+    Cost bound: the window holds count <= ring_len samples (ring_len = onset_window / T
+    + 1; a lost sample is one step of dt = k T, one slot, so loss never lengthens it).
+    Every candidate's signature is propagated over the samples after it, so a search
+    of all onsets is O(count^2). With more than `max_onsets` samples the search is
+    two-stage: every s-th onset (s = ceil(count / max_onsets), and the latest), then
+    every onset within s of the best of those -- O(count (max_onsets + 2 s)) -- which
+    finds the exact maximiser whenever the score is unimodal over s samples around it
+    (the score of an abrupt change peaks at its onset and falls off over the samples
+    in between, as the signature overlap does). Compiled with the JIT.
+    """
+    first = min(max(k - est._ring_len + 1, est._onset_floor, 0), k)
+    vr = est.config.var_reopen
+    count = k - first + 1
+    models = ring_models(est, first, count)
+    cap = max(2, est.config.max_onsets)
+    if count <= cap:
+        cands = np.arange(count, dtype=np.int64)
+    else:
+        s = -(-count // cap)
+        cands = np.unique(np.append(np.arange(0, count, s), count - 1)).astype(np.int64)
+        score, _ = onset_scores(*onset_stats(est, first, count, cands, models), vr)
+        b = int(cands[int(np.argmax(score))])
+        cands = np.arange(max(b - s + 1, 0), min(b + s, count), dtype=np.int64)
+    # the refined candidates include the coarse best, so the argmax of this pass is
+    # the best of both
+    score, sol = onset_scores(*onset_stats(est, first, count, cands, models), vr)
+    best = int(np.argmax(score))
+    return first + int(cands[best]), sol[best], models
+
+
+def reprocess(est: FuzzyUKF, j: int, k: int, first: int,
+              models: tuple[Array, Array, IntArray], bias: bool = False) -> None:
+    """Back to the state before sample j, a structure event there -- of gamma, or with
+    bias True of the biases (their variance raised by var0, step 8) -- and samples j..k
+    again (k - j < ring_len samples; in one compiled call with the JIT). models: the
+    model blocks of samples first..k (`ring_models`)."""
+    n, m, p = est._dims
+    nx = est._nx
+    est.x[:] = est._field(j, "x")
+    est.P[:] = est._field(j, "P").reshape(n, n)
+    if bias:
+        est.P[nx:, nx:] += np.diag(est._bias_var0)
+    est.V[:] = est._field(j, "V").reshape(n, m)
+    est._zall[:] = est._field(j, "z")
+    est._ebar[:] = est._field(j, "ebar")
+    est.out.gamma[:] = est._field(j, "gamma")
+    est.common_var[:] = est._field(j, "vc")
+    est.noise_excess[:] = est._field(j, "rx")
+    # the event re-opens every consequent at that output: do it before the rules fire,
+    # so that what the samples since taught them under the old fault is forgotten
+    est.fuzzy.cons[:, est._faulty] = est.out.gamma[est._faulty]
+    if est.kernel_name == "jit":
+        fz = est.fuzzy
+        reprocess_loop(models[0], models[1], models[2][j - first:], est._ring, j, k - j + 1,
+                       est._ring_len, est._prm, est._st, fz.centres, fz.counts, fz.cons,
+                       fz.var, fz.rule_idx, fz.rule_w, est._wk, est._out, est._lay, n, m, p,
+                       fz.max_mf, est._u, est._y, 0.0 if bias else 2.0)
+        return
+    for i in range(j, k + 1):
+        est._u[:] = est._field(i, "u")
+        est._y[:] = est._field(i, "y")
+        est._run(i, float(est._field(i, "dt")[0]), 2.0 if i == j and not bias else 0.0)
+
+
+def negligible(est: FuzzyUKF, gamma: Array, jump: Array) -> bool:
+    """Whether the jump, projected on the bounds of (28), is below min_jump for every
+    fault actuator."""
+    F = est._faulty
+    moved = np.clip(gamma[F] + jump, est._lower[F], est._upper[F]) - gamma[F]
+    return bool(F) and bool(np.all(np.abs(moved) < est.config.min_jump))
+
+
+def structure_event(est: FuzzyUKF) -> bool:
+    """(20)-(22): locate the change, re-learn from its onset, add an MF where it shows.
+
+    The test fires some samples after a change began. Its onset is located (`locate_onset`),
+    the filter goes back to the state before it and processes the samples since
+    again, with a structure event first: an actuator's loss of effectiveness is not a
+    function of x_e, so no rule's old consequent is worth keeping and all are re-opened
+    at the current output (so f^ does not jump, the intent of (23)-(27)); the
+    sensitivity of the state to the new gamma starts there. Then an MF is inserted on
+    the input with the largest |z| (output-preserving).
+    """
+    k = est.steps
+    j, jump, models = est._onset(k)
+    g_j = est._field(j, "gamma")
+    if negligible(est, g_j, jump):
+        # a jump that the bounds of (28) reduce to less than min_jump -- typically
+        # evidence for a gamma below 0 where a fault-free actuator's estimate sits on
+        # that bound -- is no change of the loss of effectiveness: it has been looked
+        # at (the dwell restarts). Where it leaves the bounds by more than min_jump and
+        # the filter has bias states, it is a change of the load or an offset (step 8):
+        # the biases are re-opened at its onset and the samples since processed again
+        est._ebar[:] = 0.0
+        est._last_event = est._time
+        if est.bias_plan.count and beyond_bounds(g_j, jump, est._lower, est._upper,
+                                                 est._faulty, est.config.min_jump):
+            if est._time > est._bias_armed_until:
+                # the first sight of it: a burst of noise fires the test as well, and
+                # a bias learnt from one is kept (gamma^ takes the difference) --
+                # what persists fires the test again after the dwell time
+                est._bias_armed_until = est._time + BIAS_CONFIRM * est.config.dwell
+                return False
+            est._bias_armed_until = -math.inf
+            reprocess(est, j, k, k - len(models[2]) + 1, models, bias=True)
+            est._onset_floor = j + 1
+            est.bias_events += 1
+        return False
+    reprocess(est, j, k, k - len(models[2]) + 1, models)
+    est._onset_floor = j + 1
+    est._last_event = est._time
+    est._bias_armed_until = -math.inf
+    est.structure_events += 1
+    fz = est.fuzzy
+    v = int(np.argmax(np.abs(est.z)))
+    fz.insert(v, float(est.z[v]), est.config.var_rule)
+    fz.var[:, est._known] = 0.0  # known actuators have nothing to learn
+    return True

@@ -1,0 +1,119 @@
+"""The column buffers of the Rerun sink: per node and per input, preallocated float64 rows
+(``batch_size`` long, reused for the whole run) that a full batch, a flush or a timer sends
+as one ``send_columns`` per entity; `fill` is the one way rows go into them."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from monitor.sinks.blueprint import STYLES, node_path
+from monitor.sinks.runs import RunThinner
+
+Array = NDArray[np.float64]
+
+__all__ = ["InputColumns", "NodeColumns", "fill", "put_output_columns", "put_outputs"]
+
+
+class InputColumns:
+    """The column buffer of one input of a node: its own rate, its own rows."""
+
+    __slots__ = ("n", "path", "t", "v")
+
+    def __init__(self, path: str, batch_size: int) -> None:
+        self.path = path
+        self.n = 0
+        self.t: Array = np.zeros(batch_size)
+        self.v: Array = np.zeros(batch_size)
+
+
+class NodeColumns:
+    """Preallocated column buffers and entity paths of one node."""
+
+    __slots__ = (
+        "estimated",
+        "gamma",
+        "health",
+        "inputs",
+        "measured",
+        "mismatch",
+        "n",
+        "nis",
+        "node",
+        "out_paths",
+        "path",
+        "rules",
+        "runs",
+        "t",
+        "true_gamma",
+        "true_styled",
+    )
+
+    def __init__(self, node: int, batch_size: int, outputs: Sequence[str]) -> None:
+        self.node = node
+        self.path: dict[str, str] = {s[0]: node_path(node, s[0]) for s in STYLES}
+        self.path["events"] = node_path(node, "events")
+        self.out_paths: list[tuple[str, str]] = [
+            (node_path(node, f"{o}/measured"), node_path(node, f"{o}/estimated"))
+            for o in outputs]
+        """(measured, estimated) entity of each output."""
+        self.n = 0
+        self.t: Array = np.zeros(batch_size)
+        # one row per output; NaN where a producer gives only the first output
+        self.measured: Array = np.zeros((len(outputs), batch_size))
+        self.estimated: Array = np.zeros((len(outputs), batch_size))
+        self.gamma: Array = np.zeros(batch_size)
+        self.true_gamma: Array = np.zeros(batch_size)
+        self.rules: Array = np.zeros(batch_size)
+        self.health: Array = np.zeros(batch_size)
+        self.mismatch: Array = np.zeros(batch_size)
+        self.nis: Array = np.zeros(batch_size)
+        self.runs = RunThinner()
+        """The run thinning of the node's piecewise-constant series (`RUNS`)."""
+        self.true_styled = False
+        self.inputs: dict[int, InputColumns] = {}
+        """Each input's buffer, by its index (one beyond the names given from its first
+        row)."""
+
+
+def fill(buf: NodeColumns | InputColumns, count: int, size: int,
+         write: Callable[[slice, slice], None], full: Callable[[], None]) -> None:
+    """Rows 0 .. count - 1 of a source into `buf` (``size`` rows), as many at a time as it
+    has room for: write(dst, src) copies the source's rows src into the buffer's rows dst,
+    full() sends a full buffer (which empties it)."""
+    i = 0
+    while i < count:
+        at = buf.n
+        k = min(size - at, count - i)
+        write(slice(at, at + k), slice(i, i + k))
+        buf.n = at + k
+        i += k
+        if buf.n == size:
+            full()
+
+
+def put_outputs(dst: Array, first: float, values: Sequence[float]) -> None:
+    """One sample's outputs into a column of the output rows: `values` where given (as many
+    as there are rows), else `first` into the first row and NaN into the others."""
+    if len(values):
+        k = min(len(values), len(dst))
+        dst[:k] = values[:k]
+        dst[k:] = math.nan
+    else:
+        dst[0] = first
+        dst[1:] = math.nan
+
+
+def put_output_columns(dst: Array, first: Array, values: Array | None, rows: slice) -> None:
+    """`put_outputs` for a slice of samples: `values` (one column per output) where given,
+    else `first`."""
+    if values is not None and values.shape[1]:
+        k = min(values.shape[1], len(dst))
+        dst[:k] = values[rows, :k].T
+        dst[k:] = math.nan
+    else:
+        dst[0] = first
+        dst[1:] = math.nan
