@@ -32,6 +32,7 @@ from sim_ecu.cia402 import EMCY_OUTAGE, STATUS_FAULT, STATUS_OPERATION_ENABLED, 
 from sim_ecu.scenario import scenario_from_dict
 from tests.support import BIN
 from tests.support.cli_cases import CliCase, run_cli_case
+from tests.support.rig_files import rig_refusal
 
 ROOT = Path(__file__).resolve().parents[1]
 EDS = ROOT / "tests" / "data" / "eds"
@@ -43,6 +44,18 @@ RPM = 2 * 3.141592653589793 / 60
 SCENARIO = {"name": "cia402-fault-outage", "duration": 6.0,
             "fault": [{"start": 2.0, "end": 3.5, "gamma": 0.4},
                       {"start": 3.5, "end": 4.5, "gamma": 1.0}]}
+
+#: What the twin's drive says during `SCENARIO`: (s from the start, report kind, event
+#: level, text), as the drive watch reports it and the engines' bus events say it.
+TWIN_REPORTS = [
+    (0.0, "nmt", "INFO", "NMT BOOT-UP"),
+    (0.0, "nmt", "INFO", "NMT OPERATIONAL"),
+    (0.0, "cia402", "INFO", "CiA 402 OPERATION ENABLED (statusword 0x0027)"),
+    (3.5, "emcy", "WARN", "EMCY 0x5000 device hardware (error register 0x01: generic)"),
+    (3.5, "cia402", "WARN", "CiA 402 FAULT (statusword 0x0008)"),
+    (4.5, "emcy", "INFO", "EMCY 0x0000 error reset (error register 0x00: none)"),
+    (4.5, "cia402", "INFO", "CiA 402 OPERATION ENABLED (statusword 0x0027)"),
+]
 
 
 def _codec(rig: Rig) -> RigCodec:
@@ -141,10 +154,8 @@ def test_a_bad_eds_is_one_line_naming_the_file(tmp_path: Path, content: str | No
     (tmp_path / "bad.eds").write_text(content)
     rig = _rig_text(tmp_path, 'eds = "bad.eds"\nnodes = [1]',
                     'inputs = [{ signal = "0x60FF" }]\noutputs = [{ signal = "0x606C" }]')
-    with pytest.raises(RigError) as info:
-        load_rig(rig)
-    line = str(info.value)
-    assert "\n" not in line and line.startswith(f"rig file {rig}: bus.eds: ")
+    line = rig_refusal(rig)
+    assert line.startswith(f"rig file {rig}: bus.eds: "), line
     assert "bad.eds" in line and wrong in line
 
 
@@ -160,10 +171,9 @@ def test_a_bad_eds_is_one_line_naming_the_file(tmp_path: Path, content: str | No
 def test_a_bad_canopen_key_is_one_line(tmp_path: Path, bus: str, key: str, wrong: str) -> None:
     rig = _rig_text(tmp_path, bus,
                     'inputs = [{ signal = "0x60FF" }]\noutputs = [{ signal = "0x606C" }]')
-    with pytest.raises(RigError) as info:
-        load_rig(rig)
-    assert str(info.value).startswith(f"rig file {rig}: {key}: ")
-    assert wrong in str(info.value)
+    line = rig_refusal(rig)
+    assert line.startswith(f"rig file {rig}: {key}: "), line
+    assert wrong in line
 
 
 def test_an_unmapped_object_says_what_is_mapped(tmp_path: Path) -> None:
@@ -271,15 +281,7 @@ def test_both_engines_diagnose_the_twin_alike(tmp_path: Path, chunk: int) -> Non
     assert "rejected/unknown_id" not in res.counters
     # what the drive said, the same in both: in the bus events and the counters
     said = [(round(e.t - 1000.0, 2), e.level, e.text) for e in columnar.bus]
-    assert said == [
-        (0.0, "INFO", "node 1: NMT BOOT-UP"),
-        (0.0, "INFO", "node 1: NMT OPERATIONAL"),
-        (0.0, "INFO", "node 1: CiA 402 OPERATION ENABLED (statusword 0x0027)"),
-        (3.5, "WARN", "node 1: EMCY 0x5000 device hardware (error register 0x01: generic)"),
-        (3.5, "WARN", "node 1: CiA 402 FAULT (statusword 0x0008)"),
-        (4.5, "INFO", "node 1: EMCY 0x0000 error reset (error register 0x00: none)"),
-        (4.5, "INFO", "node 1: CiA 402 OPERATION ENABLED (statusword 0x0027)"),
-    ]
+    assert said == [(t, level, f"node 1: {text}") for t, _, level, text in TWIN_REPORTS]
     assert {k: v for k, v in res.counters.items() if k.startswith("drive/")} == {
         "drive/nmt": 2, "drive/cia402": 3, "drive/emcy": 2}
 
@@ -337,15 +339,7 @@ def test_the_drive_watch_reads_what_the_twin_says() -> None:
         reports += watch.feed(m.arbitration_id, bytes(m.data), m.timestamp)
         operational[round(m.timestamp - 1000.0, 2)] = watch.operational(1)
     got = [(round(r.t - 1000.0, 2), r.kind, r.text) for r in reports]
-    assert got == [
-        (0.0, "nmt", "NMT BOOT-UP"),
-        (0.0, "nmt", "NMT OPERATIONAL"),
-        (0.0, "cia402", "CiA 402 OPERATION ENABLED (statusword 0x0027)"),
-        (3.5, "emcy", "EMCY 0x5000 device hardware (error register 0x01: generic)"),
-        (3.5, "cia402", "CiA 402 FAULT (statusword 0x0008)"),
-        (4.5, "emcy", "EMCY 0x0000 error reset (error register 0x00: none)"),
-        (4.5, "cia402", "CiA 402 OPERATION ENABLED (statusword 0x0027)"),
-    ]
+    assert got == [(t, kind, text) for t, kind, _, text in TWIN_REPORTS]
     assert operational[3.49] and not operational[3.5] and not operational[4.49]
     assert operational[4.5] and operational[5.99]
     assert watch.counts(1) == {"nmt": 2, "cia402": 3, "emcy": 2}
@@ -375,13 +369,7 @@ def test_emcy_names() -> None:
 def test_a_drive_whose_heartbeat_stops_is_not_read(tmp_path: Path) -> None:
     """The drive's heartbeat (100 ms here) stops for 1 s while its PDOs go on: both engines
     stop reading it after 150 ms without one, and read it afresh at the next heartbeat."""
-    eds = (EDS / "cia402_slave.eds").read_text()
-    start = eds.index("[1017]")
-    eds = eds[:start] + eds[start:].replace("DefaultValue=0x0", "DefaultValue=100", 1)
-    (tmp_path / "cia402-example.eds").write_text(eds)
-    text = EXAMPLE.read_text()
-    (tmp_path / "rig.toml").write_text(text)
-    rig = load_rig(tmp_path / "rig.toml")
+    rig = _beating_rig(tmp_path)
     healthy = scenario_from_dict({"name": "healthy", "duration": 4.0})
     ecu = Cia402ECU(None, _codec(rig), rig, 1, healthy, seed=2)
     frames = [m for m in ecu.frames(start_time=1000.0)
@@ -395,6 +383,52 @@ def test_a_drive_whose_heartbeat_stops_is_not_read(tmp_path: Path) -> None:
     assert res.counters["estimator/restarts"] == 1
     assert [e.state for e in res.events if e.kind == "health"] == [
         "fault_free", "no_data", "fault_free"]
+
+
+def _beating_rig(tmp_path: Path) -> Rig:
+    """The example rig with a drive that beats every 100 ms (its file says 0: none)."""
+    eds = (EDS / "cia402_slave.eds").read_text()
+    start = eds.index("[1017]")
+    eds = eds[:start] + eds[start:].replace("DefaultValue=0x0", "DefaultValue=100", 1)
+    (tmp_path / "cia402-example.eds").write_text(eds)
+    (tmp_path / "rig.toml").write_text(EXAMPLE.read_text())
+    return load_rig(tmp_path / "rig.toml")
+
+
+def test_a_heartbeat_lost_while_only_pdos_go_on_is_found_at_a_tick(tmp_path: Path) -> None:
+    """From 1 s to 2.05 s the bus carries only the rig's PDOs (no SYNC, no heartbeat, nothing
+    the drive watch reads): both engines find the loss at a tick, 150 ms after the last
+    heartbeat, not at the next protocol frame a second later."""
+    rig = _beating_rig(tmp_path)
+    healthy = scenario_from_dict({"name": "healthy", "duration": 4.0})
+    ecu = Cia402ECU(None, _codec(rig), rig, 1, healthy, seed=2)
+    pdos = {0x481, 0x501}  # TPDO4 and RPDO4 of node 1
+    frames = [m for m in ecu.frames(start_time=1000.0)
+              if m.arbitration_id in pdos or not 1.0 < m.timestamp - 1000.0 < 2.05]
+    res, columnar = _both_engines(rig, frames, tmp_path / "pdos-only.log", 997)
+    lost = [e for e in columnar.bus if "heartbeat lost" in e.text]
+    assert len(lost) == 1 and 1.15 < lost[0].t - 1000.0 <= 1.21, columnar.bus
+    assert res.counters["drive/heartbeat_lost"] == 1
+
+
+def test_a_heartbeat_lost_on_a_silent_bus_is_said_at_the_live_tick(tmp_path: Path) -> None:
+    """The live loop ticks in wall time when no frame comes: a drive gone silent with the
+    whole bus is reported once its heartbeat is overdue, without another frame."""
+    rig = _beating_rig(tmp_path)
+    healthy = scenario_from_dict({"name": "healthy", "duration": 1.0})
+    ecu = Cia402ECU(None, _codec(rig), rig, 1, healthy, seed=2)
+    sink = _BusEvents()
+    pipe = MonitorPipeline(build_decoder(rig), monitor_config(NO_OVERRIDES, rig), sink=sink)
+    last = 0.0
+    for m in ecu.frames(start_time=1000.0):
+        pipe.feed(m)
+        last = m.timestamp
+    before = len(sink.bus)
+    for k in range(1, 11):  # the loop's ticks every 50 ms of wall time, no frame between
+        pipe.tick(last + 0.05 * k)
+    said = [e.text for e in sink.bus[before:]]
+    assert len(said) == 1 and said[0].startswith("node 1: heartbeat lost"), said
+    assert pipe.counters["drive/heartbeat_lost"] == 1
 
 
 def test_a_dbc_for_a_canopen_rig_is_one_line(tmp_path: Path) -> None:
@@ -424,6 +458,12 @@ def test_the_events_carry_what_the_drive_says(tmp_path: Path) -> None:
         assert done.returncode == 0, done.stderr
         lines[engine] = [json.loads(x) for x in ev.read_text().splitlines()]
         assert is_own_file(ev, "events")
+        # the summary lists the node's silence during the drive's Fault, from the log's start
+        silent = [e["t"] - 1000.0 for e in lines[engine]
+                  if e["kind"] == "health" and e["state"] == "no_data"]
+        stretches = [x for x in done.stderr.splitlines() if x.startswith("  no_data")]
+        assert len(stretches) == len(silent) >= 1, done.stderr
+        assert f"{silent[0]:9.2f} s ->" in stretches[0], done.stderr
     assert lines["columnar"] == lines["per-frame"]
     kinds = [(e["kind"], e.get("report") or e["state"]) for e in lines["columnar"]]
     emcy = kinds.index(("drive", "emcy"))

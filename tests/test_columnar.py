@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,15 +35,13 @@ from monitor.columnar.reader import read_chunks
 from monitor.columnar.replay import replay_file
 from monitor.columnar.signals import SignalExtractor, payload_integers
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.pipeline.events import BusEvent, Diagnosis, DiagnosisEvent, InputSample, Sample
 from monitor.pipeline.feed import TICK_S, feed_log
 from monitor.rig import build_decoder, load_rig
-from monitor.sinks.base import Sink
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.support.bad_frames import frame_kinds
-from tests.support.pipeline import stalled, without_currents
+from tests.support.pipeline import Recorder, stalled, without_currents
 
 RIGS = Path(__file__).resolve().parent / "rigs"
 NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
@@ -148,30 +145,6 @@ def _write(frames: list[can.Message], path: Path) -> Path:
         for m in frames:
             lg.on_message_received(m)
     return path
-
-
-@dataclass
-class Recorder(Sink):
-    transitions: list[DiagnosisEvent] = field(default_factory=list)
-    diagnoses: list[Diagnosis] = field(default_factory=list)
-    bus: list[BusEvent] = field(default_factory=list)
-    samples: list[Sample] = field(default_factory=list)
-    inputs: list[InputSample] = field(default_factory=list)
-
-    def on_transition(self, event: DiagnosisEvent) -> None:
-        self.transitions.append(event)
-
-    def on_diagnosis(self, diagnosis: Diagnosis) -> None:
-        self.diagnoses.append(diagnosis)
-
-    def on_bus_event(self, event: BusEvent) -> None:
-        self.bus.append(event)
-
-    def on_sample(self, sample: Sample) -> None:
-        self.samples.append(sample)
-
-    def on_input(self, sample: InputSample) -> None:
-        self.inputs.append(sample)
 
 
 def _compare(path: Path, db: Any, db2: Any, cfg: MonitorConfig, chunk: int = 997) -> Any:

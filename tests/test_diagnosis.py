@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import tomllib
 from datetime import datetime
@@ -556,3 +557,111 @@ def test_transitions_helper() -> None:
         transitions([0.0], [0, 1])
     with pytest.raises(DiagnosisError, match="health state"):
         transitions([0.0], [7])
+
+
+# --------------------------------------------------------------------------------------
+# The compiled rules: one step at a time (the per-frame pipeline) and in a loop (replay)
+# --------------------------------------------------------------------------------------
+
+
+def _stream(seed: int) -> dict[str, np.ndarray]:
+    """A node's samples and ticks in bus order: gamma^ wandering across F1 and F2 with
+    noise, NIS in and out of its band, restarts, failed estimates, silences."""
+    rng = np.random.default_rng(seed)
+    n = 6000
+    is_tick = rng.random(n) < 0.15
+    dt = rng.choice([0.0, 0.001, 0.01, 0.01, 0.01, 0.02, 0.7], n,
+                    p=[0.05, 0.05, 0.3, 0.3, 0.2, 0.08, 0.02])
+    t = 100.0 + np.cumsum(dt)
+    level = np.repeat(rng.choice([0.0, 0.15, 0.5, 0.85, 1.0], n // 200 + 1), 200)[:n]
+    gamma = level + rng.normal(0.0, 0.03, n)
+    nis_scale = np.repeat(rng.choice([1.0, 1.0, 4.0, 0.05], n // 300 + 1), 300)[:n]
+    nis = nis_scale * rng.chisquare(1, n)
+    nis[rng.random(n) < 0.01] = math.nan
+    restarted = (rng.random(n) < 0.005) & ~is_tick
+    failed = (rng.random(n) < 0.003) & ~is_tick
+    return {"is_tick": is_tick, "t": t, "gamma": gamma, "nis": nis, "restarted": restarted,
+            "failed": failed}
+
+
+@pytest.mark.parametrize(("seed", "withhold"), [(1, False), (2, True), (3, True)])
+def test_the_loop_and_the_single_steps_give_the_same_states(seed: int, withhold: bool) -> None:
+    """`rules.run` (the columnar replay's classify) and `on_sample` / `on_tick` called one
+    at a time (the per-frame pipeline) go through the same states and report the same."""
+    from monitor.columnar import kernels
+    from monitor.diagnosis import rules
+
+    prm = rules.params(Thresholds(0.2, 0.7), dwell_s=0.03, hysteresis=0.02, outputs=1,
+                       rate=100.0, window_s=0.2, mismatch_dwell_s=0.1, publish_period_s=0.1,
+                       silence_timeout_s=0.5, withhold=withhold)
+    x = _stream(seed)
+    n = len(x["t"])
+    # one step at a time
+    s = rules.new_state(prm)
+    out = rules.new_out()
+    states = np.zeros((n, len(rules.STATE)))
+    outs = np.zeros((n, len(rules.OUT)), np.int64)
+    for i in range(n):
+        if x["is_tick"][i]:
+            rules.on_tick(s, prm, float(x["t"][i]), out)
+        else:
+            rules.on_sample(s, prm, float(x["t"][i]), float(x["gamma"][i]), float(x["nis"][i]),
+                            bool(x["restarted"][i]), bool(x["failed"][i]), out)
+        states[i] = s
+        outs[i] = out
+    # the loop, in chunks of uneven length (as the replay's chunks split a node's items)
+    s2 = rules.new_state(prm)
+    st, ev, prev, cause, fev = (np.zeros(n, np.int64) for _ in range(5))
+    flag = np.zeros(n, np.bool_)
+    counts = np.zeros(2, np.int64)
+    cuts = [0, 1, 777, 3000, 3001, n]
+    ends = []
+    for a, b in itertools.pairwise(cuts):
+        kernels.classify(x["is_tick"][a:b], x["t"][a:b], x["gamma"][a:b], x["nis"][a:b],
+                         x["restarted"][a:b], x["failed"][a:b], s2, prm, st[a:b], ev[a:b],
+                         prev[a:b], cause[a:b], fev[a:b], flag[a:b], counts)
+        ends.append(s2.copy())
+    assert np.array_equal(ends[-1], states[-1], equal_nan=True)
+    for b, end in zip(cuts[1:], ends, strict=True):
+        assert np.array_equal(end, states[b - 1], equal_nan=True)
+    assert np.array_equal(st, states[:, rules.REPORTED].astype(np.int64))
+    assert np.array_equal(flag, states[:, rules.FLAGGED] != 0.0)
+    assert np.array_equal(ev, outs[:, rules.EV])
+    assert np.array_equal(prev, outs[:, rules.PREV])
+    assert np.array_equal(cause, outs[:, rules.CAUSE])
+    assert np.array_equal(fev, outs[:, rules.FLAG])
+    assert counts.tolist() == [int(outs[:, rules.MISMATCH].sum()), int(outs[:, rules.SILENT].sum())]
+    # the stream reaches every rule: each state, each kind of event and cause
+    assert set(st.tolist()) == {0, 1, 2, 3}
+    assert {0, 1, 2} <= set(ev.tolist())
+    assert {1, 2, 3} <= set(fev.tolist())
+    changed = (ev == 1) & (st != prev)
+    assert {0, 2} <= set(cause[changed].tolist())
+    assert counts.min() > 0
+    if withhold:
+        assert 1 in cause[changed].tolist()  # an alarm the flag held, reported as it fell
+
+
+def test_the_views_step_the_rules_of_the_pipeline() -> None:
+    """`OnlineClassifier` and `MismatchDetector` give the state and the flag that the
+    rules' step gives on the same samples."""
+    from monitor.diagnosis import MismatchDetector, rules
+
+    th = Thresholds(0.2, 0.7)
+    prm = rules.params(th, dwell_s=0.03, hysteresis=0.02, outputs=1, rate=100.0,
+                       window_s=0.2, mismatch_dwell_s=0.1)
+    oc = OnlineClassifier(th, dwell_s=0.03, hysteresis=0.02)
+    md = MismatchDetector(1, 100.0, window_s=0.2, dwell_s=0.1)
+    x = _stream(4)
+    s = rules.new_state(prm)
+    out = rules.new_out()
+    seen = set()
+    for i in np.flatnonzero(~x["is_tick"] & ~x["failed"] & ~x["restarted"]).tolist():
+        t, g, nis = float(x["t"][i]), float(x["gamma"][i]), float(x["nis"][i])
+        rules.on_sample(s, prm, t, g, nis, False, False, out)
+        oc.update(t, g)
+        md.update(t, nis)
+        assert int(oc.state) == int(s[rules.ST])
+        assert md.flagged == (s[rules.FLAGGED] != 0.0)
+        seen.add((int(oc.state), md.flagged))
+    assert len(seen) >= 6

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import io
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import IO, TextIO, cast
 
@@ -46,7 +47,6 @@ from monitor.bus.logfile import (
     LogError,
     asc_unfinished,
     damaged,
-    gzip_damage,
     log_encoding,
     open_binary,
 )
@@ -58,27 +58,23 @@ from monitor.columnar.chunk import (
     reader_chunks,
 )
 from monitor.columnar.text import (
-    POW10,
-    StreamBroken,
     count_lines,
-    cut_line_error,
+    exact_decimal,
     hexval,
     is_space,
-    line_blocks,
     needs_python,
     python_can_block,
     read_block,
-    split_cut_line,
     stripped_line,
     text_block,
+    text_chunks,
 )
 from monitor.errors import one_line
-from monitor.estimation.jit import njit
+from monitor.jit import njit
 
 __all__ = ["asc_chunks", "read"]
 
 _HEAD_BYTES = 1 << 20  # the header must end within this much of the file's start
-_READ_BYTES = 1 << 24  # text scanned per call (about 220,000 classic lines)
 _FD_LENGTHS = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64], np.int64)
 
 
@@ -107,24 +103,9 @@ def _chunks(path: Path, fh: IO[bytes], chunk_frames: int) -> Iterator[FrameChunk
         base_name, offset = header
         base = 10 if base_name == "dec" else 16
         line = count_lines(head[:offset])  # lines before the block
-        frames = 0
         fh.seek(offset)
-        blocks = line_blocks(fh, _READ_BYTES)
-        while True:
-            try:
-                block = next(blocks, None)
-            except StreamBroken as stream:
-                raise gzip_damage(path, stream.cause, frames=frames, line=line + 1) from None
-            if block is None:
-                break
-            text, cut = split_cut_line(block)
-            if text:
-                for chunk in _block(path, text, base, base_name, encoding, line, frames):
-                    frames += len(chunk)
-                    yield chunk
-                line += count_lines(text)
-            if cut:
-                raise cut_line_error(path, frames, line + 1)
+        frames = yield from text_chunks(
+            path, fh, partial(_block, path, base, base_name, encoding), line=line)
     end = asc_unfinished(path)
     if end is not None:
         raise damaged(path, "truncated", frames=frames, where=f"byte {end}",
@@ -150,7 +131,7 @@ def _header(head: bytes) -> tuple[str, int] | None:
     return reader.base, consumed  # ASCII, "\r\n" kept as it is: characters are bytes
 
 
-def _block(path: Path, text: bytes, base: int, base_name: str, encoding: str, line: int,
+def _block(path: Path, base: int, base_name: str, encoding: str, text: bytes, line: int,
            frames: int) -> Iterator[FrameChunk]:
     """The frames of whole lines `text`, after `line` lines and `frames` frames."""
     buf = np.frombuffer(text, np.uint8)
@@ -206,30 +187,12 @@ def _time_stamp(buf: NDArray[np.uint8], j: int, e: int) -> tuple[float, int]:
     """``<digits>.<digits>`` and a space at `j` (python-can's pattern): (seconds, end); end
     -1 if the line does not match, -2 if it has more digits than one correctly rounded
     division converts exactly (more than 17 significant, or 22 after the point)."""
-    mant = 0
-    digits = 0
-    frac = 0
-    dot = -1
-    k = j
-    while k < e:
-        ch = buf[k]
-        if ch == 46 and dot < 0:
-            dot = k
-        elif 48 <= ch <= 57:
-            if digits > 0 or ch != 48:
-                digits += 1
-            if digits <= 17:
-                mant = mant * 10 + (ch - 48)
-            if dot >= 0:
-                frac += 1
-        else:
-            break
-        k += 1
-    if dot <= j or frac == 0 or k >= e or not is_space(buf[k]):
+    t, k, dot = exact_decimal(buf, j, e)
+    if dot <= j or k == dot + 1 or k >= e or not is_space(buf[k]):
         return 0.0, -1
-    if digits > 17 or mant > 9007199254740992 or frac > 22:
+    if np.isnan(t):
         return 0.0, -2
-    return float(mant) / POW10[frac], k
+    return t, k
 
 
 @njit

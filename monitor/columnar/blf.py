@@ -44,7 +44,7 @@ from monitor.columnar.chunk import (
     empty_chunk,
     reader_chunks,
 )
-from monitor.estimation.jit import njit
+from monitor.jit import njit
 
 __all__ = ["blf_chunks", "read"]
 
@@ -220,84 +220,53 @@ def _scan_objects(buf: NDArray[np.uint8], start: float, t: NDArray[np.float64],
                 return -1, 0
             ts = stamp / 1e5 if flags == 1 else stamp / 1e9
             t[n] = ts + start
+        # the frame's fields by object type, then one write of them: (ID word, remote,
+        # error, length, data bytes copied from `src`, FD/BRS/ESI as bits 0..2)
         if obj_type == 1 or obj_type == 86:  # CAN_MESSAGE(2): <HBBL8s
             if p + 16 > size:
                 return n, pos
-            can_flags = buf[p + 2]
-            dlc = int(buf[p + 3])
-            can_id = _u32(buf, p + 4)
-            ids[n] = can_id & 0x1FFFFFFF
-            ext[n] = (can_id & 0x80000000) != 0
-            remote[n] = (can_flags & 0x80) != 0
-            err[n] = False
-            m = 0 if remote[n] else min(dlc, 8)  # a remote frame has no data (can.Message)
-            length[n] = m
-            for j in range(m):
-                data[n, j] = buf[p + 8 + j]
-            fd[n] = False
-            brs[n] = False
-            esi[n] = False
-            n += 1
+            is_remote = (buf[p + 2] & 0x80) != 0
+            valid = 0 if is_remote else min(int(buf[p + 3]), 8)  # remote: no data (can.Message)
+            can_id, is_error, copied, src, fd_bits = _u32(buf, p + 4), False, valid, p + 8, 0
         elif obj_type == 73:  # CAN_ERROR_EXT: <HHLBBBxLLH2x8s
             if p + 32 > size:
                 return n, pos
-            dlc = int(buf[p + 10])
-            can_id = _u32(buf, p + 16)
-            ids[n] = can_id & 0x1FFFFFFF
-            ext[n] = (can_id & 0x80000000) != 0
-            remote[n] = False
-            err[n] = True
-            m = min(dlc, 8)
-            length[n] = m
-            for j in range(m):
-                data[n, j] = buf[p + 24 + j]
-            fd[n] = False
-            brs[n] = False
-            esi[n] = False
-            n += 1
+            valid = min(int(buf[p + 10]), 8)
+            can_id, is_remote, is_error, copied, src, fd_bits = (_u32(buf, p + 16), False, True,
+                                                                 valid, p + 24, 0)
         elif obj_type == 100:  # CAN_FD_MESSAGE: <HBBLLBBB5x64s
             if p + 84 > size:
                 return n, pos
-            can_flags = buf[p + 2]
-            can_id = _u32(buf, p + 4)
-            fd_flags = buf[p + 13]
-            valid = min(int(buf[p + 14]), 64)
-            ids[n] = can_id & 0x1FFFFFFF
-            ext[n] = (can_id & 0x80000000) != 0
-            remote[n] = (can_flags & 0x80) != 0
-            err[n] = False
-            if remote[n]:
-                valid = 0
-            length[n] = valid
-            for j in range(valid):
-                data[n, j] = buf[p + 20 + j]
-            fd[n] = (fd_flags & 0x1) != 0
-            brs[n] = (fd_flags & 0x2) != 0
-            esi[n] = (fd_flags & 0x4) != 0
-            n += 1
+            is_remote = (buf[p + 2] & 0x80) != 0
+            valid = 0 if is_remote else min(int(buf[p + 14]), 64)
+            can_id, is_error, copied, src = _u32(buf, p + 4), False, valid, p + 20
+            fd_bits = int(buf[p + 13]) & 0x7
         elif obj_type == 101:  # CAN_FD_MESSAGE_64: <BBBBLLLLLLLHBBL, then the data
             if p + 40 > size:
                 return n, pos
             valid = int(buf[p + 2])
             if valid > 64:
                 return -1, 0
-            can_id = _u32(buf, p + 4)
             fd_flags = _u32(buf, p + 12)
             ext_offset = int(buf[p + 35])
-            field = min(valid, (ext_offset if ext_offset else obj_size) - header_size - 40)
-            field = max(0, min(field, size - (p + 40)))  # python's slice stops at the end
-            ids[n] = can_id & 0x1FFFFFFF
-            ext[n] = (can_id & 0x80000000) != 0
-            remote[n] = (fd_flags & 0x0010) != 0
-            err[n] = False
-            if remote[n]:
-                valid = 0
-                field = 0
-            length[n] = valid
-            for j in range(field):
-                data[n, j] = buf[p + 40 + j]
-            fd[n] = (fd_flags & 0x1000) != 0
-            brs[n] = (fd_flags & 0x2000) != 0
-            esi[n] = (fd_flags & 0x4000) != 0
-            n += 1
+            copied = min(valid, (ext_offset if ext_offset else obj_size) - header_size - 40)
+            copied = max(0, min(copied, size - (p + 40)))  # python's slice stops at the end
+            is_remote = (fd_flags & 0x0010) != 0
+            if is_remote:
+                valid = copied = 0
+            can_id, is_error, src, fd_bits = _u32(buf, p + 4), False, p + 40, (fd_flags >> 12) & 0x7
+        else:
+            pos = nxt
+            continue
+        ids[n] = can_id & 0x1FFFFFFF
+        ext[n] = (can_id & 0x80000000) != 0
+        remote[n] = is_remote
+        err[n] = is_error
+        length[n] = valid
+        for j in range(copied):
+            data[n, j] = buf[src + j]
+        fd[n] = (fd_bits & 0x1) != 0
+        brs[n] = (fd_bits & 0x2) != 0
+        esi[n] = (fd_bits & 0x4) != 0
+        n += 1
         pos = nxt

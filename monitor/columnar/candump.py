@@ -15,6 +15,7 @@ scanned as it is decompressed.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import IO, TextIO, cast
 
@@ -22,24 +23,20 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.bus.logfile import LogError, gzip_damage, log_encoding, open_binary
+from monitor.bus.logfile import LogError, log_encoding, open_binary
 from monitor.columnar.chunk import CLASSIC_WIDTH, FD_WIDTH, FrameChunk, empty_chunk
 from monitor.columnar.text import (
-    POW10,
-    StreamBroken,
-    count_lines,
-    cut_line_error,
+    exact_decimal,
     hexval,
     is_space,
-    line_blocks,
     needs_python,
     python_can_block,
-    split_cut_line,
     stripped_line,
     text_block,
+    text_chunks,
 )
 from monitor.errors import one_line
-from monitor.estimation.jit import njit
+from monitor.jit import njit
 
 __all__ = ["read"]
 
@@ -56,30 +53,11 @@ def read(path: Path, chunk_frames: int) -> Iterator[FrameChunk]:
 
 def _candump_chunks(path: Path, fh: IO[bytes]) -> Iterator[FrameChunk]:
     encoding = log_encoding()
-    line = 0  # lines before the block
-    frames = 0
-    try:
-        blocks = line_blocks(fh)
-        while True:
-            try:
-                block = next(blocks, None)
-            except StreamBroken as broken:
-                raise gzip_damage(path, broken.cause, frames=frames, line=line + 1) from None
-            if block is None:
-                break
-            text, cut = split_cut_line(block)
-            if text:
-                for chunk in _parse_candump(path, text, encoding, line, frames):
-                    frames += len(chunk)
-                    yield chunk
-                line += count_lines(text)
-            if cut:
-                raise cut_line_error(path, frames, line + 1)
-    finally:
-        fh.close()
+    with fh:
+        yield from text_chunks(path, fh, partial(_parse_candump, path, encoding))
 
 
-def _parse_candump(path: Path, text: bytes, encoding: str, line: int,
+def _parse_candump(path: Path, encoding: str, text: bytes, line: int,
                    frames: int) -> Iterator[FrameChunk]:
     """The frames of whole lines `text`, after `line` lines and `frames` frames."""
     buf = np.frombuffer(text, np.uint8)
@@ -98,8 +76,6 @@ def _parse_candump(path: Path, text: bytes, encoding: str, line: int,
     yield from python_can_block(path, reader, lines, frames)
 
 
-
-
 @njit
 def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[np.int64],
                   ext: NDArray[np.bool_], remote: NDArray[np.bool_], err: NDArray[np.bool_],
@@ -107,7 +83,6 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
                   brs: NDArray[np.bool_], esi: NDArray[np.bool_]) -> int:
     """Frames of candump -L lines into the arrays; returns the count, -1 for a line it does
     not take as plain (the caller then asks python-can). `data` is 8 or 64 bytes wide."""
-    pow10 = POW10
     width = data.shape[1]
     size = buf.shape[0]
     n = 0
@@ -120,31 +95,13 @@ def _scan_candump(buf: NDArray[np.uint8], t: NDArray[np.float64], ids: NDArray[n
         # token 1: (seconds.fraction)
         if buf[i] != 40:
             return -1
-        j = i + 1
-        mant = 0
-        digits = 0
-        frac = 0
-        dot = False
-        while j < e and buf[j] != 41:
-            ch = buf[j]
-            if ch == 46 and not dot:
-                dot = True
-            elif 48 <= ch <= 57:
-                if digits > 0 or ch != 48:
-                    digits += 1
-                if digits <= 17:
-                    mant = mant * 10 + (ch - 48)
-                if dot:
-                    frac += 1
-            else:
-                return -1
-            j += 1
-        if j >= e or digits > 17 or mant > 9007199254740992 or frac > 22 or j == i + 1:
+        ts, j, dot = exact_decimal(buf, i + 1, e)
+        no_digit = j - (i + 1) == (1 if dot >= 0 else 0)  # "()" or "(.)": python's float fails
+        if j >= e or buf[j] != 41 or no_digit or np.isnan(ts):
             return -1
         j += 1  # ')'
         if j >= e or not is_space(buf[j]):
             return -1
-        ts = float(mant) / pow10[frac]
         # token 2: channel
         while j < e and is_space(buf[j]):
             j += 1

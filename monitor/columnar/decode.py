@@ -149,7 +149,7 @@ class RouteTable:
             raise NotColumnar("SecOC verification keeps per-frame freshness state")
         routes: list[Route] = []
         if isinstance(codec, MotorDatabase):
-            for fid, mr in codec._routes.items():
+            for fid, mr in codec.routes.items():
                 kind = str(mr.kind)
                 routes.append(Route(
                     fid, False, mr.message, mr.node, kind, 8, mr.data_id is not None,
@@ -160,7 +160,7 @@ class RouteTable:
                     mr.value_signal if kind == "truth" else None))
             our = True
         elif isinstance(codec, RigCodec):
-            for (fid, ext), rr in codec._routes.items():
+            for (fid, ext), rr in codec.routes.items():
                 spec = rr.spec
                 routes.append(Route(
                     fid, ext, rr.message, rr.node, spec.name, int(rr.message.length), spec.e2e,

@@ -42,7 +42,7 @@ from monitor.columnar.chunk import (
     empty_chunk,
     reader_chunks,
 )
-from monitor.estimation.jit import njit
+from monitor.jit import njit
 
 __all__ = ["read"]
 

@@ -37,7 +37,7 @@ from typing import Final
 from monitor.bus.logfile import LOG_FORMATS, check_log_path
 from monitor.columnar import asc, blf, candump, mf4, trc
 from monitor.columnar.chunk import DEFAULT_CHUNK_FRAMES, FrameChunk, LogReadError, reader_chunks
-from monitor.estimation.jit import JIT_DISABLED
+from monitor.jit import JIT_DISABLED
 
 __all__ = ["DEFAULT_CHUNK_FRAMES", "FrameChunk", "LogReadError", "read_chunks"]
 

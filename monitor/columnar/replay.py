@@ -31,7 +31,8 @@ from monitor.columnar import kernels as K
 from monitor.columnar.decode import REASONS, DecodedChunk, NotColumnar, RouteTable
 from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, read_chunks
 from monitor.columnar.sinks import SinkRouter
-from monitor.diagnosis import HealthState, MismatchDetector, OnlineClassifier
+from monitor.diagnosis import HealthState
+from monitor.diagnosis.rules import FLAG_CAUSES, FLAGGED, HEALTH_CAUSES, REPORTED, new_state
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, step_many
 from monitor.estimation.model import DiscreteModel
 from monitor.pipeline import MonitorConfig
@@ -94,11 +95,7 @@ class _Node:
         self.truth = math.nan
         self.has_truth = False
         self.last_admit = np.array([math.nan])
-        s = np.zeros(len(K.CLS_STATE))
-        s[:] = [3.0, -1.0, 0.0, math.nan, -math.inf, 0.0, math.nan, math.nan, 0.0,
-                -math.inf, math.nan, 3.0]
-        s[5] = cls_prm[11]
-        self.s = s
+        self.diag = new_state(cls_prm)  # the diagnosis rules' state (`monitor.diagnosis.rules`)
         self.gamma = np.zeros(model.m)  # the estimator's latest gamma^ (fresh: zeros)
         self.rules = self.est.out.rules
         self.samples = 0
@@ -107,16 +104,6 @@ class _Node:
         self.est = FuzzyUKF(self.model, self.cfg.estimator)
         self.gamma = np.zeros(self.model.m)
         self.rules = self.est.out.rules
-
-
-def _cls_params(cfg: MonitorConfig, p: int) -> NDArray[np.float64]:
-    c = OnlineClassifier(cfg.thresholds, dwell_s=cfg.dwell_s, hysteresis=cfg.hysteresis)
-    mm = MismatchDetector(p, cfg.rate, window_s=cfg.mismatch_window_s,
-                          dwell_s=cfg.mismatch_dwell_s)
-    lo, hi = mm.band
-    return np.array([c._f1, c._f2, c._f1_up, c._f1_down, c._f2_up, c._f2_down, c._dwell,
-                     mm._a, lo, hi, mm.dwell_s, float(p), cfg.publish_period_s,
-                     cfg.silence_timeout_s, float(cfg.withhold_alarms_on_mismatch)])
 
 
 class _Replay:
@@ -129,7 +116,7 @@ class _Replay:
         self.router = SinkRouter(sink)
         self.counters = Counters()
         self.nodes: dict[int, _Node] = {}
-        self.cls_prm = _cls_params(cfg, self.model.p)
+        self.cls_prm = cfg.diagnosis_params(self.model.p)
         self.tracker: dict[int, int] = {}
         self.drives = drive_watch(db)  # a CANopen rig's drives, as the per-frame engine
         self.held: set[int] = set()  # nodes whose drive said it was not operational
@@ -189,21 +176,31 @@ class _Replay:
                     reason = REASONS[code]
                     cnt.inc(C.rejected(reason), k)
                     self._warn(reason, f"frame rejected ({reason}): {k} in a chunk")
+        tick_idx = np.zeros(n, np.int64)  # the frames after which `feed_log` ticks
+        nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S)
+        tick_idx = tick_idx[:nt]
         # a CANopen rig's drives: their frames are no rig message (unknown_id), read in
-        # order; `gate` holds, per node, the rows after which the drive's operational state
-        # changed, from `gate_start` at the chunk's start (the per-frame engine's rule)
+        # order, and a lost heartbeat is also found at a tick (a bus gone silent); `gate`
+        # holds, per node, the rows after which the drive's operational state changed, from
+        # `gate_start` at the chunk's start (the per-frame engine's rule)
         gate: dict[int, list[tuple[int, bool]]] = {}
         gate_start: dict[int, bool] = {}
         if self.drives is not None:
             watch = self.drives
             now = {nd: watch.operational(nd) for nd in watch.nodes}
             gate_start = dict(now)
-            for i in np.flatnonzero((dec.code == _UNKNOWN_ID) & ~c.error).tolist():
-                m = c.message(i)
-                for r in watch.feed(m.arbitration_id, bytes(m.data), float(c.t[i])):
+            frames = np.flatnonzero((dec.code == _UNKNOWN_ID) & ~c.error)
+            keys = np.sort(np.concatenate([2 * frames, 2 * tick_idx + 1]))  # tick after feed
+            for key in keys.tolist():
+                i = key // 2
+                if key % 2:
+                    reports = watch.tick(float(c.t[i]))
+                else:
+                    m = c.message(i)
+                    reports = watch.feed(m.arbitration_id, bytes(m.data), float(c.t[i]))
+                for r in reports:
                     cnt.inc(report_counter(r))
-                    events.append((2 * (self.offset + i), -1, len(events),
-                                   drive_event(r)))
+                    events.append((key, -1, len(events), drive_event(r)))
                     state = watch.operational(r.node)
                     if state != now[r.node]:
                         now[r.node] = state
@@ -241,7 +238,8 @@ class _Replay:
                 changes = gate.get(nd, [])
                 rows = np.array([i for i, _ in changes], np.int64)
                 after = np.array([gate_start[nd], *(v for _, v in changes)], dtype=bool)
-                mine = after[np.searchsorted(rows, acc[sel], side="right")]
+                # a change at row i (a drive frame, or a tick after frame i) holds from i + 1
+                mine = after[np.searchsorted(rows, acc[sel], side="left")]
                 ok[sel] = mine
                 blocked_before = np.concatenate([[nd in self.held], ~mine[:-1]])
                 self.resume_rows[nd] = acc[sel][mine & blocked_before]
@@ -308,9 +306,6 @@ class _Replay:
             drop = np.zeros(len(acc), np.bool_)
             drop[np.flatnonzero(has_c)[rep]] = True
             acc, ra, node = acc[~drop], ra[~drop], node[~drop]
-        tick_idx = np.zeros(n, np.int64)
-        nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S)
-        tick_idx = tick_idx[:nt]
         order_of = {nd: k for k, nd in enumerate(self.nodes)}
         for nd, nm in self.nodes.items():
             sel = node == nd
@@ -340,7 +335,7 @@ class _Replay:
         severe = any(x in ("bus_off", "controller/rx_overflow") or x.endswith("error_passive")
                      for x in names)
         self._warn("errframe-" + ",".join(names), text)
-        events.append((2 * (self.offset + i), -1, len(events),
+        events.append((2 * i, -1, len(events),  # keys: rows of this chunk
                        BusEvent(float(c.t[i]), text, "ERROR" if severe else "WARN")))
 
     def _resume(self, node: int, rows: NDArray[np.int64], status: NDArray[np.int64],
@@ -495,8 +490,8 @@ class _Replay:
         fev = np.zeros(L, np.int64)
         flag = np.zeros(L, np.bool_)
         counts = np.zeros(2, np.int64)
-        K.classify(is_tick, tt, gg, ni, rb, nn, nm.s, self.cls_prm, st_out, ev, prev, cause,
-                   fev, flag, counts)
+        K.classify(is_tick, tt, gg, ni, rb, nn, nm.diag, self.cls_prm, st_out, ev, prev,
+                   cause, fev, flag, counts)
         if counts[0]:
             cnt.inc(C.NODES_MODEL_MISMATCH, int(counts[0]))
         if counts[1]:
@@ -553,10 +548,10 @@ class _Replay:
                 events.append((key, order, len(events), DiagnosisEvent(
                     t=t_ev, node=nm.node, state=p_state.label, previous=p_state.label,
                     gamma=g, fault_input=fv, rules=rl,
-                    cause=("nis", "restart", "silence")[int(fev[item]) - 1],
+                    cause=FLAG_CAUSES[int(fev[item]) - 1],
                     model_mismatch=mm, kind=MODEL_MISMATCH)))
             if ev[item] == 1 and state != p_state:
-                why = ("estimate", "model", "silence")[int(cause[item])]
+                why = HEALTH_CAUSES[int(cause[item])]
                 events.append((key, order, len(events), DiagnosisEvent(
                     t=t_ev, node=nm.node, state=state.label, previous=p_state.label, gamma=g,
                     fault_input=fv, rules=rl, cause=why, model_mismatch=mm)))
@@ -569,8 +564,9 @@ class _Replay:
         return FuzzyUKF(self.model, self.cfg.estimator).out.rules
 
     def result(self, path: Path | None) -> ReplayResult:
-        nodes = {n: {"state": _STATES[int(nm.s[11])].label,
-                     "model_mismatch": bool(nm.s[8] != 0.0), "gamma": float(nm.gamma.max()),
+        nodes = {n: {"state": _STATES[int(nm.diag[REPORTED])].label,
+                     "model_mismatch": bool(nm.diag[FLAGGED] != 0.0),
+                     "gamma": float(nm.gamma.max()),
                      "rules": nm.rules, "samples": nm.samples}
                  for n, nm in sorted(self.nodes.items())}
         return ReplayResult(path, self.offset, dict(sorted(self.counters.items())),

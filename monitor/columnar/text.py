@@ -1,4 +1,5 @@
-"""The text scanning the columnar readers of text logs share (`candump`, `asc`): blocks of
+"""The text scanning the columnar readers of text logs share (`candump`, `asc`): a log read
+block by block (`text_chunks`, damage said where it stopped) in blocks of
 whole lines read from the file (gzip-compressed or not), lines counted and numbered as a
 file read in text mode numbers them (universal newlines), the bytes that make a block go
 through python-can's own reader instead of a compiled scanner, python-can's reading of such a
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import gzip
 import io
-from collections.abc import Iterator
+from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
 from typing import IO
 
@@ -23,15 +24,15 @@ from monitor.bus.logfile import (
     LogError,
     NumberedLines,
     damaged,
+    gzip_damage,
     malformed,
     text_lines,
 )
 from monitor.columnar.chunk import FrameChunk, chunk_from_messages
-from monitor.estimation.jit import njit
+from monitor.jit import njit
 
-__all__ = ["POW10", "READ_BYTES", "StreamBroken", "count_lines", "cut_line_error",
-           "hexval", "is_space", "line_blocks", "needs_python", "python_can_block",
-           "read_block", "split_cut_line", "stripped_line", "text_block"]
+__all__ = ["POW10", "count_lines", "exact_decimal", "hexval", "is_space", "needs_python",
+           "python_can_block", "read_block", "stripped_line", "text_block", "text_chunks"]
 
 READ_BYTES = 1 << 24  # text read per call (about 330,000 candump lines)
 
@@ -159,11 +160,65 @@ def line_blocks(fh: IO[bytes], size: int = READ_BYTES) -> Iterator[bytes]:
         yield tail
 
 
+def text_chunks(path: Path, fh: IO[bytes],
+                parse: Callable[[bytes, int, int], Iterator[FrameChunk]], *, line: int = 0,
+                size: int = READ_BYTES) -> Generator[FrameChunk, None, int]:
+    """The chunks `parse` makes of the rest of the text log `fh`, one block of whole lines
+    at a time (`parse(text, line, frames)`: the lines after `line` lines and `frames`
+    frames of the file); returns the file's frames. Damage is said as the per-frame path
+    says it: a gzip stream that broke (`gzip_damage`) and a last line without its line end
+    (`cut_line_error`), each at the line it stopped in."""
+    frames = 0
+    blocks = line_blocks(fh, size)
+    while True:
+        try:
+            block = next(blocks, None)
+        except StreamBroken as broken:
+            raise gzip_damage(path, broken.cause, frames=frames, line=line + 1) from None
+        if block is None:
+            return frames
+        text, cut = split_cut_line(block)
+        if text:
+            for chunk in parse(text, line, frames):
+                frames += len(chunk)
+                yield chunk
+            line += count_lines(text)
+        if cut:
+            raise cut_line_error(path, frames, line + 1)
 
 
 POW10 = np.array([10.0 ** k for k in range(23)])
 """Exact powers of ten up to 10^22: a decimal of at most 2^53 over one of them is one
 correctly rounded division (Clinger's fast path), what Python's ``float`` gives."""
+
+
+@njit
+def exact_decimal(buf: NDArray[np.uint8], k: int, e: int) -> tuple[float, int, int]:
+    """The decimal ``<digits>[.<digits>]`` at `k` (before `e`): (value, end: the first byte
+    that is neither a digit nor the first point, the point's position or -1). The value is
+    NaN when the number has more digits than one correctly rounded division converts
+    exactly (more than 17 significant, or 22 after the point)."""
+    mant = 0
+    digits = 0
+    frac = 0
+    dot = -1
+    while k < e:
+        ch = buf[k]
+        if ch == 46 and dot < 0:
+            dot = k
+        elif 48 <= ch <= 57:
+            if digits > 0 or ch != 48:
+                digits += 1
+            if digits <= 17:
+                mant = mant * 10 + (ch - 48)
+            if dot >= 0:
+                frac += 1
+        else:
+            break
+        k += 1
+    if digits > 17 or mant > 9007199254740992 or frac > 22:
+        return np.nan, k, dot
+    return float(mant) / POW10[frac], k, dot
 
 
 @njit

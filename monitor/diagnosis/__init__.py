@@ -51,6 +51,8 @@ each threshold and a dwell time measured in sample timestamps, so noise near a t
 does not make the reported state flicker. `HealthState` values are the numbers sent on the
 CAN bus. `MismatchDetector` raises a model-mismatch flag beside the state (the innovations
 say the model does not explain the plant); `reported_state` is the state reported with it.
+These rules exist once, compiled, as steps over a node's state vector (`rules`): the
+monitor's engines call them per sample and tick, and the two classes are views of them.
 """
 
 from monitor.diagnosis.classifier import (

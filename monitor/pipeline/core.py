@@ -56,6 +56,7 @@ from typing import Any, Protocol
 
 import can
 import numpy as np
+from numpy.typing import NDArray
 
 from monitor.bus.cia402 import (
     IGNORED_NOT_OPERATIONAL,
@@ -66,14 +67,7 @@ from monitor.bus.cia402 import (
 from monitor.bus.codec import Decoded, Rejected, RejectReason
 from monitor.bus.counters import CounterOutcome, CounterTracker
 from monitor.bus.faults import describe_error_frame
-from monitor.diagnosis import (
-    DEFAULT_THRESHOLDS,
-    HealthState,
-    MismatchDetector,
-    OnlineClassifier,
-    Thresholds,
-    reported_state,
-)
+from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, Thresholds, rules
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import (
     ContinuousDescriptor,
@@ -101,6 +95,7 @@ __all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 
 log = logging.getLogger("motor_monitor")
 _RESTART = np.ones(1, np.bool_)  # `delayed`'s restart flag of one sample
+_STATES = tuple(HealthState)
 
 
 class FrameDecoder(Protocol):
@@ -158,6 +153,16 @@ class MonitorConfig:
             return self.model
         return dc_motor(self.motor, q=self.process_noise, r=self.current_sigma**2)
 
+    def diagnosis_params(self, outputs: int) -> NDArray[np.float64]:
+        """The parameter vector of the per-node diagnosis rules (`monitor.diagnosis.rules`)
+        for an estimator of `outputs` outputs."""
+        return rules.params(self.thresholds, dwell_s=self.dwell_s, hysteresis=self.hysteresis,
+                            outputs=outputs, rate=self.rate, window_s=self.mismatch_window_s,
+                            mismatch_dwell_s=self.mismatch_dwell_s,
+                            publish_period_s=self.publish_period_s,
+                            silence_timeout_s=self.silence_timeout_s,
+                            withhold=self.withhold_alarms_on_mismatch)
+
 
 class _RateLimitedLog:
     """Logs the first occurrence of a kind of problem, then at most once per period."""
@@ -179,27 +184,29 @@ class _RateLimitedLog:
 
 
 class NodeMonitor:
-    """Estimator, classifier and alignment state of one node."""
+    """Estimator, diagnosis and alignment state of one node.
 
-    def __init__(self, node: int, model: DiscreteModel, cfg: MonitorConfig) -> None:
+    The diagnosis -- eq (76) debounced, the model-mismatch flag, the reported state, when
+    a `Diagnosis` is due -- is the state vector `diag` of `monitor.diagnosis.rules` with
+    the parameters `prm` (`MonitorConfig.diagnosis_params`); `rules.on_sample` and
+    `rules.on_tick` step it and report into `out`."""
+
+    def __init__(self, node: int, model: DiscreteModel, cfg: MonitorConfig,
+                 prm: NDArray[np.float64] | None = None) -> None:
         self.node = node
         self.cfg = cfg
         self.T = 1.0 / cfg.rate
         self.model = model
         self.estimator = FuzzyUKF(model, cfg.estimator)
-        self.classifier = OnlineClassifier(cfg.thresholds, dwell_s=cfg.dwell_s,
-                                           hysteresis=cfg.hysteresis)
-        self.mismatch = MismatchDetector(model.p, cfg.rate, window_s=cfg.mismatch_window_s,
-                                         dwell_s=cfg.mismatch_dwell_s)
+        self.diag, self.prm, self.out = rules.step_vectors(
+            prm if prm is not None else cfg.diagnosis_params(model.p))
         self.u = np.zeros(model.m)  # the held inputs (`monitor.pipeline.samples`)
         self.u_seen = np.zeros(model.m, dtype=bool)
         self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
         self.y = np.zeros(model.p)
         self.last_t: float | None = None
-        self.last_publish: float = -math.inf
         self.truth_gamma: float | None = None
         self.samples = 0
-        self.reported = HealthState.NO_DATA
 
     @property
     def first_input(self) -> float | None:
@@ -208,21 +215,21 @@ class NodeMonitor:
 
     def restart(self) -> None:
         """Forget the estimate (after a gap too long to predict through, or a NaN); the
-        mismatch detector forgets the innovations of the old estimate with it."""
+        step of the sample (`rules.on_sample`, restarted or failed) has the mismatch
+        detector forget the innovations of the old estimate with it."""
         self.estimator = FuzzyUKF(self.model, self.cfg.estimator)
-        self.mismatch.reset(self.model.p)
 
     @property
     def state(self) -> HealthState:
         """The reported state: the classifier's, or the one held before it while the
-        model-mismatch flag is up (`reported_state`, with withhold_alarms_on_mismatch)."""
-        return self.reported
+        model-mismatch flag is up (`rules.reported_state`, with withhold_alarms_on_mismatch)."""
+        return _STATES[int(self.diag[rules.REPORTED])]
 
     @property
     def model_mismatch(self) -> bool:
         """The model-mismatch flag: the innovations say the model does not explain the
         plant (`MismatchDetector`); it stands beside the state, never replaces it."""
-        return self.mismatch.flagged
+        return bool(self.diag[rules.FLAGGED] != 0.0)
 
     @property
     def gamma(self) -> float:
@@ -254,6 +261,7 @@ class MonitorPipeline:
         self._warn = _RateLimitedLog()
         self._last_counters_t = -math.inf
         self._model = self.cfg.plant().discretize(1.0 / self.cfg.rate)
+        self._diag_prm = self.cfg.diagnosis_params(self._model.p)
         self.tracker = CounterTracker()
         self._drives = drive_watch(db)  # a CANopen rig's drives: EMCY, heartbeat, statusword
         self._held: set[int] = set()  # nodes whose drive said it was not operational
@@ -262,6 +270,7 @@ class MonitorPipeline:
         # (the structure event's onset search and re-processing too: a JIT compile in the
         # middle of a flood would stall the daemon for seconds)
         FuzzyUKF(self._model, self.cfg.estimator).warm_up()
+        rules.warm_up(self._diag_prm)
         for n in self.cfg.nodes or ():
             self._node(n)
 
@@ -270,7 +279,7 @@ class MonitorPipeline:
     def _node(self, n: int) -> NodeMonitor:
         nm = self.nodes.get(n)
         if nm is None:
-            nm = NodeMonitor(n, self._model, self.cfg)
+            nm = NodeMonitor(n, self._model, self.cfg, self._diag_prm)
             self.nodes[n] = nm
         return nm
 
@@ -389,8 +398,6 @@ class MonitorPipeline:
             self.counters.inc(C.SAMPLES_NO_INPUT)
             return
         last = nm.last_t
-        was_flagged = nm.mismatch.flagged
-        flag_cause = "nis"
         restart = None
         if last is None:
             k = 1
@@ -402,7 +409,6 @@ class MonitorPipeline:
             if dt > self.cfg.max_gap_s or nm.node in self._resumed:
                 self.counters.inc(C.ESTIMATOR_RESTARTS)
                 nm.restart()
-                flag_cause = "restart"
                 restart = _RESTART
                 k = 1
             else:
@@ -420,20 +426,21 @@ class MonitorPipeline:
         nm.samples += 1
         self.counters.inc(C.SAMPLES_ESTIMATED)
         g = nm.gamma
+        nis = float(out.nis)
         if g != g:  # NaN can only come from a numerical failure: count, restart
             self.counters.inc(C.ESTIMATOR_NAN)
             nm.restart()
-            self._report(nm, t, was_flagged, "restart", due=False)
+            if rules.on_sample(nm.diag, nm.prm, t, g, nis, restart is not None, True, nm.out):
+                self._report(nm, t)
             return
         if out.structure_event:
             self.counters.inc(C.ESTIMATOR_STRUCTURE_EVENTS)
-        nm.classifier.update(t, g)
-        if nm.mismatch.update(t, float(out.nis)) is True:
-            self.counters.inc(C.NODES_MODEL_MISMATCH)
-        new = self._report(nm, t, was_flagged, flag_cause, due=True)
+        if rules.on_sample(nm.diag, nm.prm, t, g, nis, restart is not None, False, nm.out):
+            self._report(nm, t)
+        diag = nm.diag
         self.sink.on_sample(Sample(nm.node, t, float(outputs[0]), float(out.y_est[0]), g,
-                                   out.rules, new, float(out.nis), nm.truth_gamma,
-                                   nm.mismatch.flagged,
+                                   out.rules, _STATES[int(diag[rules.REPORTED])], nis,
+                                   nm.truth_gamma, bool(diag[rules.FLAGGED] != 0.0),
                                    inputs=tuple(u.tolist()), outputs=tuple(y.tolist()),
                                    predicted=tuple(out.y_est.tolist()),
                                    gammas=tuple(out.gamma.tolist())))
@@ -461,60 +468,50 @@ class MonitorPipeline:
 
     # ------------------------------------------------------------------ diagnosis out
 
-    def _report(self, nm: NodeMonitor, t: float, was_flagged: bool, flag_cause: str, *,
-                due: bool, health_cause: str | None = None) -> HealthState:
-        """After a step (or a reset) of a node's classifier and mismatch detector: the new
-        reported state (`reported_state`), the events of what changed -- the flag's first,
-        then the state's (cause `health_cause`, by default "model" for an alarm the flag
-        held until now, else "estimate") -- and one due `Diagnosis` if anything changed,
-        or if `due` and the publication period has passed."""
-        prev = nm.reported
-        flagged = nm.mismatch.flagged
-        c = int(nm.classifier.state)
-        w = self.cfg.withhold_alarms_on_mismatch
-        new = HealthState(reported_state(c, int(prev), flagged, w))
-        nm.reported = new
-        changed = flagged != was_flagged
-        if changed:
-            self._event(nm, t, prev, prev, flag_cause, MODEL_MISMATCH)
-        if new != prev:
-            if health_cause is None:
-                held = was_flagged and not flagged and reported_state(c, int(prev), True, w) != c
-                health_cause = "model" if held else "estimate"
-            self._event(nm, t, prev, new, health_cause, HEALTH)
-            changed = True
-        if changed or (due and t - nm.last_publish >= self.cfg.publish_period_s):
+    def _report(self, nm: NodeMonitor, t: float) -> None:
+        """What a step of a node's diagnosis rules at t reported (`nm.out`, laid out as
+        `rules.OUT`): its counts, the events of what changed -- the flag's first, then the
+        reported state's -- and the `Diagnosis` due."""
+        out = nm.out
+        if out[rules.MISMATCH]:
+            self.counters.inc(C.NODES_MODEL_MISMATCH)
+        if out[rules.SILENT]:
+            self.counters.inc(C.NODES_SILENT)
+        ev = out[rules.EV]
+        flag = out[rules.FLAG]
+        before = _STATES[out[rules.PREV]]
+        if flag:
+            self._event(nm, t, before, before, rules.FLAG_CAUSES[flag - 1], MODEL_MISMATCH)
+        new = nm.state
+        if ev == 1 and new != before:
+            self._event(nm, t, before, new, rules.HEALTH_CAUSES[out[rules.CAUSE]], HEALTH)
+        if ev:
             self._diagnosis_due(nm, t)
-        return new
 
     def _event(self, nm: NodeMonitor, t: float, prev: HealthState, new: HealthState,
                cause: str, kind: str) -> None:
         ev = DiagnosisEvent(t=t, node=nm.node, state=new.label, previous=prev.label,
                             gamma=nm.gamma, fault_input=nm.fault_input,
                             rules=nm.estimator.out.rules, cause=cause,
-                            model_mismatch=nm.mismatch.flagged, kind=kind)
+                            model_mismatch=nm.model_mismatch, kind=kind)
         if kind == HEALTH:
             self.counters.inc(C.transition(new.label))
         self.sink.on_transition(ev)
 
     def _diagnosis_due(self, nm: NodeMonitor, t: float) -> None:
-        nm.last_publish = t
+        """A node's `Diagnosis` at t (the rules said it is due)."""
         self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.state, nm.gamma, nm.fault_input,
-                                         nm.estimator.out.rules, nm.mismatch.flagged))
+                                         nm.estimator.out.rules, nm.model_mismatch))
 
     def tick(self, now: float) -> None:
         """Timeouts and steady publication, at bus time `now` (no frame needed)."""
-        for nm in self.nodes.values():
-            silent = nm.last_t is None or now - nm.last_t >= self.cfg.silence_timeout_s
-            if silent and nm.classifier.state != HealthState.NO_DATA:
-                was_flagged = nm.mismatch.flagged
-                nm.classifier.mark_no_data(now)
-                nm.mismatch.reset(nm.model.p)
-                self.counters.inc(C.NODES_SILENT)
-                self._report(nm, now, was_flagged, "silence", due=False,
-                             health_cause="silence")
-            elif silent and now - nm.last_publish >= self.cfg.publish_period_s:
-                self._diagnosis_due(nm, now)
+        if self._drives is not None:  # a heartbeat lost on a bus gone silent
+            for r in self._drives.tick(now):
+                self.counters.inc(report_counter(r))
+                self.sink.on_bus_event(drive_event(r))
+        for nm in self.nodes.values():  # silence, and steady publication while silent
+            if rules.on_tick(nm.diag, nm.prm, now, nm.out):
+                self._report(nm, now)
         # Counters go with estimated samples (at their time stamps); when none come (a
         # silent bus, error frames, an outage) they still reach the sinks.
         if now - self._last_counters_t >= 2.0 * self.cfg.counters_period_s:

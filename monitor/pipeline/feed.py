@@ -1,7 +1,7 @@
 """A recorded bus through the per-frame pipeline: every frame fed in order, the timeouts
 checked in bus time every `TICK_S`, as the live loop checks them in wall time. The replay
-command, the archive engines and the columnar replay (whose `ticks` kernel reads
-`TICK_S` as its compile-time constant) all tick by this one rule."""
+command, the archive engines and the columnar replay (whose `ticks` kernel is handed
+`TICK_S`) all tick by this one rule."""
 
 from __future__ import annotations
 
