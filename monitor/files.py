@@ -239,17 +239,25 @@ def atomic_write_text(path: str | os.PathLike[str], text: str, *, mode: int | No
     secrets). Raises OSError; the previous file then stays intact and no temporary file
     is left behind.
     """
-    p = Path(path)
-    directory = p.parent if str(p.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
+    with (_replacing(Path(path), ".tmp") as (fd, _),
+          os.fdopen(fd, "w", encoding=encoding, newline="\n") as fh):
+        if mode is not None:
+            os.fchmod(fh.fileno(), mode)
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+@contextlib.contextmanager
+def _replacing(path: Path, suffix: str) -> Iterator[tuple[int, str]]:
+    """A new temporary file beside `path` (open descriptor, name; permissions 0600), renamed
+    over `path` when the block ends, then the rename made durable; deleted if the block
+    raises. The block writes, fsyncs and closes it."""
+    directory = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=directory)
     try:
-        with os.fdopen(fd, "w", encoding=encoding, newline="\n") as fh:
-            if mode is not None:
-                os.fchmod(fh.fileno(), mode)
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, p)
+        yield fd, tmp
+        os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
@@ -283,27 +291,19 @@ def atomic_replace(path: str | os.PathLike[str]) -> Iterator[Path]:
     in their message).
     """
     p = Path(path)
-    directory = p.parent if str(p.parent) else Path(".")
     try:
         mode = stat.S_IMODE(os.stat(p).st_mode)
     except OSError:
         mask = os.umask(0o077)  # reading the umask means setting it (to the strict side)
         os.umask(mask)
         mode = 0o666 & ~mask
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{p.suffix}", dir=directory)
-    try:
+    with _replacing(p, f".tmp{p.suffix}") as (fd, tmp):
         try:
             os.fchmod(fd, mode)  # mkstemp's is 0600
         finally:
             os.close(fd)
         yield Path(tmp)
         _fsync_path(tmp)
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    _fsync_directory(directory)
 
 
 class FileSeries:

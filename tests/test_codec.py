@@ -30,8 +30,8 @@ from monitor.bus.codec import (
     load_database,
 )
 from monitor.bus.counters import CounterCheck, CounterOutcome, CounterTracker
+from tests.support.dbc import REPO_DBC, edited_dbc
 
-REPO_DBC = Path(__file__).resolve().parents[1] / "dbc" / "motor.dbc"
 E2E_KINDS: tuple[Kind, ...] = ("current", "voltage", "diagnosis")
 
 
@@ -147,12 +147,8 @@ def test_malformed_dbc_raises_one_line(tmp_path: Path, text: str, what: str) -> 
     ],
 )
 def test_dbc_inconsistent_with_scheme(tmp_path: Path, old: str, new: str, what: str) -> None:
-    text = REPO_DBC.read_text()
-    assert old in text
-    path = tmp_path / "motor.dbc"
-    path.write_text(text.replace(old, new, 1))
     with pytest.raises(CodecError, match=what):
-        load_database(path)
+        load_database(edited_dbc(tmp_path, old, new))
 
 
 def test_dbc_missing_a_node(tmp_path: Path) -> None:

@@ -350,6 +350,19 @@ def test_a_file_named_gz_that_is_no_gzip_says_so(tmp_path: Path) -> None:
                                    f"gzipped file (b'(1')); no frame read before it")
 
 
+@pytest.mark.parametrize("stamp", ["(.)", "()", "(1.)", "(.5)", "(0000.000000)", "(7)",
+                                   "(1.2.3)", "(12345678901234567890.1)"])
+def test_a_candump_time_stamp_reads_as_python_can_reads_it(tmp_path: Path, stamp: str) -> None:
+    # the compiled scanner takes a plain stamp, python-can reads (or refuses) every other one
+    log = tmp_path / "stamp.log"
+    log.write_text(f"(1.5) vcan0 123#11\n{stamp} vcan0 124#22\n")
+    got, error = _both(log)
+    if stamp in ("(.)", "()", "(1.2.3)"):
+        assert len(got) == 1 and error is not None and " at line 2 " in error, (got, error)
+    else:
+        assert len(got) == 2 and error is None, error
+
+
 # -- end to end: motor-monitor replay -----------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -102,41 +102,37 @@ def abstract_receiver() -> Iterator[Receiver]:
 # -- messages --------------------------------------------------------------------------------
 
 
-def test_messages_on_a_path_socket(receiver: Receiver) -> None:
-    n = Notifier.from_environment({"NOTIFY_SOCKET": receiver.env_value})
+@pytest.mark.parametrize("kind", ["path", "abstract"])
+def test_messages(kind: str, receiver: Receiver, abstract_receiver: Receiver) -> None:
+    r = receiver if kind == "path" else abstract_receiver
+    n = Notifier.from_environment({"NOTIFY_SOCKET": r.env_value})
     assert n.enabled
     assert not n.watchdog_enabled
     assert n.ready() is True
-    assert receiver.recv() == "READY=1"
+    assert r.recv() == "READY=1"
     assert n.ready("monitoring vcan0")
-    assert receiver.recv() == "READY=1\nSTATUS=monitoring vcan0"
+    assert r.recv() == "READY=1\nSTATUS=monitoring vcan0"
     assert n.status("frames 1200, rejected 3, lost 0")
-    assert receiver.recv() == "STATUS=frames 1200, rejected 3, lost 0"
+    assert r.recv() == "STATUS=frames 1200, rejected 3, lost 0"
     assert n.watchdog()
-    assert receiver.recv() == "WATCHDOG=1"
+    assert r.recv() == "WATCHDOG=1"
     assert n.stopping()
-    assert receiver.recv() == "STOPPING=1"
+    assert r.recv() == "STOPPING=1"
     assert n.stopping("flushing the recording")
-    assert receiver.recv() == "STOPPING=1\nSTATUS=flushing the recording"
+    assert r.recv() == "STOPPING=1\nSTATUS=flushing the recording"
     assert n.notify(ERRNO=5, STATUS="bus gone")
-    assert receiver.recv() == "ERRNO=5\nSTATUS=bus gone"
+    assert r.recv() == "ERRNO=5\nSTATUS=bus gone"
     assert n.extend_timeout(12.5)
-    assert receiver.recv() == "EXTEND_TIMEOUT_USEC=12500000"
+    assert r.recv() == "EXTEND_TIMEOUT_USEC=12500000"
     assert n.sent == 8 and n.errors == 0
-    assert receiver.pending() == []
+    assert r.pending() == []
 
 
-def test_messages_on_an_abstract_socket(abstract_receiver: Receiver) -> None:
+def test_an_abstract_socket_is_named_with_an_at(abstract_receiver: Receiver) -> None:
     env = {"NOTIFY_SOCKET": abstract_receiver.env_value}
     assert env["NOTIFY_SOCKET"].startswith("@")
     n = Notifier.from_environment(env)
     assert n.enabled
-    assert n.ready("up")
-    assert abstract_receiver.recv() == "READY=1\nSTATUS=up"
-    assert n.watchdog()
-    assert abstract_receiver.recv() == "WATCHDOG=1"
-    assert n.stopping()
-    assert abstract_receiver.recv() == "STOPPING=1"
     assert "@motor-monitor-test/" in repr(n)
 
 

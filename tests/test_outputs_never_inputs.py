@@ -249,6 +249,12 @@ def test_a_directory_or_a_missing_directory_is_refused_before_any_work(
     _refused(code, lines, "--out", "cap.log is not a directory")
     code, lines = _run(["replay", str(work / "cap.log"), "--out", str(work / "cap.log")], capsys)
     _refused(code, lines, "--out", "not a directory")
+    # an output directory below a file: the file in the way is named, as for a file output
+    code, lines = _run(["replay", str(work / "cap.log"), "--out", str(work / "cap.log" / "d")],
+                       capsys)
+    _refused(code, lines, "--out", "cap.log is not a directory")
+    code, lines = _run(["run", *VIRTUAL, "--record-dir", str(work / "cap.log" / "d")], capsys)
+    _refused(code, lines, "--record-dir", "cap.log is not a directory")
 
 
 def test_a_write_that_fails_names_the_users_file(work: Path,

@@ -48,9 +48,9 @@ from monitor.bus.secoc import (
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from sim_ecu.ecu import ECUError, VirtualECU
 from sim_ecu.scenario import load_scenario
+from tests.support.dbc import REPO_DBC, edited_dbc
 from tests.support.pipeline import feed_all
 
-REPO_DBC = Path(__file__).resolve().parents[1] / "dbc" / "motor.dbc"
 KEY = bytes.fromhex("000102030405060708090a0b0c0d0e0f")
 OTHER_KEY = bytes.fromhex("f0e0d0c0b0a090807060504030201000")
 T0 = 1_700_000_000.0
@@ -596,12 +596,8 @@ def _without_sync_frames(text: str) -> str:
     ],
 )
 def test_inconsistent_secoc_dbc(tmp_path: Path, old: str, new: str, what: str) -> None:
-    text = REPO_DBC.read_text()
-    assert old in text
-    path = tmp_path / "motor.dbc"
-    path.write_text(text.replace(old, new, 1))
     with pytest.raises(CodecError, match=what):
-        load_database(path)
+        load_database(edited_dbc(tmp_path, old, new))
 
 
 def test_layout_refuses_a_trailer_that_is_not_one_byte() -> None:

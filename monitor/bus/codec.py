@@ -52,6 +52,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from importlib import resources
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Final, cast
 
 import cantools.database
@@ -79,6 +80,7 @@ from monitor.bus.secoc import (
     FRESHNESS_SIGNAL,
     SecOC,
     SecOCError,
+    SecOCHolder,
     SecOCLayout,
     SyncLayout,
     Verdict,
@@ -180,7 +182,7 @@ class Rejected:
 # ----------------------------------------------------------------------------- database
 
 
-class MotorDatabase:
+class MotorDatabase(SecOCHolder):
     """The motor bus DBC plus a pre-built frame-id routing table for the hot decode path.
 
     With `secoc_key` (16 or 32 bytes) current and voltage frames are signed on encoding
@@ -197,9 +199,14 @@ class MotorDatabase:
         self._by_kind: dict[tuple[Kind, int], Route] = {
             (r.kind, r.node): r for r in self._routes.values()
         }
-        self._secoc: SecOC | None = None
+        self._secoc = None
         if secoc_key is not None:
             self._secoc = self._new_secoc(secoc_key, secoc_window)
+
+    @property
+    def routes(self) -> Mapping[int, Route]:
+        """Every frame ID of the bus and how it is read (read-only view)."""
+        return MappingProxyType(self._routes)
 
     def _new_secoc(self, key: bytes, window: int) -> SecOC:
         check_secoc_capable(self._routes, self.source)
@@ -216,15 +223,6 @@ class MotorDatabase:
         return clone
 
     # -- SecOC ------------------------------------------------------------------------
-
-    @property
-    def secoc(self) -> SecOC | None:
-        """The SecOC signer/verifier (key and freshness counters), None without a key."""
-        return self._secoc
-
-    @property
-    def secoc_enabled(self) -> bool:
-        return self._secoc is not None
 
     def secoc_layout(self, kind: Kind, node: int) -> SecOCLayout | None:
         """Where the message of `kind` for `node` carries freshness and MAC (None: nowhere)."""

@@ -31,6 +31,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, cast
 
 import cantools.database
@@ -42,7 +43,7 @@ from numpy.typing import NDArray
 
 from monitor.bus.codec import VERDICT_REASON, Decoded, Rejected, RejectReason, load_dbcs
 from monitor.bus.errors import CodecError, SecOCError
-from monitor.bus.secoc import DEFAULT_WINDOW, SecOC, SecOCLayout, SyncLayout
+from monitor.bus.secoc import DEFAULT_WINDOW, SecOC, SecOCHolder, SecOCLayout, SyncLayout
 from monitor.errors import one_line
 
 if TYPE_CHECKING:
@@ -50,7 +51,7 @@ if TYPE_CHECKING:
 
     from monitor.bus.canopen import CanopenNode
 
-__all__ = ["Resolver", "RigCodec", "RigMessage", "RigSecOC", "RigSync", "load_rig_dbcs"]
+__all__ = ["Resolver", "RigCodec", "RigMessage", "RigRoute", "RigSecOC", "RigSync", "load_rig_dbcs"]
 
 
 @dataclass(frozen=True)
@@ -100,7 +101,10 @@ a copy per node, so that each carries its own E2E data ID."""
 
 
 @dataclass(frozen=True, slots=True)
-class _Route:
+class RigRoute:
+    """One arbitration ID of the rig: its DBC message, how the rig reads it, its node, the
+    signals' limits, its SecOC or sync layout."""
+
     message: Message
     spec: RigMessage
     node: int
@@ -117,7 +121,7 @@ def load_rig_dbcs(paths: Sequence[Path]) -> Database:
     return db
 
 
-class RigCodec:
+class RigCodec(SecOCHolder):
     """Routes and decodes the frames of a rig's bus.
 
     `messages` says how to read each rig message; `resolve(name, node)` gives the DBC
@@ -137,8 +141,8 @@ class RigCodec:
         self.drives: tuple[CanopenNode, ...] = ()
         """A CANopen rig's drives, whose EMCY, heartbeat and statusword frames the engines
         read beside the rig's messages (`monitor.bus.cia402.drive_watch`)."""
-        self._routes: dict[tuple[int, bool], _Route] = {}
-        self._by_name: dict[tuple[str, int], tuple[_Route, int]] = {}
+        self._routes: dict[tuple[int, bool], RigRoute] = {}
+        self._by_name: dict[tuple[str, int], tuple[RigRoute, int]] = {}
         self._sync_streams = {m.secoc.sync_kind: m.secoc.stream
                               for m in messages if m.secoc is not None}
         if self._sync_streams and sync is None:
@@ -152,7 +156,7 @@ class RigCodec:
                     continue
                 message, frame_id = found
                 route = self._secured(
-                    _Route(message, spec, node, _limits(message, spec)), frame_id,
+                    RigRoute(message, spec, node, _limits(message, spec)), frame_id,
                     spec is sync_spec)
                 key = (frame_id, message.is_extended_frame)
                 other = self._routes.get(key)
@@ -173,13 +177,13 @@ class RigCodec:
                                          f"{data_ids[layout.data_id]} have the same SecOC data "
                                          f"ID 0x{layout.data_id:04X} (the ID's low 16 bits)")
                     data_ids[layout.data_id] = f"{message.name} of node {node}"
-        self._secoc: SecOC | None = None
+        self._secoc = None
         if secoc_key is not None:
             if not self._sync_streams:
                 raise CodecError(f"{source}: a SecOC key, but no rig message has SecOC")
             self._secoc = SecOC(secoc_key, window=secoc_window)
 
-    def _secured(self, route: _Route, frame_id: int, is_sync: bool) -> _Route:
+    def _secured(self, route: RigRoute, frame_id: int, is_sync: bool) -> RigRoute:
         """`route` with its SecOC layout (data ID: the frame ID's low 16 bits)."""
         msg, sec, data_id = route.message, route.spec.secoc, frame_id & 0xFFFF
         try:
@@ -188,7 +192,7 @@ class RigCodec:
                 s = self.sync
                 kind, fv, auth = (msg.get_signal_by_name(n)
                                   for n in (s.kind, s.freshness, s.authenticator))
-                return _Route(msg, route.spec, route.node, route.limits,
+                return RigRoute(msg, route.spec, route.node, route.limits,
                               sync=SyncLayout.from_signals(msg, kind, fv, auth, data_id=data_id,
                                                            freshness_bits=s.freshness_length))
             if sec is None:
@@ -197,20 +201,16 @@ class RigCodec:
             layout = SecOCLayout.from_signals(msg, fv, auth, data_id=data_id,
                                               freshness_bits=sec.freshness_length,
                                               crc_byte=route.spec.e2e)
-            return _Route(msg, route.spec, route.node, route.limits, secoc=layout)
+            return RigRoute(msg, route.spec, route.node, route.limits, secoc=layout)
         except KeyError as exc:
             raise CodecError(f"{msg.name}: no signal {exc.args[0]} for SecOC") from None
         except SecOCError as exc:
             raise CodecError(str(exc)) from None
 
     @property
-    def secoc(self) -> SecOC | None:
-        """The SecOC engine (freshness counters) when a key was given."""
-        return self._secoc
-
-    @property
-    def secoc_enabled(self) -> bool:
-        return self._secoc is not None
+    def routes(self) -> Mapping[tuple[int, bool], RigRoute]:
+        """Every (arbitration ID, extended) of the rig and how it is read (read-only)."""
+        return MappingProxyType(self._routes)
 
     @property
     def secured(self) -> bool:
@@ -234,7 +234,7 @@ class RigCodec:
             raise CodecError("this rig has no SecOC sync message")
         return self.message(self.sync.message, node)
 
-    def _lookup(self, name: str, node: int) -> tuple[_Route, int]:
+    def _lookup(self, name: str, node: int) -> tuple[RigRoute, int]:
         hit = self._by_name.get((name, node))
         if hit is None:
             raise CodecError(f"no message {name} for node {node} on this rig")
@@ -365,7 +365,7 @@ class RigCodec:
                        None if spec.counter is None else int(signals[spec.counter]),
                        signals, inputs, outputs, truth)
 
-    def _verify(self, route: _Route, data: bytes) -> tuple[RejectReason, str] | None:
+    def _verify(self, route: RigRoute, data: bytes) -> tuple[RejectReason, str] | None:
         """Why a secured or sync frame is rejected (None: authentic and fresh)."""
         assert self._secoc is not None
         if route.secoc is not None:

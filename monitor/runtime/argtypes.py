@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import argparse
 import math
-from typing import NoReturn
+from typing import NoReturn, TypeVar
 
 __all__ = ["OneLineParser", "add_rig_option", "nodes", "positive_float", "positive_int", "rate"]
+
+N = TypeVar("N", int, float)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -29,21 +31,23 @@ def add_rig_option(p: argparse.ArgumentParser, *, model_optional: bool = False) 
                    "rigs/motor.toml)")
 
 
-def positive_float(text: str) -> float:
+def _number(text: str, kind: type[N], refusal: str) -> N:
+    """`text` read as `kind` (``int`` or ``float``), or the one line `refusal` naming it."""
     try:
-        v = float(text)
+        return kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+        raise argparse.ArgumentTypeError(f"{refusal}: {text!r}") from None
+
+
+def positive_float(text: str) -> float:
+    v = _number(text, float, "not a number")
     if not (v > 0 and math.isfinite(v)):
         raise argparse.ArgumentTypeError(f"must be positive: {text!r}")
     return v
 
 
 def positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    n = _number(text, int, "not a whole number")
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1: {text!r}")
     return n
@@ -53,10 +57,7 @@ def rate(text: str) -> float:
     """An output rate in Hz the monitor can use: the rig file's bounds (`rate_problem`)."""
     from monitor.rig.load import rate_problem  # the rig's rule, one place for both
 
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    v = _number(text, float, "invalid float value")
     problem = rate_problem(v)
     if problem is not None:
         raise argparse.ArgumentTypeError(f"the rate {problem}")

@@ -113,28 +113,35 @@ def _named(option: str, path: str | os.PathLike[str]) -> str:
     return f"{option} {shown_path(path)}"
 
 
-def _writable_directory(option: str, shown: str, directory: Path, *, create: bool) -> None:
-    """The directory a file (`shown`, after `option`) goes in: existing (or, with `create`,
-    its nearest existing ancestor), a directory, writable."""
-    where = directory
-    while create and not where.exists() and where != where.parent:
-        where = where.parent
+def _nearest_existing(path: Path) -> Path:
+    """`path`, or its nearest ancestor that exists."""
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def _writable_directory(named: str, directory: str | os.PathLike[str], *,
+                        create: bool) -> os.stat_result:
+    """The status of `directory` (or, with `create`, of its nearest existing ancestor), after
+    refusing in one `UsageError` line, after `named` (an option, with the file that goes in
+    the directory if any), one that does not exist, is not a directory or is not
+    writable."""
+    where = _nearest_existing(Path(directory)) if create else directory
     try:
         st = os.stat(where)
     except FileNotFoundError:
-        raise UsageError(f"{option} {shown}: directory {shown_path(where)} does not "
-                         "exist") from None
+        raise UsageError(f"{named}: directory {shown_path(where)} does not exist") from None
     except NotADirectoryError:  # a file where the path goes on: name it
-        while not where.exists() and where != where.parent:
-            where = where.parent
-        raise UsageError(f"{option} {shown}: {shown_path(where)} is not a directory") from None
-    except OSError as exc:
-        raise UsageError(f"{option} {shown}: directory {shown_path(where)}: "
-                         f"{exc.strerror or exc}") from None
+        raise UsageError(f"{named}: {shown_path(_nearest_existing(Path(where)))} is not a "
+                         "directory") from None
+    except (OSError, ValueError) as exc:  # a loop of links, no permission, a NUL byte, ...
+        raise UsageError(f"{named}: directory {shown_path(where)}: "
+                         f"{getattr(exc, 'strerror', None) or exc}") from None
     if not stat.S_ISDIR(st.st_mode):
-        raise UsageError(f"{option} {shown}: {shown_path(where)} is not a directory")
+        raise UsageError(f"{named}: {shown_path(where)} is not a directory")
     if not os.access(where, os.W_OK | os.X_OK):
-        raise UsageError(f"{option} {shown}: directory {shown_path(where)} is not writable")
+        raise UsageError(f"{named}: directory {shown_path(where)} is not writable")
+    return st
 
 
 def _place(out: Output) -> os.stat_result | None:
@@ -159,7 +166,7 @@ def _place(out: Output) -> os.stat_result | None:
         if not os.access(out.path, os.W_OK):
             raise UsageError(f"{out.option} {shown}: is not writable")
         return st
-    _writable_directory(out.option, shown, Path(os.path.abspath(out.path)).parent,
+    _writable_directory(f"{out.option} {shown}", Path(os.path.abspath(out.path)).parent,
                         create=out.makes_directories)
     return st
 
@@ -212,20 +219,16 @@ def check_directory(option: str, path: str | os.PathLike[str], inputs: Iterable[
     directory holds `rotated` files whose oldest are deleted, an input that lies in it
     with such a name."""
     shown = shown_path(path)
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        if not create:
-            raise UsageError(f"{option}: directory {shown} does not exist") from None
-        _writable_directory(option, shown, Path(os.path.abspath(path)).parent, create=True)
-        return
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"{option}: directory {shown}: "
-                         f"{getattr(exc, 'strerror', None) or exc}") from None
-    if not stat.S_ISDIR(st.st_mode):
-        raise UsageError(f"{option}: {shown} is not a directory")
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise UsageError(f"{option}: directory {shown} is not writable")
+    if create:
+        try:
+            os.stat(path)
+        except FileNotFoundError:  # the command makes it: its nearest ancestor must take it
+            _writable_directory(f"{option} {shown}", Path(os.path.abspath(path)).parent,
+                                create=True)
+            return
+        except (OSError, ValueError):
+            pass  # refused below, in the words of any other directory
+    st = _writable_directory(option, path, create=False)
     if not rotated:
         return
     for in_option, in_path in inputs:

@@ -73,6 +73,16 @@ def _ecu(interface: str, channel: str) -> subprocess.Popen[bytes]:
                      f"{err.decode(errors='replace')[-500:]}")
 
 
+def _stop(proc: subprocess.Popen[bytes], sig: signal.Signals, timeout: float) -> None:
+    """Send `sig`; kill the process if it has not ended within `timeout` seconds."""
+    proc.send_signal(sig)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def _first_frame(raw_dir: Path) -> float | None:
     """The receive time of the first frame in the daemon's raw bus log, if one is written."""
     for path in sorted(raw_dir.glob("*.log")):
@@ -116,12 +126,7 @@ def _start_once(mode: str, interface: str, channel: str, cache: Path,
             if first is not None:
                 break
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        _stop(proc, signal.SIGTERM, 60)
         sock.close()
     first = _first_frame(raw_dir)  # written at the latest when the daemon stopped
     log = err_path.read_text(errors="replace")
@@ -166,12 +171,7 @@ def bench(interface: str, channel: str | None, runs: int,
                       f"first frame {r['first_frame_s']} s"
                       + (f"  {r['error']}" if r["error"] else ""), flush=True)
     finally:
-        ecu.send_signal(signal.SIGINT)
-        try:
-            ecu.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            ecu.kill()
-            ecu.wait()
+        _stop(ecu, signal.SIGINT, 30)
         shutil.rmtree(work, ignore_errors=True)
     summary: dict[str, Any] = {}
     for mode in modes:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,29 +33,16 @@ from monitor.diagnosis import HealthState
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, select_kernel, start_state, step_many
 from monitor.estimation.model import dc_motor
 from monitor.pipeline import MonitorConfig, MonitorPipeline
-from monitor.pipeline.events import DiagnosisEvent, Sample
 from monitor.pipeline.feed import feed_log
 from monitor.rig import build_decoder, load_rig
-from monitor.sinks.base import Sink
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.plant import PlantSimulator, steady_state
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import scenario_from_dict
+from tests.support.pipeline import Recorder
 
 RIGS = Path(__file__).resolve().parents[1] / "rigs"
 T0 = 1000.0
-
-
-@dataclass
-class Recorder(Sink):
-    samples: list[Sample] = field(default_factory=list)
-    transitions: list[DiagnosisEvent] = field(default_factory=list)
-
-    def on_sample(self, sample: Sample) -> None:
-        self.samples.append(sample)
-
-    def on_transition(self, event: DiagnosisEvent) -> None:
-        self.transitions.append(event)
 
 
 @dataclass(frozen=True)

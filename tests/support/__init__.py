@@ -7,6 +7,9 @@
 * `boots`: the two User-Mode Linux (or native vcan) boots of the robustness tests, their
   shell scripts (``scripts/*.sh``) and what the host reads back from them.
 * `ukf_filter`: a stateful wrapper of the compiled UKF kernels.
+* `pipeline`: a `MonitorPipeline` driven in tests, and `Recorder`, a sink that keeps all.
+* `dbc`: the repository's DBC, and copies of it with one edit (`edited_dbc`).
+* `rig_files`: the one-line refusal every bad rig file gets (`rig_refusal`).
 """
 
 from __future__ import annotations

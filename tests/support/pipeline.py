@@ -1,14 +1,16 @@
 """Driving a `MonitorPipeline` in tests: its transitions and the frames it publishes, kept
-in lists."""
+in lists; a sink that keeps everything a pipeline gives it (`Recorder`)."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 
 import can
 
 from monitor.bus.codec import MotorDatabase
 from monitor.pipeline import Counters, DiagnosisEvent, MonitorConfig, MonitorPipeline
+from monitor.pipeline.events import BusEvent, Diagnosis, InputSample, Sample
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.publisher import BusPublisher
 
@@ -21,6 +23,32 @@ class Transitions(Sink):
 
     def on_transition(self, event: DiagnosisEvent) -> None:
         self.events.append(event)
+
+
+@dataclass
+class Recorder(Sink):
+    """Keeps every transition, diagnosis, bus event, sample and input sample, in order."""
+
+    transitions: list[DiagnosisEvent] = field(default_factory=list)
+    diagnoses: list[Diagnosis] = field(default_factory=list)
+    bus: list[BusEvent] = field(default_factory=list)
+    samples: list[Sample] = field(default_factory=list)
+    inputs: list[InputSample] = field(default_factory=list)
+
+    def on_transition(self, event: DiagnosisEvent) -> None:
+        self.transitions.append(event)
+
+    def on_diagnosis(self, diagnosis: Diagnosis) -> None:
+        self.diagnoses.append(diagnosis)
+
+    def on_bus_event(self, event: BusEvent) -> None:
+        self.bus.append(event)
+
+    def on_sample(self, sample: Sample) -> None:
+        self.samples.append(sample)
+
+    def on_input(self, sample: InputSample) -> None:
+        self.inputs.append(sample)
 
 
 def pipeline(db: MotorDatabase, cfg: MonitorConfig | None = None, *,

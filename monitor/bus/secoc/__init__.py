@@ -15,8 +15,9 @@ such as `keys.check_key` or `state.read_state_file`, are not):
 * `monitor.bus.secoc.layout`: `SecOCLayout` and `SyncLayout` (where freshness and MAC sit
   in a DBC message, what the MAC covers; the frame diagrams), the signal and attribute names.
 * `monitor.bus.secoc.engine`: `SecOC` (CMAC, `sign` / `verify` and their sync
-  counterparts, the freshness counters per stream, the receiver rules), `Verdict`,
-  `nearest_freshness`, `aes_cmac`, `DEFAULT_WINDOW`.
+  counterparts, the freshness counters per stream, the receiver rules), `SecOCHolder` (a
+  codec's `secoc` / `secoc_enabled`), `Verdict`, `nearest_freshness`, `aes_cmac`,
+  `DEFAULT_WINDOW`.
 * `monitor.bus.secoc.state`: the counters' names and values and the state file behind
   `SecOC.save_state` / `SecOC.load_state` (`STATE_FORMAT`, `STATE_VERSION`).
 
@@ -27,7 +28,14 @@ every key, key file, layout or state file that cannot be used.
 from __future__ import annotations
 
 from monitor.bus.errors import SecOCError
-from monitor.bus.secoc.engine import DEFAULT_WINDOW, SecOC, Verdict, aes_cmac, nearest_freshness
+from monitor.bus.secoc.engine import (
+    DEFAULT_WINDOW,
+    SecOC,
+    SecOCHolder,
+    Verdict,
+    aes_cmac,
+    nearest_freshness,
+)
 from monitor.bus.secoc.keys import KEY_LENGTHS, load_key, parse_key
 from monitor.bus.secoc.layout import (
     AUTH_ALGORITHM,
@@ -60,6 +68,7 @@ __all__ = [
     "SYNC_KIND_SIGNAL",
     "SecOC",
     "SecOCError",
+    "SecOCHolder",
     "SecOCLayout",
     "SyncLayout",
     "Verdict",

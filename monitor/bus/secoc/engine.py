@@ -101,7 +101,7 @@ from monitor.bus.secoc.state import (
 if TYPE_CHECKING:
     from cantools.database.can import Message
 
-__all__ = ["DEFAULT_WINDOW", "SecOC", "Verdict", "aes_cmac", "nearest_freshness"]
+__all__ = ["DEFAULT_WINDOW", "SecOC", "SecOCHolder", "Verdict", "aes_cmac", "nearest_freshness"]
 
 DEFAULT_WINDOW: Final = 64
 """Accept a freshness value at most this far ahead of the last accepted one."""
@@ -380,6 +380,22 @@ class SecOC:
         except SecOCError as exc:
             raise SecOCError(f"{Path(path)}: {exc}") from None
         return len(freshness)
+
+
+class SecOCHolder:
+    """What a codec says of its SecOC engine: the one it signs and verifies with when it was
+    given a key (`secoc`, None without one)."""
+
+    _secoc: SecOC | None
+
+    @property
+    def secoc(self) -> SecOC | None:
+        """The SecOC engine (key and freshness counters), None without a key."""
+        return self._secoc
+
+    @property
+    def secoc_enabled(self) -> bool:
+        return self._secoc is not None
 
 
 def _stamp(layout: SecOCLayout | SyncLayout, frame: bytes, freshness: int,

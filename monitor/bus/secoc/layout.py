@@ -159,9 +159,7 @@ class SecOCLayout:
                                  f"{payload_length - 1} or right before the {auth.name}")
         if crc_byte and payload_length < 1:
             raise SecOCError(f"{where}: no authentic bytes after the CRC byte")
-        _check_freshness_bits(where, freshness_bits, fv.length)
-        if not 0 <= data_id <= 0xFFFF:
-            raise SecOCError(f"{where}: the SecOC data ID must be 16 bits, got {data_id}")
+        _check_stream(where, data_id, freshness_bits, fv.length)
         return cls(
             name=msg.name,
             data_id=data_id,
@@ -248,9 +246,7 @@ class SyncLayout:
         for s in (kind, fv):
             if s.start + s.length > auth.start:
                 raise SecOCError(f"{where}.{s.name}: must lie before the {auth.name}")
-        _check_freshness_bits(where, freshness_bits, fv.length)
-        if not 0 <= data_id <= 0xFFFF:
-            raise SecOCError(f"{where}: the SecOC data ID must be 16 bits, got {data_id}")
+        _check_stream(where, data_id, freshness_bits, fv.length)
         return cls(
             name=msg.name,
             data_id=data_id,
@@ -305,7 +301,10 @@ def _valid_freshness_bits(n_fresh: int, truncated_bits: int) -> bool:
     return n_fresh % 8 == 0 and truncated_bits <= n_fresh <= 64
 
 
-def _check_freshness_bits(where: str, n_fresh: int, truncated_bits: int) -> None:
+def _check_stream(where: str, data_id: int, n_fresh: int, truncated_bits: int) -> None:
+    """A layout's stream: a 16-bit data ID and a usable full freshness length."""
     if not _valid_freshness_bits(n_fresh, truncated_bits):
         raise SecOCError(f"{where}: the full freshness length must be a multiple of 8 in "
                          f"{truncated_bits}..64, got {n_fresh}")
+    if not 0 <= data_id <= 0xFFFF:
+        raise SecOCError(f"{where}: the SecOC data ID must be 16 bits, got {data_id}")

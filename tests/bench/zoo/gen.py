@@ -29,7 +29,16 @@ from .bus import (
     signal_entry,
     toml_str,
 )
-from .plant import INPUT_KINDS, OUTPUT_KINDS, Drive, Plant, build, simulate, structures
+from .plant import (
+    INPUT_KINDS,
+    OUTPUT_KINDS,
+    Drive,
+    Plant,
+    build,
+    simulate,
+    step_gamma,
+    structures,
+)
 
 Array = NDArray[np.float64]
 
@@ -66,10 +75,7 @@ class Timeline:
     steps: list[tuple[float, float]] = field(default_factory=list)  # (t, gamma from t on)
 
     def gamma_at(self, t: Array) -> Array:
-        g = np.zeros_like(t)
-        for t0, v in self.steps:
-            g[t >= t0] = v
-        return g
+        return step_gamma(self.steps, t)
 
 
 @dataclass

@@ -31,6 +31,15 @@ from scipy.signal import cont2discrete, lfilter
 
 Array = NDArray[np.float64]
 
+
+def step_gamma(steps: list[tuple[float, float]], t: Array) -> Array:
+    """gamma at the times `t` of a fault given as steps (t0, gamma from t0 on), 0 before
+    the first."""
+    g = np.zeros_like(t)
+    for t0, v in steps:
+        g[t >= t0] = v
+    return g
+
 INPUT_KINDS = ("voltage", "current", "torque")
 OUTPUT_KINDS = ("current", "speed", "position")
 ELEC_FOR_INPUT = {"voltage": ("La", "La0", "coil"), "current": ("lag", "ideal"),

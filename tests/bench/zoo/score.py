@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .plant import step_gamma
+
 GRACE_S = 0.3
 SKIP_S = 2.0
 ALARM = ("fault", "outage")
@@ -40,10 +42,7 @@ class NodeTruth:
     steps: list[tuple[float, float]]  # (capture time, gamma from then on)
 
     def gamma_at(self, t: np.ndarray) -> np.ndarray:
-        g = np.zeros_like(t)
-        for t0, v in self.steps:
-            g[t >= t0] = v
-        return g
+        return step_gamma(self.steps, t)
 
 
 @dataclass
