@@ -12,6 +12,7 @@
 #   python3-dev      the Python headers that build needs when the venv's Python is Debian's own
 #                    (a pyenv or python.org build brings its own)
 #   mesa-vulkan-drivers  software Vulkan for the headless Rerun viewer (tests/test_viewer.py)
+#   ShellCheck       (package shellcheck) lints the shell of the tests and scripts (scripts/test.sh runs it)
 #   mmdebstrap       builds the small Debian root file system of the User-Mode Linux guest that
 #                    runs the units under a real systemd (tests/systemd_guest; built once, cached
 #                    in ~/.cache/motor-monitor/systemd-guest/)
@@ -19,7 +20,7 @@
 set -euo pipefail
 
 PACKAGES=(user-mode-linux kmod can-utils iproute2 systemd gcc libc6-dev python3-dev
-          mesa-vulkan-drivers mmdebstrap)
+          mesa-vulkan-drivers mmdebstrap shellcheck)
 
 if [[ "$(id -u)" -eq 0 ]]; then
     SUDO=()

@@ -11,14 +11,11 @@ import json
 import re
 import subprocess
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from tests.vcan_harness import VcanResult
-
-RunOnVcan = Callable[..., VcanResult]
+from tests.support.vcan_scripts import RunOnVcan, logs_tail, run_ready
 
 ROOT = Path(__file__).resolve().parents[1]
 RIG = ROOT / "rigs" / "cia402-example.toml"
@@ -37,87 +34,14 @@ end = 6.0
 gamma = 1.0
 """
 
-#: The master: the canopen library's Network on vcan0, node 1 from the drive's EDS with TPDO4
-#: enabled as the rig enables it; what it heard goes to master.json.
-MASTER = r"""
-import json, os, sys, time
-import canopen
-import socket
-network = canopen.Network()
-# the drive's heartbeat, EMCY and TPDO4 only, into a large buffer: on the busy one-CPU guest
-# a master held up for a moment must not lose frames from its socket
-network.connect(interface="socketcan", channel="vcan0",
-                can_filters=[{"can_id": i, "can_mask": 0x7FF} for i in (0x701, 0x081, 0x481)])
-SO_RCVBUFFORCE = 33  # Linux's (root: past net.core.rmem_max); Python does not name it
-network.bus.socket.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 4194304)
-node = canopen.RemoteNode(1, sys.argv[1])
-network.add_node(node)
-node.tpdo.read(from_od=True)
-tpdo = node.tpdo[4]
-tpdo.enabled = True
-tpdo.subscribe()
-beats, pdos = [], []
-node.nmt.add_heartbeat_callback(beats.append)
-tpdo.add_callback(lambda m: pdos.append((m["Statusword 1"].raw,
-                                         m["Velocity Actual Value 1"].raw)))
-print("master up", flush=True)
-end = time.time() + float(sys.argv[2])
-# until the twin's run is over (the script says so), then what is still queued
-while time.time() < end and not os.path.exists("ecu.done"):
-    time.sleep(0.1)
-time.sleep(1.0)
-network.disconnect()
-json.dump({"beats": beats, "pdos": pdos,
-           "emcy": [[e.code, e.register, e.get_desc()] for e in node.emcy.log],
-           "state": node.nmt.state}, open("master.json", "w"))
-"""
-
-SCRIPT = r"""
-set -u
-cd "$OUT"
-wait_for() {  # FILE PATTERN SECONDS
-  n=0
-  while ! grep -q -- "$2" "$1" 2>/dev/null; do
-    n=$((n + 1)); [ "$n" -gt $(($3 * 10)) ] && return 1; sleep 0.1
-  done
-}
-candump -r 4194304 -L vcan0 > cap.log 2> candump.err &
-DUMP=$!
-motor-monitor run --interface socketcan --channel vcan0 --rig "$RIG" --nodes 1 \
-    --events "$OUT/ev.jsonl" 2> mon.err &
-MON=$!
-if wait_for mon.err "monitoring" 150; then echo "ready=1"
-else echo "ready=0"; kill $MON $DUMP; exit 3; fi
-python master.py "$EDS" 60 > master.out 2> master.err &
-MASTER=$!
-wait_for master.out "master up" 60 || { echo "master=0"; exit 4; }
-nice -n 10 sim-ecu --interface socketcan --channel vcan0 --rig "$RIG" --node 1 \
-    --scenario scenario.toml --seed 1 --max-catch-up 100000 2> ecu.err
-echo "ecu_rc=$?"
-touch ecu.done
-wait $MASTER; echo "master_rc=$?"
-sleep 2
-kill -TERM $MON; wait $MON; echo "mon_rc=$?"
-kill -INT $DUMP; wait $DUMP; echo "dump_rc=$?"
-"""
-
-
-def _values(stdout: str) -> dict[str, str]:
-    return {m[1]: m[2] for m in re.finditer(r"^(\w+)=(\S*)$", stdout, re.MULTILINE)}
-
-
 @pytest.mark.vcan
 def test_cia402_twin_monitor_and_a_canopen_master_on_vcan(vcan: RunOnVcan,
                                                          tmp_path: Path) -> None:
     (tmp_path / "scenario.toml").write_text(SCENARIO)
-    (tmp_path / "master.py").write_text(MASTER)
-    res = vcan(SCRIPT, env={"OUT": str(tmp_path), "RIG": str(RIG), "EDS": str(EDS)},
-               timeout=300.0)
-    values = _values(res.stdout)
-    logs = "\n".join(f"--- {p.name}\n{p.read_text()[-2000:]}" for p in tmp_path.glob("*.err"))
-    assert values.get("ready") == "1", f"{res.stdout}\n{res.stderr}\n{logs}"
+    values = run_ready(vcan, "canopen.sh", tmp_path, env={"RIG": str(RIG), "EDS": str(EDS)},
+                       timeout=300.0)
     for key in ("ecu_rc", "master_rc", "mon_rc"):
-        assert values.get(key) == "0", f"{key}\n{res.stdout}\n{logs}"
+        assert values.get(key) == "0", f"{key}\n{values}\n{logs_tail(tmp_path)}"
     ecu_err = (tmp_path / "ecu.err").read_text()
     sent = {k: int(v) for k, v in re.findall(r"\b(TPDO4|RPDO4|sync|emcy)=(\d+)", ecu_err)}
     assert sent["TPDO4"] == sent["sync"] == 800 and sent["emcy"] == 2, ecu_err

@@ -51,9 +51,8 @@ from monitor.sinks.blueprint import counter_path
 from sim_ecu import VirtualECU
 from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
 from tests.support.pipeline import pipeline
-from tests.vcan_harness import PROJECT_ROOT, VcanResult
-
-RunOnVcan = Callable[..., VcanResult]
+from tests.support.vcan_scripts import RunOnVcan, monitor_summary, run_ready
+from tests.vcan_harness import PROJECT_ROOT
 
 BIN = Path(sys.executable).parent
 MONITOR_EXE = BIN / "motor-monitor"
@@ -309,21 +308,6 @@ def rrd_verify(path: Path) -> None:
     assert proc.returncode == 0, f"rerun rrd verify {path}: {proc.stdout}{proc.stderr}"
 
 
-def script_values(stdout: str) -> dict[str, str]:
-    return dict(m.groups() for m in re.finditer(r"^(\w+)=(\S*)$", stdout, re.MULTILINE))
-
-
-def monitor_summary(stderr: str) -> dict[str, int]:
-    m = re.search(
-        r"motor-monitor: stopped \(signal 15\): (\d+) frames, (\d+) estimated, (\d+) rejected, "
-        r"(\d+) diagnosis frames sent",
-        stderr,
-    )
-    assert m, f"no summary line after SIGTERM in the monitor's stderr:\n{stderr}"
-    return dict(zip(("frames", "estimated", "rejected", "sent"), map(int, m.groups()),
-                    strict=True))
-
-
 def ecu_sent(stderr: str) -> dict[str, int]:
     m = re.search(r"sent current=(\d+) voltage=(\d+) truth=(\d+), send errors (\d+)", stderr)
     assert m, f"no summary line in sim-ecu's stderr:\n{stderr}"
@@ -337,99 +321,29 @@ def offline_events(mdb: MotorDatabase, frames: Iterable[can.Message]) -> list[Di
     return events
 
 
-def _run_vcan(vcan: RunOnVcan, script: str, out: Path, timeout: float = 480.0) -> dict[str, str]:
-    res = vcan(SCRIPT_PRELUDE + script, env={"OUT": str(out)}, timeout=timeout)
-    print(f"[vcan] {res.backend} run took {res.duration:.1f} s")
-    values = script_values(res.stdout)
-    logs = "\n".join(
-        f"--- {p.name} ---\n{p.read_text(errors='replace')[-3000:]}"
-        for p in sorted(out.glob("*.err"))
-    )
-    assert res.returncode == 0, f"rc {res.returncode}\n{res.stdout}\n{res.stderr}\n{logs}"
-    assert values.get("ready") == "1", f"monitor not up\n{res.stdout}\n{logs}"
-    return values
-
-
-#: Shell helpers of every vcan script. The monitor is up when its MonitorDiagnosis frames
-#: (no_data at 10 Hz for the nodes it was told to watch) reach candump: that proves both are
-#: running (the monitor's start-up, with its compiled kernels, takes ~15 s in UML).
-SCRIPT_PRELUDE = r"""
-set -u
-cd "$OUT"
-wait_for() {  # FILE PATTERN SECONDS: poll until FILE contains PATTERN
-  n=0
-  while ! grep -q -- "$2" "$1" 2>/dev/null; do
-    n=$((n + 1))
-    [ "$n" -gt $(($3 * 10)) ] && return 1
-    sleep 0.1
-  done
-}
-# The ECUs share the guest's one CPU with the monitor and candump at the same priority: at nice
-# 10 they were held up 0.1-0.25 s at a time behind them. Their late samples go out late rather
-# than being skipped (a skip is a loss to the monitor); it reads a frame up to 15 periods late
-# as late (monitor.pipeline.periods), and takes a held-up socket's backlog in batches.
-CATCH_UP=100000
-# A recording monitor hands its recording to the .rrd file every 0.25 s, the most allowed without
-# --raw-dir: in the one-CPU guest every chunk handed to Rerun costs ~5 ms of CPU in the SDK's
-# threads, 50 chunks/s at the default 0.1 s. What a SIGKILL loses at the default is boot B's test.
-settled() {  # FILE SECONDS: wait until FILE has not grown for a second (at most SECONDS)
-  n=0; last=-1
-  while [ "$n" -lt "$2" ]; do
-    size=$(stat -c %s "$1" 2>/dev/null || echo 0)
-    [ "$size" = "$last" ] && return 0
-    last=$size; n=$((n + 1)); sleep 1
-  done
-}
-start_capture_and_monitor() {  # NODES [more monitor options]
-  nodes=$1; shift
-  # a 4 MiB socket buffer: on a loaded guest candump falls behind for a while instead of
-  # losing frames (the capture is the reference every check reads)
-  candump -r 4194304 -L vcan0 > cap.log 2> candump.err &
-  DUMP=$!
-  motor-monitor run --interface socketcan --channel vcan0 --nodes "$nodes" \
-      --events "$OUT/ev.jsonl" "$@" 2> mon.err &
-  MON=$!
-  if wait_for cap.log ' 180#' 150; then
-    echo "ready=1"
-  else
-    echo "ready=0"; kill $MON $DUMP; exit 3
-  fi
-}
-stop_monitor_and_capture() {
-  sleep 2  # past the 0.5 s silence timeout: the nodes turn no_data
-  kill -TERM $MON
-  wait $MON
-  echo "mon_rc=$?"
-  settled cap.log 30  # candump has written its backlog
-  kill -INT $DUMP
-  wait $DUMP
-  echo "dump_rc=$?"
-}
-"""
+def live_run(vcan: RunOnVcan, run: str, out: Path, programs: tuple[str, ...]) -> dict[str, int]:
+    """Run ``RUN=run`` of tests/support/scripts/integration.sh into ``out``: each of
+    `programs` (``<name>_rc``, stderr in ``<name>.err``), the monitor and candump must have
+    exited 0. Returns the monitor's summary after SIGTERM."""
+    values = run_ready(vcan, "integration.sh", out, env={"RUN": run}, timeout=480.0)
+    for name in (*programs, "mon", "dump"):
+        err = out / ("candump.err" if name == "dump" else f"{name}.err")
+        assert values[f"{name}_rc"] == "0", err.read_text()
+    mon_err = (out / "mon.err").read_text()
+    summary = monitor_summary(mon_err)
+    assert summary, f"no summary line after SIGTERM in the monitor's stderr:\n{mon_err}"
+    print(f"[{run}] monitor: {summary}")
+    return summary
 
 
 # ----------------------------------------------------------------------------- 1: live
 
-LIVE_SCRIPT = r"""
-start_capture_and_monitor 0 --rrd "$OUT/live.rrd" --record-flush-s 0.25
-sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario fault-outage-recovery \
-    --seed 1 --max-catch-up "$CATCH_UP" 2> ecu.err
-echo "ecu_rc=$?"
-stop_monitor_and_capture
-"""
-
-
 @pytest.mark.vcan
 def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_path: Path) -> None:
-    values = _run_vcan(vcan, LIVE_SCRIPT, tmp_path)
-    mon_err = (tmp_path / "mon.err").read_text()
+    summary = live_run(vcan, "live", tmp_path, ("ecu",))
     ecu_err = (tmp_path / "ecu.err").read_text()
-    assert values["ecu_rc"] == "0", ecu_err
-    assert values["mon_rc"] == "0", mon_err
-    assert values["dump_rc"] == "0"
-    summary = monitor_summary(mon_err)
     sent = ecu_sent(ecu_err)
-    print(f"[live] sim-ecu: {ecu_err.strip()}\n[live] monitor: {summary}")
+    print(f"[live] sim-ecu: {ecu_err.strip()}")
     assert sent["errors"] == 0 and sent["current"] >= 1550, ecu_err  # 1600 without overruns
 
     # cantools decodes the capture, the monitor's own frames included.
@@ -495,14 +409,6 @@ def test_live_ecu_and_monitor_on_vcan(vcan: RunOnVcan, mdb: MotorDatabase, tmp_p
 
 # ----------------------------------------------------------------------------- 2: canplayer
 
-PLAYER_SCRIPT = r"""
-start_capture_and_monitor 0
-canplayer -I "$OUT/short.log" vcan0=can0 2> player.err
-echo "player_rc=$?"
-stop_monitor_and_capture
-"""
-
-
 @pytest.mark.vcan
 def test_canplayer_replays_a_log_into_the_monitor(
     vcan: RunOnVcan, mdb: MotorDatabase, tmp_path: Path
@@ -516,12 +422,7 @@ def test_canplayer_replays_a_log_into_the_monitor(
     n_current = sum(1 for m in frames if m.arbitration_id == 0x110)
     assert n_current == 500
 
-    values = _run_vcan(vcan, PLAYER_SCRIPT, tmp_path)
-    mon_err = (tmp_path / "mon.err").read_text()
-    assert values["player_rc"] == "0", (tmp_path / "player.err").read_text()
-    assert values["mon_rc"] == "0", mon_err
-    summary = monitor_summary(mon_err)
-    print(f"[canplayer] monitor: {summary}")
+    summary = live_run(vcan, "player", tmp_path, ("player",))
 
     cap = read_capture(tmp_path / "cap.log", mdb)
     assert not cap.rejected, cap.rejected[:5]
@@ -553,33 +454,11 @@ def test_canplayer_replays_a_log_into_the_monitor(
 
 # ----------------------------------------------------------------------------- 3: two nodes
 
-TWO_NODES_SCRIPT = r"""
-start_capture_and_monitor 0,1
-sim-ecu --interface socketcan --channel vcan0 --node 0 --scenario fault-outage-recovery \
-    --seed 1 --max-catch-up "$CATCH_UP" 2> ecu0.err &
-E0=$!
-sim-ecu --interface socketcan --channel vcan0 --node 1 --scenario healthy --duration 16 \
-    --seed 0 --max-catch-up "$CATCH_UP" 2> ecu1.err &
-E1=$!
-wait $E0
-echo "ecu0_rc=$?"
-wait $E1
-echo "ecu1_rc=$?"
-stop_monitor_and_capture
-"""
-
-
 @pytest.mark.vcan
 def test_two_nodes_one_monitor(vcan: RunOnVcan, mdb: MotorDatabase, tmp_path: Path) -> None:
-    values = _run_vcan(vcan, TWO_NODES_SCRIPT, tmp_path)
-    mon_err = (tmp_path / "mon.err").read_text()
+    summary = live_run(vcan, "two_nodes", tmp_path, ("ecu0", "ecu1"))
     for node in (0, 1):
-        err = (tmp_path / f"ecu{node}.err").read_text()
-        assert values[f"ecu{node}_rc"] == "0", err
-        print(f"[two nodes] {err.strip()}")
-    assert values["mon_rc"] == "0", mon_err
-    summary = monitor_summary(mon_err)
-    print(f"[two nodes] monitor: {summary}")
+        print(f"[two nodes] {(tmp_path / f'ecu{node}.err').read_text().strip()}")
     assert summary["rejected"] == 0
 
     cap = read_capture(tmp_path / "cap.log", mdb)

@@ -37,13 +37,12 @@ from tests.support.boots import (
     SILENCE_S,
     BootA,
     BootB,
-    RunOnVcan,
-    logs_tail,
     run_boot_a,
     run_boot_b,
 )
 from tests.support.cli_cases import CliCase, guest_cli_outcomes, run_cli_case
 from tests.support.rrd import RERUN_EXE, bad_outcomes, outcome_total
+from tests.support.vcan_scripts import RunOnVcan, logs_tail
 
 
 @pytest.fixture(scope="module")
@@ -272,9 +271,12 @@ def test_replayed_frame_is_dropped_as_repeated(boot_a: BootA, mdb: MotorDatabase
 def _outages(boot: BootA, start: str, end: str | None) -> dict[str, int]:
     """Outages and reconnects counted from the last snapshot before mark `start` to the
     first after mark `end` (None: the last snapshot, which must come after `start`)."""
+    i: int | None
+    j: int | None
     if end is None:
-        i, j = boot.snaps.last_before(boot.mark(start)), len(boot.snaps) - 1
-        assert boot.snaps.t[j] > boot.mark(start)
+        i, last = boot.snaps.last_before(boot.mark(start)), len(boot.snaps) - 1
+        assert boot.snaps.t[last] > boot.mark(start)
+        j = last
     else:
         i, j = boot.bracket(boot.mark(start), boot.mark(end))
     d = boot.snaps.delta(i, j)

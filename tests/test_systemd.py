@@ -31,6 +31,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.vcan_scripts import run_script
 from tests.vcan_harness import VcanResult
 
 REPO = Path(__file__).resolve().parent.parent
@@ -236,31 +237,6 @@ def test_exposure_with_dropins(analyze: str, tmp_path: Path, dropin: str | None)
 
 NETWORKD = "/lib/systemd/systemd-networkd"
 
-# In a new network namespace (the host's interfaces untouched) and mount namespace, with a
-# tmpfs on /run/systemd holding only our two files and a read-only sysfs (networkd then
-# does not wait for udev, which is not running here), start networkd and wait until it
-# reports vcan0 configured.
-NETWORKD_SCRIPT = r"""
-set -u
-log="$WORKDIR/networkd.log"
-unshare --net --mount --propagation private sh -ec '
-    mount -t sysfs -o ro sysfs /sys
-    mount -t tmpfs tmpfs /run/systemd
-    mkdir -p /run/systemd/network
-    cp "$WORKDIR/80-vcan0.netdev" "$WORKDIR/80-vcan0.network" /run/systemd/network/
-    SYSTEMD_LOG_LEVEL=debug SYSTEMD_LOG_TARGET=console SYSTEMD_LOG_COLOR=0 \
-        "$NETWORKD" >"$1" 2>&1 &
-    pid=$!
-    for _ in $(seq 100); do
-        grep -q "vcan0: State changed: configuring -> configured" "$1" && break
-        sleep 0.1
-    done
-    echo "=== link"
-    ip -details link show vcan0 || true
-    kill "$pid"; wait "$pid" || true
-' sh "$log"
-"""
-
 
 @pytest.mark.vcan
 def test_networkd_creates_and_brings_up_vcan0(
@@ -275,8 +251,9 @@ def test_networkd_creates_and_brings_up_vcan0(
     work.chmod(0o777)
     for name in ("80-vcan0.netdev", "80-vcan0.network"):
         shutil.copy(SYSTEMD_DIR / name, work / name)
-    result = vcan(NETWORKD_SCRIPT, timeout=120,
-                  env={"WORKDIR": str(work), "NETWORKD": NETWORKD})
+    # networkd in namespaces of its own, until it reports vcan0 configured
+    result = run_script(vcan, "networkd_vcan.sh", timeout=120,
+                        env={"WORKDIR": str(work), "NETWORKD": NETWORKD})
     log = (work / "networkd.log").read_text() if (work / "networkd.log").exists() else ""
     detail = f"stdout:\n{result.stdout}\nstderr:\n{result.stderr}\nnetworkd:\n{log[-4000:]}"
     assert result.returncode == 0, detail

@@ -10,89 +10,15 @@ import json
 import re
 import sys
 import time
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 
+from tests.support.vcan_scripts import SCRIPTS, RunOnVcan, run_script
 from tests.vcan_harness import HARD_KILL_GRACE, PROJECT_ROOT, VcanResult
 
 pytestmark = pytest.mark.vcan
-
-RunOnVcan = Callable[..., VcanResult]
-
-# (a) cansend -> candump; (b) python-can <-> can-utils; (c) ip link down/up/del/add.
-PEERS_SCRIPT = r"""
-set -u
-T=$(mktemp -d)
-
-# (a) candump must be listening before the frame is sent: resend until it has captured one.
-candump -L -n 1 vcan0 >"$T/a.log" 2>"$T/a.err" &
-dump=$!
-i=0
-while [ ! -s "$T/a.log" ] && [ $i -lt 100 ]; do
-  cansend vcan0 123#DEADBEEF
-  sleep 0.1
-  i=$((i + 1))
-done
-wait $dump
-echo "a_rc=$?"
-sed 's/^/A: /' "$T/a.log"
-
-# (b) python-can sends (candump sees it) and receives what cansend sent.
-candump -L -n 1 vcan0,321:7FF >"$T/b.log" 2>"$T/b.err" &
-dump=$!
-python - "$T/b.log" <<'PY'
-import json, os, subprocess, sys, time
-
-import can
-
-log = sys.argv[1]
-out = {}
-with can.Bus(
-    interface="socketcan",
-    channel="vcan0",
-    can_filters=[{"can_id": 0x456, "can_mask": 0x7FF, "extended": False}],
-) as bus:
-    tx = can.Message(arbitration_id=0x321, data=[1, 2, 3, 4], is_extended_id=False)
-    for _ in range(100):
-        bus.send(tx)
-        time.sleep(0.1)
-        if os.path.getsize(log) > 0:
-            break
-    t0 = time.time()
-    subprocess.run(["cansend", "vcan0", "456#CAFE"], check=True)
-    rx = bus.recv(timeout=10)
-    t1 = time.time()
-    out["channel_info"] = bus.channel_info
-out["t0"], out["t1"] = t0, t1
-if rx is not None:
-    out["rx_id"] = rx.arbitration_id
-    out["rx_data"] = rx.data.hex()
-    out["rx_ts"] = rx.timestamp
-    out["rx_channel"] = rx.channel
-print("B_JSON:", json.dumps(out))
-PY
-echo "b_py_rc=$?"
-wait $dump
-echo "b_rc=$?"
-sed 's/^/B: /' "$T/b.log"
-
-# (c) link down: sends fail; up again: sends work.  Also delete and add interfaces.
-ip link set vcan0 down && echo "c_down_rc=0"
-echo "C_DOWN: $(ip -o link show vcan0)"
-if cansend vcan0 001#00 2>"$T/c.err"; then echo "c_send_down=ok"; else echo "c_send_down=fail"; fi
-echo "C_DOWN_ERR: $(cat "$T/c.err")"
-ip link set vcan0 up && echo "c_up_rc=0"
-echo "C_UP: $(ip -o link show vcan0)"
-if cansend vcan0 001#00; then echo "c_send_up=ok"; else echo "c_send_up=fail"; fi
-ip link del vcan1 && echo "c_del_rc=0"
-ip link add dev vcan2 type vcan && ip link set up vcan2 && echo "c_add_rc=0"
-echo "C_LINKS: $(ip -o link show type vcan | awk -F': ' '{print $2}' | tr '\n' ' ')"
-rm -rf "$T"
-"""
-
 
 def _value(stdout: str, key: str) -> str:
     match = re.search(rf"^{re.escape(key)}=(\S*)$", stdout, re.MULTILINE)
@@ -112,7 +38,8 @@ def _flags(link_line: str) -> set[str]:
 
 def test_real_peers_on_vcan(vcan: RunOnVcan) -> None:
     started = time.time()
-    result = vcan(PEERS_SCRIPT, interfaces=("vcan0", "vcan1"), timeout=120)
+    # (a) cansend -> candump; (b) python-can <-> can-utils; (c) ip link down/up/del/add.
+    result = run_script(vcan, "harness_peers.sh", interfaces=("vcan0", "vcan1"), timeout=120)
     out = result.stdout
     assert result.returncode == 0, (out, result.stderr)
     assert result.backend in ("native", "uml")
@@ -159,33 +86,12 @@ def test_real_peers_on_vcan(vcan: RunOnVcan) -> None:
     assert {"vcan0", "vcan2"} <= names and "vcan1" not in names, links
 
 
-# Python with the project's heavy imports (memory), /dev/shm (multiprocessing), env, cwd,
-# stderr and a non-zero exit status.
-EXIT_SCRIPT = r"""
-echo "cwd=$(pwd)"
-echo "token=$VCAN_TEST_TOKEN"
-echo "python=$(command -v python)"
-for tool in sim-ecu motor-monitor; do
-  if command -v "$tool" >/dev/null; then echo "$tool=found"; else echo "$tool=missing"; fi
-done
-python - <<'PY'
-import numpy, scipy.linalg, scipy.signal, numba, rerun, can
-from multiprocessing import shared_memory
-shm = shared_memory.SharedMemory(create=True, size=1 << 20)
-shm.close()
-shm.unlink()
-block = numpy.ones((4096, 8192))  # 256 MiB on top of ~200 MiB of imports (slow in UML)
-print("numpy_sum=%d" % block.sum())
-PY
-echo "python_rc=$?"
-echo "to stderr" >&2
-exit 3
-"""
-
-
 def test_exit_status_env_memory_and_parallel_runs(vcan: RunOnVcan, tmp_path: Path) -> None:
     def heavy() -> VcanResult:
-        return vcan(EXIT_SCRIPT, env={"VCAN_TEST_TOKEN": "a b'c$"}, cwd=str(tmp_path), timeout=180)
+        # Python with the project's heavy imports (memory), /dev/shm (multiprocessing), env,
+        # cwd, stderr and a non-zero exit status.
+        return vcan((SCRIPTS / "harness_exit.sh").read_text(),
+                    env={"VCAN_TEST_TOKEN": "a b'c$"}, cwd=str(tmp_path), timeout=180)
 
     def light() -> VcanResult:
         return vcan("echo second; pwd; cansend vcan0 7FF#01", timeout=60)

@@ -7,11 +7,12 @@ ordinary process, with the host file system mounted as its root (hostfs), so the
 virtual environment and ``/tmp`` are visible inside.  On a host whose kernel does have SocketCAN
 the script runs natively instead.  See ``/work/shared/VCAN.md``.
 
-Inside User-Mode Linux the script runs as root (so it can call ``ip link ...``), as a child of a
-generated ``/bin/sh`` init (PID 1) that mounts proc, sysfs, devtmpfs and a tmpfs on ``/dev/shm``,
-loads the CAN modules and brings the requested vcan interfaces up.  Its stdout, stderr and exit
-status are written to files in a private temporary directory on the host and read back after
-the kernel has powered off; the kernel console goes to a separate log file in that directory.
+Inside User-Mode Linux the script runs as root (so it can call ``ip link ...``), as a child of
+the init (PID 1) ``tests/support/scripts/uml_init.sh``, which mounts proc, sysfs, devtmpfs and a
+tmpfs on ``/dev/shm``, loads the CAN modules and brings the requested vcan interfaces up.  Its
+stdout, stderr and exit status are written to files in a private temporary directory on the
+host and read back after the kernel has powered off; the kernel console goes to a separate log
+file in that directory.
 
 Environment knobs (all optional): ``VCAN_HARNESS_BACKEND`` (``native`` or ``uml``: force a
 backend), ``VCAN_UML_MEM`` (UML memory, default ``1024M``), ``VCAN_HARNESS_KEEP=1`` (keep the
@@ -266,42 +267,75 @@ def _tail(text: str, lines: int = 40) -> str:
     return "\n".join(text.splitlines()[-lines:])
 
 
-# --------------------------------------------------------------------------- native backend
+def _exports(env: Mapping[str, str]) -> str:
+    """``env`` as lines of ``export NAME=value`` for /bin/sh to source."""
+    return "".join(f"export {k}={shlex.quote(v)}\n" for k, v in env.items())
 
 
-def _run_native(
-    script: str,
-    timeout: float,
-    interfaces: list[str],
-    env: dict[str, str],
+def _run_group(
+    cmd: Sequence[str],
+    *,
+    stdout: Path,
+    stderr: Path | None,
     cwd: str,
-    workdir: Path,
-) -> VcanResult:
-    for name in interfaces:
-        error = _ensure_native_iface(name)
-        if error is not None:
-            raise VcanSetupError(error)
-    script_path = workdir / "script.sh"
-    script_path.write_text(script)
-    out_path, err_path = workdir / "stdout", workdir / "stderr"
-    start = time.monotonic()
-    with out_path.open("wb") as out, err_path.open("wb") as err:
+    env: Mapping[str, str],
+    timeout: float,
+) -> int | None:
+    """Run ``cmd`` in a process group of its own (stdin empty; stdout to the file ``stdout``,
+    stderr to ``stderr`` or with stdout) for at most ``timeout`` seconds, then kill whatever
+    is left of the group (background children of a script, UML's helper processes). Returns
+    its exit status, or None if it ran out of time."""
+    with contextlib.ExitStack() as files:
+        out = files.enter_context(stdout.open("wb"))
+        err = files.enter_context(stderr.open("wb")) if stderr is not None else subprocess.STDOUT
         proc = subprocess.Popen(
-            ["/bin/sh", str(script_path)],
+            list(cmd),
             stdin=subprocess.DEVNULL,
             stdout=out,
             stderr=err,
             cwd=cwd,
-            env=env,
+            env=dict(env),
             start_new_session=True,
         )
         try:
-            returncode = proc.wait(timeout=timeout)
+            returncode: int | None = proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
-            _kill_group(proc)
-            returncode = TIMEOUT_RETURNCODE
+            returncode = None
+        _kill_group(proc)
+    return returncode
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One run for a backend: the script is ``workdir/script.sh`` already."""
+
+    timeout: float
+    interfaces: list[str]
+    env: dict[str, str]
+    cwd: str
+    workdir: Path
+
+
+# --------------------------------------------------------------------------- native backend
+
+
+def _run_native(job: _Job) -> VcanResult:
+    for name in job.interfaces:
+        error = _ensure_native_iface(name)
+        if error is not None:
+            raise VcanSetupError(error)
+    out_path, err_path = job.workdir / "stdout", job.workdir / "stderr"
+    start = time.monotonic()
+    returncode = _run_group(
+        ["/bin/sh", str(job.workdir / "script.sh")],
+        stdout=out_path,
+        stderr=err_path,
+        cwd=job.cwd,
+        env=job.env,
+        timeout=job.timeout,
+    )
     return VcanResult(
-        returncode=returncode,
+        returncode=TIMEOUT_RETURNCODE if returncode is None else returncode,
         stdout=_read(out_path),
         stderr=_read(err_path),
         backend="native",
@@ -311,48 +345,9 @@ def _run_native(
 
 # --------------------------------------------------------------------------- UML backend
 
-_INIT_TEMPLATE = """\
-#!/bin/sh
-# PID 1 of a User-Mode Linux guest generated by tests/vcan_harness.py.
-export PATH={system_path}
-W={workdir}
-exec >"$W/init.log" 2>&1
-fail() {{ echo "vcan-harness setup failed: $*"; echo 125 >"$W/setup_failed"; sync; \
-poweroff -f || halt -f; }}
-# The host root is mounted read-write via hostfs; these are the guest's own pseudo-fs.
-mount -t proc proc /proc || fail "mount proc"
-mount -t sysfs sysfs /sys || fail "mount sysfs"
-# CONFIG_DEVTMPFS_MOUNT normally mounts /dev already; without it /dev is the host's /dev.
-grep -q '^[^ ]* /dev devtmpfs ' /proc/mounts || mount -t devtmpfs devtmpfs /dev \
-  || fail "mount devtmpfs"
-[ -c /dev/null ] || fail "/dev/null missing"
-mkdir -p /dev/shm /dev/pts
-mount -t tmpfs -o mode=1777 tmpfs /dev/shm || fail "mount tmpfs on /dev/shm"
-mount -t devpts devpts /dev/pts 2>/dev/null || true
-ip link set lo up || true
-for m in {modules}; do
-  insmod "{modules_dir}/$m" || fail "insmod $m"
-done
-for i in {interfaces}; do
-  ip link add dev "$i" type vcan || fail "ip link add dev $i type vcan"
-  ip link set up "$i" || fail "ip link set up $i"
-done
-cd {cwd} || fail "cd {cwd}"
-# Stop at the host's deadline (the guest clock follows the host's), so output and status are
-# flushed before the host would have to kill the whole kernel.
-rem=$(awk -v d={deadline} -v n="$(date +%s.%N)" \
-  'BEGIN {{ r = d - n; if (r < 0.1) r = 0.1; printf "%.3f", r }}')
-echo "running user script with ${{rem}}s left"
-# env -i: the user script sees only env.sh (not TERM or kernel arguments such as mem=).
-timeout -k 2 "$rem" env -i /bin/sh -c '. "$1/env.sh" && exec /bin/sh "$1/script.sh"' sh "$W" \
-  </dev/null >"$W/stdout" 2>"$W/stderr"
-rc=$?
-echo "user script exited with $rc"
-sync
-echo "$rc" >"$W/rc.tmp" && sync && mv "$W/rc.tmp" "$W/rc"
-sync
-poweroff -f || halt -f || echo o >/proc/sysrq-trigger
-"""
+#: PID 1 of the guest: ``init=/bin/sh -- UML_INIT WORKDIR``, its parameters in
+#: ``WORKDIR/init.env`` (see the script).
+UML_INIT = PROJECT_ROOT / "tests" / "support" / "scripts" / "uml_init.sh"
 
 
 def _uml_mem() -> str:
@@ -388,39 +383,30 @@ def _uml_process_env(workdir: Path, mem: str) -> dict[str, str]:
     return uml_env
 
 
-def _run_uml(
-    script: str,
-    timeout: float,
-    interfaces: list[str],
-    env: dict[str, str],
-    cwd: str,
-    workdir: Path,
-) -> VcanResult:
+def _run_uml(job: _Job) -> VcanResult:
+    workdir = job.workdir
     modules_dir = _uml_modules_dir()
     if modules_dir is None:
         raise VcanSetupError(vcan_unavailable_reason() or "User-Mode Linux is not installed")
-    if any(c.isspace() for c in str(workdir)):
-        raise VcanSetupError(f"work directory must not contain white space: {workdir}")
+    for path in (workdir, UML_INIT):  # both are words of the kernel's command line
+        if any(c.isspace() for c in str(path)):
+            raise VcanSetupError(f"path must not contain white space: {path}")
     mem = _uml_mem()
     start_wall = time.time()
     start = time.monotonic()
-    init_path = workdir / "init.sh"
-    (workdir / "script.sh").write_text(script)
-    (workdir / "env.sh").write_text(
-        "".join(f"export {k}={shlex.quote(v)}\n" for k, v in env.items())
-    )
-    init_path.write_text(
-        _INIT_TEMPLATE.format(
-            system_path=SYSTEM_PATH,
-            workdir=shlex.quote(str(workdir)),
-            modules=" ".join(UML_MODULES),
-            modules_dir=modules_dir,
-            interfaces=" ".join(interfaces),
-            cwd=shlex.quote(cwd),
-            deadline=f"{start_wall + timeout:.3f}",
+    (workdir / "env.sh").write_text(_exports(job.env))
+    (workdir / "init.env").write_text(
+        _exports(
+            {
+                "SYSTEM_PATH": SYSTEM_PATH,
+                "MODULES_DIR": str(modules_dir),
+                "MODULES": " ".join(UML_MODULES),
+                "IFACES": " ".join(job.interfaces),
+                "CWD": job.cwd,
+                "DEADLINE": f"{start_wall + job.timeout:.3f}",
+            }
         )
     )
-    init_path.chmod(0o755)
     umid = f"vcan-{os.getpid()}-{uuid.uuid4().hex[:10]}"
     cmd = [
         UML_KERNEL,
@@ -431,29 +417,25 @@ def _run_uml(
         "rootfstype=hostfs",
         "rootflags=/",
         "rw",
-        f"init={init_path}",
+        "init=/bin/sh",
         "con=null",
         "ssl=null",
         "con0=fd:0,fd:1",
+        "--",  # the rest goes to init as its arguments
+        str(UML_INIT),
+        str(workdir),
     ]
     kernel_log = workdir / "kernel.log"
-    timed_out = False
-    with kernel_log.open("wb") as log:
-        proc = subprocess.Popen(
-            cmd,
-            stdin=subprocess.DEVNULL,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            cwd=str(workdir),
-            env=_uml_process_env(workdir, mem),
-            start_new_session=True,  # own process group: UML forks a host process per guest mm
-        )
-        try:
-            proc.wait(timeout=timeout + HARD_KILL_GRACE)
-        except subprocess.TimeoutExpired:
-            timed_out = True
-        # Any leftover helper processes of this kernel go too (normally there are none).
-        _kill_group(proc)
+    # its own process group: UML forks a host process per guest mm
+    kernel_rc = _run_group(
+        cmd,
+        stdout=kernel_log,
+        stderr=None,
+        cwd=str(workdir),
+        env=_uml_process_env(workdir, mem),
+        timeout=job.timeout + HARD_KILL_GRACE,
+    )
+    timed_out = kernel_rc is None
     duration = time.monotonic() - start
     stdout = _read(workdir / "stdout")
     stderr = _read(workdir / "stderr")
@@ -468,7 +450,7 @@ def _run_uml(
         else "User-Mode Linux guest produced no exit status"
     )
     raise VcanSetupError(
-        f"{what} (linux.uml exited with {proc.returncode}).\n"
+        f"{what} (linux.uml exited with {kernel_rc}).\n"
         f"--- init log ---\n{_tail(_read(workdir / 'init.log'))}\n"
         f"--- kernel log (tail) ---\n{_tail(_read(kernel_log))}"
     )
@@ -510,9 +492,9 @@ def run_on_vcan(
     workdir = Path(tempfile.mkdtemp(prefix="vcan-", dir="/tmp"))
     keep = os.environ.get("VCAN_HARNESS_KEEP", "").strip().lower() in ("1", "true", "yes")
     try:
-        if backend == "native":
-            return _run_native(script, timeout, names, script_env, workdir_cwd, workdir)
-        return _run_uml(script, timeout, names, script_env, workdir_cwd, workdir)
+        (workdir / "script.sh").write_text(script)
+        job = _Job(timeout, names, script_env, workdir_cwd, workdir)
+        return _run_native(job) if backend == "native" else _run_uml(job)
     finally:
         if keep:
             print(f"vcan_harness: kept {workdir}", file=sys.stderr)

@@ -16,7 +16,6 @@ import argparse
 import json
 import re
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -28,73 +27,11 @@ from monitor.pipeline.feed import feed_log
 from monitor.rig import build_decoder, load_rig
 from tests.support.pipeline import pipeline
 from tests.support.rrd import outcome_total
-from tests.vcan_harness import VcanResult
-
-RunOnVcan = Callable[..., VcanResult]
+from tests.support.vcan_scripts import RunOnVcan, run_ready
 
 ROOT = Path(__file__).resolve().parents[2]
 RIG = ROOT / "tests" / "rigs" / "fd_servo.toml"
 BIN = Path(sys.executable).parent
-
-SCRIPT = r"""
-set -u
-cd "$OUT"
-wait_for() {  # FILE PATTERN SECONDS
-  n=0
-  while ! grep -q -- "$2" "$1" 2>/dev/null; do
-    n=$((n + 1)); [ "$n" -gt $(($3 * 10)) ] && return 1; sleep 0.1
-  done
-}
-# (this kernel's vcan starts as CAN FD, MTU 72: set both, vcan0 to classic)
-ip link set vcan0 down && ip link set vcan0 mtu 16 && ip link set vcan0 up
-ip link set vcan1 down && ip link set vcan1 mtu 72 && ip link set vcan1 up
-echo "mtu0=$(cat /sys/class/net/vcan0/mtu) mtu1=$(cat /sys/class/net/vcan1/mtu)"
-# vcan0, classic: the monitor's socket opens (FD-capable), classic frames flow, FD cannot
-python3 - > classic.out 2> classic.err <<'EOF'
-import logging, can
-logging.basicConfig(level=logging.INFO)
-from monitor.runtime.canbus import open_bus
-rx = open_bus("socketcan", "vcan0")
-tx = open_bus("socketcan", "vcan0")
-tx.send(can.Message(arbitration_id=0x123, data=b"\x01\x02", is_extended_id=False))
-m = rx.recv(timeout=5)
-print("classic_rx=%s" % (m is not None and bytes(m.data) == b"\x01\x02" and not m.is_fd))
-try:
-    tx.send(can.Message(arbitration_id=0x123, data=bytes(12), is_fd=True, is_extended_id=False))
-    print("fd_sent_on_classic=1")
-except can.CanError as exc:
-    print("fd_sent_on_classic=0")
-rx.shutdown(); tx.shutdown()
-EOF
-cat classic.out
-candump -r 4194304 -L vcan1 > cap.log 2> candump.err &
-DUMP=$!
-mkdir -p raw
-motor-monitor -v run --interface socketcan --channel vcan1 --rig "$RIG" --nodes 1 \
-    --events "$OUT/ev.jsonl" --raw-dir "$OUT/raw" --raw-format log \
-    --metrics "$OUT/rig.prom" --receive-buffer-kib 2048 2> mon.err &
-MON=$!
-# (no --nodes: no node of ours ever sends, so this monitor publishes no diagnosis frames)
-motor-monitor run --interface socketcan --channel vcan1 \
-    --metrics "$OUT/ours.prom" --receive-buffer-kib 2048 2> ours.err &
-OURS=$!
-if wait_for mon.err "monitoring" 240 && wait_for ours.err "monitoring" 240; then echo "ready=1"
-else echo "ready=0"; kill $MON $OURS $DUMP; exit 3; fi
-cansend vcan1 110##1$(printf '11%.0s' $(seq 8)); echo "cs1=$?"
-cansend vcan1 110##3$(printf '22%.0s' $(seq 64)); echo "cs2=$?"
-cansend vcan1 7FF##0$(printf '33%.0s' $(seq 12)); echo "cs3=$?"
-cansend vcan1 023#0000000000000000; echo "cs4=$?"
-sim-ecu --interface socketcan --channel vcan1 --rig "$RIG" --node 1 \
-    --scenario fault-outage-recovery --seed 1 --max-catch-up 100000 2> ecu.err
-echo "ecu_rc=$?"
-sleep 2
-kill -TERM $MON $OURS; wait $MON; echo "mon_rc=$?"; wait $OURS; echo "ours_rc=$?"
-kill -INT $DUMP; wait $DUMP; echo "dump_rc=$?"
-"""
-
-
-def _values(stdout: str) -> dict[str, str]:
-    return dict(re.findall(r"\b(\w+)=(\S*)", stdout))
 
 
 def _counters(prom: Path) -> dict[str, int]:
@@ -106,19 +43,17 @@ def _counters(prom: Path) -> dict[str, int]:
 
 @pytest.mark.vcan
 def test_fd_frames_on_vcan_are_counted_and_decoded(vcan: RunOnVcan, tmp_path: Path) -> None:
-    res = vcan(SCRIPT, env={"OUT": str(tmp_path), "RIG": str(RIG)}, timeout=720.0,
-               interfaces=("vcan0", "vcan1"))
-    values = _values(res.stdout)
+    values = run_ready(vcan, "canfd.sh", tmp_path, env={"RIG": str(RIG)}, timeout=720.0,
+                       interfaces=("vcan0", "vcan1"))
     mon_err = (tmp_path / "mon.err").read_text()
     ours_err = (tmp_path / "ours.err").read_text()
     ecu_err = (tmp_path / "ecu.err").read_text()
-    assert values.get("mtu0") == "16" and values.get("mtu1") == "72", res.stdout
+    assert values.get("mtu0") == "16" and values.get("mtu1") == "72", values
     # a classic interface: the FD-capable socket reads classic frames; FD cannot be sent
     assert values.get("classic_rx") == "True", (tmp_path / "classic.err").read_text()
-    assert values.get("fd_sent_on_classic") == "0", res.stdout
+    assert values.get("fd_sent_on_classic") == "0", values
     assert "classic CAN interface (MTU 16)" in (tmp_path / "classic.err").read_text()
-    assert values.get("ready") == "1", f"{res.stdout}\n{res.stderr}\n{mon_err}\n{ours_err}"
-    assert [values.get(f"cs{i}") for i in range(1, 5)] == ["0"] * 4, res.stdout
+    assert [values.get(f"cs{i}") for i in range(1, 5)] == ["0"] * 4, values
     assert values["ecu_rc"] == "0", ecu_err
     assert values["mon_rc"] == "0" and values["ours_rc"] == "0", mon_err + ours_err
     assert "CAN FD frames are received" in mon_err, mon_err

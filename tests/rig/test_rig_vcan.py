@@ -9,58 +9,22 @@ import json
 import re
 import subprocess
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from tests.vcan_harness import VcanResult
-
-RunOnVcan = Callable[..., VcanResult]
+from tests.support.vcan_scripts import RunOnVcan, run_ready
 
 ROOT = Path(__file__).resolve().parents[2]
 RIG = ROOT / "tests" / "rigs" / "press.toml"
 BIN = Path(sys.executable).parent
 
-SCRIPT = r"""
-set -u
-cd "$OUT"
-wait_for() {  # FILE PATTERN SECONDS
-  n=0
-  while ! grep -q -- "$2" "$1" 2>/dev/null; do
-    n=$((n + 1)); [ "$n" -gt $(($3 * 10)) ] && return 1; sleep 0.1
-  done
-}
-candump -r 4194304 -L vcan0 > cap.log 2> candump.err &
-DUMP=$!
-mkdir -p raw
-motor-monitor run --interface socketcan --channel vcan0 --rig "$RIG" --nodes 2 \
-    --events "$OUT/ev.jsonl" --raw-dir "$OUT/raw" 2> mon.err &
-MON=$!
-if wait_for mon.err "monitoring" 150; then echo "ready=1"
-else echo "ready=0"; kill $MON $DUMP; exit 3; fi
-# every sample sent, late if the one-CPU guest is busy (the rig's alive counter tells the
-# monitor the true sample period; a skipped sample would be a loss)
-nice -n 10 sim-ecu --interface socketcan --channel vcan0 --rig "$RIG" --node 2 \
-    --scenario fault-outage-recovery --seed 1 --max-catch-up 100000 2> ecu.err
-echo "ecu_rc=$?"
-sleep 2
-kill -TERM $MON; wait $MON; echo "mon_rc=$?"
-kill -INT $DUMP; wait $DUMP; echo "dump_rc=$?"
-"""
-
-
-def _values(stdout: str) -> dict[str, str]:
-    return dict(m.groups() for m in re.finditer(r"^(\w+)=(\S*)$", stdout, re.MULTILINE))
-
 
 @pytest.mark.vcan
 def test_user_rig_on_vcan(vcan: RunOnVcan, tmp_path: Path) -> None:
-    res = vcan(SCRIPT, env={"OUT": str(tmp_path), "RIG": str(RIG)}, timeout=300.0)
-    values = _values(res.stdout)
+    values = run_ready(vcan, "rig_press.sh", tmp_path, env={"RIG": str(RIG)}, timeout=300.0)
     mon_err = (tmp_path / "mon.err").read_text()
     ecu_err = (tmp_path / "ecu.err").read_text()
-    assert values.get("ready") == "1", f"{res.stdout}\n{res.stderr}\n{mon_err}"
     assert values["ecu_rc"] == "0", ecu_err
     assert values["mon_rc"] == "0", mon_err
     sent = {k: int(v) for k, v in re.findall(r"\b(Fb|Cmd)=(\d+)", ecu_err.split("sent", 1)[1])}

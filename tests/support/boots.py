@@ -35,9 +35,8 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +47,13 @@ from monitor.bus.codec import Decoded, MotorDatabase
 from tests.support.bad_frames import NODE, FrameKind, frame_kinds
 from tests.support.candump import Captured, Frame, parse_frame, read_candump
 from tests.support.rrd import Array, Snapshots, read_rrd, series
+from tests.support.vcan_scripts import (
+    RunOnVcan,
+    logs_tail,
+    monitor_summary,
+    run_script,
+    script_values,
+)
 from tests.vcan_harness import VcanResult
 
 __all__ = [
@@ -68,10 +74,6 @@ __all__ = [
     "run_boot_b",
 ]
 
-RunOnVcan = Callable[..., VcanResult]
-
-SCRIPTS = Path(__file__).resolve().parent / "scripts"
-
 F1 = 0.15  # default thresholds: the healthy ECU must stay below F1
 NO_DATA = 3  # HealthState raw value
 SILENCE_S = 0.5  # the daemon's silence timeout
@@ -85,23 +87,6 @@ TIME_TOL_S = 3e-6  # candump prints microseconds; the .rrd has float seconds -> 
 # ----------------------------------------------------------------------------- script runs
 
 
-def script_values(stdout: str) -> dict[str, str]:
-    return {m[1]: m[2] for m in re.finditer(r"^(\w+)=(\S*)$", stdout, re.MULTILINE)}
-
-
-_SUMMARY_RE = re.compile(
-    r"motor-monitor: stopped \(signal 15\): (\d+) frames, (\d+) estimated, (\d+) rejected, "
-    r"(\d+) diagnosis frames sent")
-
-
-def monitor_summary(stderr: str) -> dict[str, int] | None:
-    m = _SUMMARY_RE.search(stderr)
-    if m is None:
-        return None
-    return dict(zip(("frames", "estimated", "rejected", "sent"), map(int, m.groups()),
-                    strict=True))
-
-
 def read_events(path: Path) -> list[dict[str, Any]]:
     if not path.exists():
         return []
@@ -110,12 +95,12 @@ def read_events(path: Path) -> list[dict[str, Any]]:
 
 def _run(vcan: RunOnVcan, name: str, out: Path, timeout: float,
          params: Mapping[str, str]) -> tuple[VcanResult, float]:
-    """Run ``scripts/<name>`` with OUT, GAP and SCRIPTS and `params` in its environment, and
-    save its outcome into ``out/script.json``."""
+    """Run ``scripts/<name>`` with OUT, GAP and `params` in its environment, and save its
+    outcome into ``out/script.json``."""
     out.mkdir(parents=True, exist_ok=True)
-    env = {"OUT": str(out), "GAP": f"{KIND_GAP_S:g}", "SCRIPTS": str(SCRIPTS), **params}
     t0 = time.monotonic()
-    res = vcan((SCRIPTS / name).read_text(), env=env, timeout=timeout)
+    res = run_script(vcan, name, env={"OUT": str(out), "GAP": f"{KIND_GAP_S:g}", **params},
+                     timeout=timeout)
     wall = time.monotonic() - t0
     (out / "script.json").write_text(json.dumps({
         "returncode": res.returncode, "stdout": res.stdout, "stderr": res.stderr,
@@ -128,11 +113,6 @@ def _load_result(out: Path) -> tuple[VcanResult, float]:
     d = json.loads((out / "script.json").read_text())
     return VcanResult(d["returncode"], d["stdout"], d["stderr"], d["backend"],
                       d["duration"]), float(d["wall_s"])
-
-
-def logs_tail(out: Path, chars: int = 3000) -> str:
-    return "\n".join(f"--- {p.name} ---\n{p.read_text(errors='replace')[-chars:]}"
-                     for p in sorted(out.glob("*.err")))
 
 
 # ----------------------------------------------------------------------------- readback

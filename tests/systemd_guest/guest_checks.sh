@@ -69,7 +69,7 @@ finish() {
     files "$R/end-files.txt"
     cp -a "$STATE" "$R/state"  # a tmpfs in the guest (harness.py): the host reads this copy
     journalctl -b --no-pager -o short-monotonic -u "$U" -u "$E" >"$R/unit-journal.txt" 2>&1
-    rec done 1
+    rec "done" 1
     exit 0
 }
 # abort WHY: nothing after this can work; say why and end (the host fails the checks)

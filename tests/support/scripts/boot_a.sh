@@ -7,19 +7,17 @@
 # INJECT, a file of lines "KEY FRAME..." (cansend syntax), one bad-frame window each;
 # REPLAYS, how many times the ECU's last current frame is sent again.
 
-: "${SCRIPTS:?}" "${INJECT:?}" "${REPLAYS:?}"
+: "${SCRIPTS:?}" "${OUT:?}" "${GAP:?}" "${INJECT:?}" "${REPLAYS:?}"
 # shellcheck source-path=SCRIPTDIR source=common.sh
 . "$SCRIPTS/common.sh"
+cd "$OUT" || exit 1
 
 # --record-flush-s 0.25: fewer chunks for Rerun's threads on the guest's one CPU (~5 ms each);
 # what a SIGKILL loses at the default 0.1 s is boot B's test.
-# candump with a 4 MiB socket buffer: on a loaded guest it falls behind in the ECU's catch-up
-# bursts instead of losing frames (its capture is the reference the checks read)
-candump -r 4194304 -L any,0:0,#FFFFFFFF > cap.log 2> candump.err &
-DUMP=$!
-motor-monitor -v run --interface socketcan --channel vcan0 --nodes 0 --rrd "$OUT/a.rrd" \
-    --events "$OUT/ev.jsonl" --record-flush-s 0.25 2> mon.err &
-MON=$!
+# candump on every interface, error frames included: it survives vcan0 being deleted
+start_candump any,0:0,#FFFFFFFF
+start_monitor -v run --interface socketcan --channel vcan0 --nodes 0 --rrd "$OUT/a.rrd" \
+    --events "$OUT/ev.jsonl" --record-flush-s 0.25
 ecu 1 ecu1.err
 # Wrong CLI on a real SocketCAN kernel, while the daemon starts: a channel that does not exist.
 ( nice -n 19 motor-monitor run --interface socketcan --channel vcan9 > /dev/null \
@@ -30,11 +28,7 @@ CLI1=$!
       2> cli_ecu_nochan.err
   echo "$?" > cli_ecu_nochan.rc ) &
 CLI2=$!
-if wait_for cap.log ' 180#' 200 && wait_for cap.log ' 110#' 200; then
-  echo "ready=1"
-else
-  echo "ready=0"; kill "$MON" "$ECU" "$DUMP"; exit 3
-fi
+ready cap.log ' 180#' 200 cap.log ' 110#' 200
 wait "$CLI1" "$CLI2"
 sleep 2
 mark bad_start
@@ -47,13 +41,13 @@ done < "$INJECT"
 mark down
 ip link set down vcan0
 sleep 1
-ip link set up vcan0
+vcan_up vcan0
 mark up
 echo "alive_linkdown=$(alive)"
 sleep 2.5
 # a silent ECU
 mark ecu_stop
-kill -TERM "$ECU"; wait "$ECU"; echo "ecu1_rc=$?"
+stop ecu1 "$ECU"
 mark ecu_stopped
 sleep 1.5
 # a replay: the ECU's last current frame again, same alive counter
@@ -69,8 +63,7 @@ inject replay "$@"
 mark del
 ip link del vcan0
 sleep 1
-ip link add dev vcan0 type vcan
-ip link set up vcan0
+vcan_up vcan0
 mark add
 echo "alive_linkdel=$(alive)"
 N0=$(wc -l < cap.log)
@@ -79,9 +72,7 @@ if wait_for cap.log ' 110#' 200 $((N0 + 1)); then echo "ecu2_up=1"; else echo "e
 mark ecu2_up
 sleep 2.5
 mark term
-kill -TERM "$MON"; wait "$MON"; echo "mon_rc=$?"
+stop mon "$MON"
 mark term_done
-kill -TERM "$ECU"; wait "$ECU"; echo "ecu2_rc=$?"
-sleep 0.3
-caught_up "$DUMP" 30 || true  # candump has written its backlog
-kill -INT "$DUMP"; wait "$DUMP"; echo "dump_rc=$?"
+stop ecu2 "$ECU"
+stop_candump

@@ -3,22 +3,18 @@
 # /bin/sh): the daemon and a healthy ECU, a cangen flood while the daemon's RSS is sampled,
 # 3 s of calm once the daemon has caught up, SIGKILL.
 #
-# Parameters (environment): SCRIPTS, this directory; OUT and GAP (see common.sh);
+# Parameters (environment): SCRIPTS, this directory; OUT (see common.sh);
 # FLOOD_S, seconds of flood.
 
-: "${SCRIPTS:?}" "${FLOOD_S:?}"
+: "${SCRIPTS:?}" "${OUT:?}" "${FLOOD_S:?}"
 # shellcheck source-path=SCRIPTDIR source=common.sh
 . "$SCRIPTS/common.sh"
+cd "$OUT" || exit 1
 
-motor-monitor -v run --interface socketcan --channel vcan0 --nodes 0 --rrd "$OUT/b.rrd" \
-    --events "$OUT/ev.jsonl" 2> mon.err &
-MON=$!
+start_monitor -v run --interface socketcan --channel vcan0 --nodes 0 --rrd "$OUT/b.rrd" \
+    --events "$OUT/ev.jsonl"
 ecu 2 ecu.err
-if wait_for ev.jsonl '"state":"fault_free"' 200; then
-  echo "ready=1"
-else
-  echo "ready=0"; kill "$MON" "$ECU"; exit 3
-fi
+ready ev.jsonl '"state":"fault_free"' 200
 ( while kill -0 "$MON" 2>/dev/null; do
     echo "$(now) $(awk '/^VmRSS/ {print $2}' "/proc/$MON/status" 2>/dev/null)"
     sleep 0.5
@@ -48,4 +44,4 @@ mark kill
 kill -KILL "$MON"
 mark killed
 wait "$MON"; echo "mon_rc=$?"
-kill -TERM "$ECU"; wait "$ECU"; echo "ecu_rc=$?"
+stop ecu "$ECU"
