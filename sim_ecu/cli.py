@@ -78,6 +78,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rig", metavar="FILE", help="rig file: simulate its model and speak its DBC "
                    "and node layout (a virtual twin of your ECU; default: our bus and motor)")
     p.add_argument(
+        "--host",
+        choices=("self", "external"),
+        default="self",
+        help="with a CANopen --rig: who is the CANopen master. self (default): the twin is its "
+        "own host too (NMT start, SYNC and the scenario's targets in the RPDOs); external: "
+        "the twin is the CiA 402 drive only, for your PLC or master on the bus: it waits in "
+        "pre-operational for NMT start, answers each SYNC with its synchronous TPDOs, takes "
+        "its inputs and controlword from the master's RPDOs (the scenario gives the fault "
+        "only) and --duration counts SYNCs (duration x rate)",
+    )
+    p.add_argument(
         "--voltage-rate",
         type=float,
         default=20.0,
@@ -206,6 +217,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             rig = load_rig(args.rig) if args.rig else builtin_rig()
             if args.dbc:
                 rig = replace(rig, dbc=(Path(args.dbc),))
+            if args.host != "self" and rig.canopen is None:
+                raise UsageError(f"--host {args.host} needs a CANopen rig ([bus] protocol = "
+                                 "\"canopen\" in --rig)")
             if args.secoc_state is not None:  # written every second: never one of the inputs
                 check_outputs([*monitor_inputs(rig, args), ("--scenario", args.scenario)],
                               [Output("--secoc-state", Path(args.secoc_state), None)])
@@ -244,11 +258,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                         motor=motor,
                         max_catch_up=args.max_catch_up,
                     )
-                elif rig.canopen is not None:  # a CiA 402 drive and its host
+                elif rig.canopen is not None:  # a CiA 402 drive (and its host: --host)
                     from sim_ecu.cia402 import Cia402ECU
 
                     ecu = Cia402ECU(bus, db, rig, args.node, scenario, seed=args.seed,
-                                    max_catch_up=args.max_catch_up)
+                                    max_catch_up=args.max_catch_up, host=args.host)
                 else:
                     ecu = RigECU(bus, db, rig, args.node, scenario, seed=args.seed,
                                  input_rate=args.voltage_rate,
