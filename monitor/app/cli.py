@@ -1,5 +1,5 @@
-"""`motor-monitor` command line: run, replay, calibrate, identify, and the commands of installed
-extensions (`demo`, `reproduce` from the `experiments` package, found through the
+"""`motor-monitor` command line: run, replay, calibrate, identify, check, and the commands of
+installed extensions (`demo`, `reproduce` from the `experiments` package, found through the
 `motor_monitor.commands` entry-point group: the daemon never imports them).
 
 Every configuration or usage mistake ends in one line `motor-monitor: error: ...` on
@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import entry_points
 
-from monitor.app import calibrate, identify, replay, run, status
+from monitor.app import calibrate, check, identify, replay, run, status
 from monitor.app.options import OneLineParser
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, one_line
 
@@ -36,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_command(sub)
     calibrate.add_command(sub)
     identify.add_command(sub)
+    check.add_command(sub)
     status.add_command(sub)
     for ep in sorted(entry_points(group=COMMANDS_GROUP), key=lambda e: e.name):
         ep.load()(sub)

@@ -28,6 +28,7 @@ from typing import Any
 from monitor.app import options, outputs
 from monitor.archive.engine import ENGINES
 from monitor.archive.inputs import LogInput, find_logs
+from monitor.archive.result import diagnosis_lines, log_result
 from monitor.archive.run import (
     FLEET_PNG,
     SUMMARY_CSV,
@@ -103,6 +104,9 @@ def _replay_one_log(args: argparse.Namespace) -> int:
         return 1
     n, el = run.frames, run.feed_s
     c = C.Counters(run.counters)
+    for line in diagnosis_lines(log_result(str(log_path), run, wall_s=el, events=None,
+                                           rrd=None)):
+        print(line, file=sys.stderr)
     print(f"motor-monitor: replayed {n} frames in {el:.2f} s ({n / max(el, 1e-9):.0f} frames/s): "
           f"{c.get(C.SAMPLES_ESTIMATED, 0)} estimated, {c.rejected_total()} rejected",
           file=sys.stderr)

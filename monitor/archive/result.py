@@ -6,13 +6,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 
 from monitor.archive.engine import EngineRun
 from monitor.diagnosis.classifier import HealthState
 from monitor.pipeline.events import HEALTH
 
-__all__ = ["STATES", "LogResult", "NodeResult", "Transition", "failed_result", "log_result",
-           "state_timeline"]
+__all__ = ["STATES", "LogResult", "NodeResult", "Transition", "diagnosis_lines",
+           "failed_result", "log_result", "state_timeline"]
 
 STATES: tuple[str, ...] = tuple(s.label for s in HealthState)
 """Every health state's label, in the order of their values on the bus."""
@@ -134,3 +135,39 @@ def log_result(log: str, run: EngineRun, *, wall_s: float, events: str | None,
                      frames=run.frames, wall_s=wall_s, t_first=t_first,
                      t_last=t_last, counters=dict(sorted(run.counters.items())),
                      nodes=tuple(nodes), events=events, rrd=rrd, rrd_parts=rrd_parts)
+
+
+SHOWN_STRETCHES = 8
+"""Stretches of a node's diagnosis `diagnosis_lines` lists one by one; more are counted."""
+
+
+def diagnosis_lines(result: LogResult) -> list[str]:
+    """What the replay found, for a person: per node the seconds in each health state and
+    every stretch away from ``fault_free`` (its start and end from the log's first frame, its
+    length, and gamma^ as it was entered), then the log's start as a date. The events file
+    has the same transitions in bus time; this is the reading a user would otherwise do by
+    hand."""
+    if result.t_first is None or result.t_last is None:
+        return []
+    t0, t1 = result.t_first, result.t_last
+    lines = []
+    for nr in result.nodes:
+        shares = ", ".join(f"{state} {sec:.2f} s" for state, sec in nr.seconds_in_state.items()
+                           if sec > 0)
+        mm = (f"; model mismatch flagged {nr.seconds_model_mismatch:.2f} s"
+              if nr.seconds_model_mismatch > 0 else "")
+        lines.append(f"node {nr.node}: {shares or 'no time'}{mm}")
+        gamma_at = {tr.t: tr.gamma for tr in nr.transitions}
+        away = [(a, b, st) for a, b, st in nr.timeline(t0, t1)
+                if st != "fault_free" and not (st == INITIAL_STATE and a == t0)]
+        for a, b, st in away[:SHOWN_STRETCHES]:
+            g = gamma_at.get(a)
+            at_start = f", gamma^ {g:.2f} at its start" if g is not None and g == g else ""
+            lines.append(f"  {st:<10s} {a - t0:9.2f} s -> {b - t0:9.2f} s ({b - a:.2f} s"
+                         f"{at_start})")
+        if len(away) > SHOWN_STRETCHES:
+            lines.append(f"  ... and {len(away) - SHOWN_STRETCHES} more (the events have each)")
+    start = datetime.fromtimestamp(t0, UTC) if 0 < t0 < 32503680000 else None
+    lines.append("times from the log's first frame" + (
+        f" ({start:%Y-%m-%d %H:%M:%S.%f}"[:-3] + " UTC)" if start else f" (t = {t0:.3f} s)"))
+    return lines
