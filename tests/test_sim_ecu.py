@@ -18,7 +18,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
@@ -32,7 +32,7 @@ from sim_ecu import ECUError, VirtualECU, load_motor_parameters, motor_parameter
 from sim_ecu.cli import main
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import load_scenario, scenario_from_dict
-from tests.vcan_harness import VcanResult
+from tests.support.vcan_scripts import RunOnVcan, run_script, script_values
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -737,37 +737,18 @@ def test_cli_help_exits_zero(capsys: pytest.CaptureFixture[str]) -> None:
 
 # ----------------------------------------------------------------------------- vcan
 
-VCAN_SCRIPT = r"""
-cd "$OUT"
-candump -L vcan0 > dump.log &
-DUMP=$!
-sleep 0.3
-# every sample sent, late if the machine is loaded: the frames are compared with an offline run
-sim-ecu --interface socketcan --channel vcan0 --node 2 --scenario fault-outage-recovery \
-    --duration 1 --seed 5 --max-catch-up 1000 2> ecu.err
-echo "ecu_rc=$?"
-sleep 0.3
-kill $DUMP
-sim-ecu --interface socketcan --channel doesnotexist0 --node 2 --scenario healthy 2> bad.err
-echo "bad_rc=$?"
-ip link set vcan0 down
-sim-ecu --interface socketcan --channel vcan0 --node 2 --scenario healthy --duration 0.3 \
-    2> down.err
-echo "down_rc=$?"
-"""
-
-
 @pytest.mark.vcan
 def test_cli_on_real_socketcan(
-    vcan: Callable[..., VcanResult], mdb: MotorDatabase, tmp_path: Path
+    vcan: RunOnVcan, mdb: MotorDatabase, tmp_path: Path
 ) -> None:
-    res = vcan(VCAN_SCRIPT, env={"OUT": str(tmp_path)}, timeout=180)
+    res = run_script(vcan, "sim_ecu_cli.sh", env={"OUT": str(tmp_path)}, timeout=180)
     assert res.returncode == 0, (res.stdout, res.stderr)
-    values = dict(line.split("=", 1) for line in res.stdout.split() if "=" in line)
+    values = script_values(res.stdout)
+    assert values["dump_rc"] == "0", (tmp_path / "candump.err").read_text()
     ecu_err = (tmp_path / "ecu.err").read_text()
     assert values["ecu_rc"] == "0", ecu_err
     assert "current=100 voltage=20 truth=100, send errors 0" in ecu_err
-    with can.CanutilsLogReader(tmp_path / "dump.log") as reader:
+    with can.CanutilsLogReader(tmp_path / "cap.log") as reader:
         frames = list(reader)
     decoded = _decode_all(mdb, frames)
     assert [len(_by_kind(decoded, k)) for k in ("current", "voltage", "truth")] == [100, 20, 100]
