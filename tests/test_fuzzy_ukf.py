@@ -390,7 +390,6 @@ def test_step_many_is_step_row_by_row_with_events_and_loss(chunk: int) -> None:
     """step_many returns to Python for the structure events (onset search, re-processing)
     and must leave the estimator, and report every sample, exactly as step() does -- with
     lost samples (dt = k T) among them."""
-    from monitor.estimation.fuzzy_ukf import step_many
 
     model = dc_motor()
     sc = scenario_from_dict({"name": "many", "duration": 6.0,
@@ -406,7 +405,7 @@ def test_step_many_is_step_row_by_row_with_events_and_loss(chunk: int) -> None:
     disc = model.discretize(0.01)
     a, b = FuzzyUKF(disc), FuzzyUKF(disc)
     g = np.array([a.step(u[k], y[k], float(dt[k])).gamma.copy() for k in range(len(dt))])
-    parts = [step_many(b, u[s:s + chunk], y[s:s + chunk], dt[s:s + chunk])
+    parts = [b.step_many(u[s:s + chunk], y[s:s + chunk], dt[s:s + chunk])
              for s in range(0, len(dt), chunk)]
     assert a.structure_events > 0
     np.testing.assert_array_equal(np.concatenate([p.gamma for p in parts]), g)

@@ -22,7 +22,7 @@ scanners that hand what they do not take to python-can's readers, .mf4 as asammd
 2. alive counters per stream (repeated, lost) vectorised;
 3. per node, held inputs and truth vectorised, the admission rules (`kernels.admit`), the
    estimator stepped over all the node's samples in one compiled loop
-   (`monitor.estimation.fuzzy_ukf.step_many`: the same kernel as `FuzzyUKF.step`), then
+   (`FuzzyUKF.step_many`: the same kernel as `FuzzyUKF.step`), then
    classification, model-mismatch detection, silence ticks and due diagnoses in one
    compiled loop (`kernels.classify`);
 4. samples and inputs go to the sinks as columns (`sinks.SinkRouter`; `RerunSink` takes

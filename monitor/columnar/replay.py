@@ -33,7 +33,7 @@ from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, read_chunk
 from monitor.columnar.sinks import SinkRouter
 from monitor.diagnosis import HealthState
 from monitor.diagnosis.rules import FLAG_CAUSES, FLAGGED, HEALTH_CAUSES, REPORTED, new_state
-from monitor.estimation.fuzzy_ukf import FuzzyUKF, step_many
+from monitor.estimation.fuzzy_ukf import FuzzyUKF
 from monitor.estimation.model import DiscreteModel
 from monitor.pipeline import MonitorConfig
 from monitor.pipeline import counters as C
@@ -450,7 +450,7 @@ class _Replay:
                 nm.restart()
             nxt = np.flatnonzero(rA[i + 1:])
             end = i + 1 + int(nxt[0]) if len(nxt) else nA
-            res = step_many(nm.est, U[i:end], Y[i:end], dts[i:end])
+            res = nm.est.step_many(U[i:end], Y[i:end], dts[i:end])
             j = i + res.count
             gam[i:j] = res.gamma[:res.count]
             yest[i:j] = res.y_est[:res.count]

@@ -18,7 +18,7 @@ modules of `monitor.estimation`, each with the paper's equations it implements:
   samples since processed again, a new membership function (`fuzzy`, (15)-(29)).
 * `bias`: step 8, the bias states (a load or an offset the model lacks).
 * `start`: the initial covariance and the start without an x0.
-* `many`: `step_many`, many samples in one compiled loop.
+* `many`: `FuzzyUKF.step_many`, many samples in one compiled loop.
 * `ukf`: the sigma points and the UKF (30)-(49); `fuzzy`: the rule base (15)-(29).
 
 Why it is built this way -- what failed on a small, stiff, back-EMF dominated motor (a
@@ -45,7 +45,7 @@ from monitor.estimation.bias import augmented_matrices
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem
 from monitor.estimation.kernel import select_kernel
 from monitor.estimation.layout import KERNEL_LAYOUT, MODEL, OUT, PRM, RING, STATE, WORK, offsets
-from monitor.estimation.many import ManySteps, step_many
+from monitor.estimation.many import ManyStepping, ManySteps
 from monitor.estimation.model import (
     BIAS_WINDOW_S,
     ESTIMATOR_LIMIT_BYTES,
@@ -60,7 +60,7 @@ from monitor.estimation.start import (
     start_state,
     steady_start,
 )
-from monitor.estimation.structure import locate_onset, reprocess, structure_event
+from monitor.estimation.structure import StructureLearning
 from monitor.estimation.ukf import sigma_weights
 
 Array = NDArray[np.float64]
@@ -78,7 +78,6 @@ __all__ = [
     "select_kernel",
     "start_state",
     "steady_start",
-    "step_many",
 ]
 
 
@@ -181,7 +180,7 @@ class EstimatorOutput:
     structure_event: bool = False
 
 
-class FuzzyUKF:
+class FuzzyUKF(StructureLearning, ManyStepping):
     """Self-constructing fuzzy UKF fault estimator for one motor (one object per motor).
 
     >>> est = FuzzyUKF(dc_motor().discretize(0.01))
@@ -467,19 +466,6 @@ class FuzzyUKF:
         """Field `name` of sample k's slot in the onset ring (`layout.RING`, flat)."""
         a, b = self._ring_spans[name]
         return self._ring[k % self._ring_len, a:b]
-
-    def _onset(self, k: int) -> tuple[int, Array, tuple[Array, Array, IntArray]]:
-        """`monitor.estimation.structure.locate_onset` of the change detected at sample k."""
-        return locate_onset(self, k)
-
-    def _reprocess(self, j: int, k: int, first: int,
-                   models: tuple[Array, Array, IntArray], bias: bool = False) -> None:
-        """`monitor.estimation.structure.reprocess`: samples j..k again from the onset j."""
-        reprocess(self, j, k, first, models, bias)
-
-    def _structure_event(self) -> bool:
-        """`monitor.estimation.structure.structure_event` (20)-(22) on the sample just run."""
-        return structure_event(self)
 
 
 _KERNEL = select_kernel()

@@ -1,24 +1,21 @@
-"""Many samples of one estimator in one compiled loop: `step_many`, bit-identical to
+"""Many samples of one estimator in one compiled loop: `FuzzyUKF.step_many`, bit-identical to
 `FuzzyUKF.step` row by row (the same kernel, eqs (50)-(54) around (15)-(49) of Liu, Bao,
 Xue, Du, Int. J. Fuzzy Systems 22(1), 2020), for a replay's columns."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from monitor.estimation.kernel import step_loop
-
-if TYPE_CHECKING:
-    from monitor.estimation.fuzzy_ukf import FuzzyUKF
+from monitor.estimation.state import FilterState
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["ManySteps", "step_many"]
+__all__ = ["ManyStepping", "ManySteps"]
 
 
 @dataclass
@@ -37,98 +34,102 @@ class ManySteps:
     stopped_on_nan: bool
 
 
-def step_many(est: FuzzyUKF, u: Array, y: Array, dt: Array) -> ManySteps:
-    """`est.step(u[i], y[i], dt[i])` for every row i, with the same results, the samples
-    stepped in one compiled loop (`step_loop`: the same kernel, eqs (50)-(54) around
-    (15)-(49)) that returns to Python only when the structure test (20) fires (the onset
-    search and re-processing, `monitor.estimation.structure.structure_event`) and stops at
-    a NaN gamma^.
-    Without the JIT (AOT or interpreted kernel) it calls `est.step` row by row. Leaves
-    `est` as the last `step` would, `est.out` included.
-    """
-    N = int(u.shape[0])
-    n, m, p = est._dims
-    gamma = np.zeros((N, m))
-    y_est = np.zeros((N, p))
-    nis = np.zeros(N)
-    rules = np.zeros(N, np.int64)
-    event = np.zeros(N, np.bool_)
-    if N == 0:
-        return ManySteps(0, gamma, y_est, nis, rules, event, False)
-    if np.any(~(dt > 0.0)):
-        raise ValueError(f"dt must be positive, got {dt[~(dt > 0.0)][0]}")
-    if est.kernel_name != "jit":
-        for i in range(N):
-            out = est.step(u[i], y[i], float(dt[i]))
-            gamma[i] = out.gamma
-            y_est[i] = out.y_est
-            nis[i] = out.nis
-            rules[i] = out.rules
-            event[i] = out.structure_event
+class ManyStepping(FilterState):
+    """The fuzzy UKF's many samples in one compiled loop, a method of the filter
+    (`monitor.estimation.fuzzy_ukf.FuzzyUKF` inherits it)."""
+
+    def step_many(self, u: Array, y: Array, dt: Array) -> ManySteps:
+        """`self.step(u[i], y[i], dt[i])` for every row i, with the same results, the samples
+        stepped in one compiled loop (`step_loop`: the same kernel, eqs (50)-(54) around
+        (15)-(49)) that returns to Python only when the structure test (20) fires (the onset
+        search and re-processing, `monitor.estimation.structure.structure_event`) and stops at
+        a NaN gamma^.
+        Without the JIT (AOT or interpreted kernel) it calls `self.step` row by row. Leaves
+        `self` as the last `step` would, `self.out` included.
+        """
+        N = int(u.shape[0])
+        n, m, p = self._dims
+        gamma = np.zeros((N, m))
+        y_est = np.zeros((N, p))
+        nis = np.zeros(N)
+        rules = np.zeros(N, np.int64)
+        event = np.zeros(N, np.bool_)
+        if N == 0:
+            return ManySteps(0, gamma, y_est, nis, rules, event, False)
+        if np.any(~(dt > 0.0)):
+            raise ValueError(f"dt must be positive, got {dt[~(dt > 0.0)][0]}")
+        if self.kernel_name != "jit":
+            for i in range(N):
+                out = self.step(u[i], y[i], float(dt[i]))
+                gamma[i] = out.gamma
+                y_est[i] = out.y_est
+                nis[i] = out.nis
+                rules[i] = out.rules
+                event[i] = out.structure_event
+                if out.gamma.max() != out.gamma.max():
+                    return ManySteps(i + 1, gamma, y_est, nis, rules, event, True)
+            return ManySteps(N, gamma, y_est, nis, rules, event, False)
+        U = np.ascontiguousarray(u, dtype=np.float64)
+        Y = np.ascontiguousarray(y, dtype=np.float64)
+        dts = np.ascontiguousarray(dt, dtype=np.float64)
+        first = 0
+        if self._needs_init:  # the start (`start_state`) and the first sample, as step() does
+            out = self.step(U[0], Y[0], float(dts[0]))
+            gamma[0] = out.gamma
+            y_est[0] = out.y_est
+            nis[0] = out.nis
+            rules[0] = out.rules
+            event[0] = out.structure_event
+            first = 1
             if out.gamma.max() != out.gamma.max():
-                return ManySteps(i + 1, gamma, y_est, nis, rules, event, True)
-        return ManySteps(N, gamma, y_est, nis, rules, event, False)
-    U = np.ascontiguousarray(u, dtype=np.float64)
-    Y = np.ascontiguousarray(y, dtype=np.float64)
-    dts = np.ascontiguousarray(dt, dtype=np.float64)
-    first = 0
-    if est._needs_init:  # the start (`start_state`) and the first sample, as step() does
-        out = est.step(U[0], Y[0], float(dts[0]))
-        gamma[0] = out.gamma
-        y_est[0] = out.y_est
-        nis[0] = out.nis
-        rules[0] = out.rules
-        event[0] = out.structure_event
-        first = 1
-        if out.gamma.max() != out.gamma.max():
-            return ManySteps(1, gamma, y_est, nis, rules, event, True)
-        if N == 1:
-            return ManySteps(1, gamma, y_est, nis, rules, event, False)
-    uniq, inv = np.unique(dts, return_inverse=True)
-    entries = []
-    for d in uniq.tolist():
-        blk = est._blocks.get(d)
-        entries.append(blk if blk is not None else est._block(d))
-    blocks = np.ascontiguousarray(np.stack([e[0] for e in entries]))
-    coefs = np.array([e[1] for e in entries])
-    bidx = inv.astype(np.int64).reshape(-1)
-    clock = np.array([est._time, est._last_event, 0.0, float(est.steps)])
-    fz = est.fuzzy
-    cfg = est.config
-    i = first
-    nan = False
-    while i < N:
-        start = i
-        i = step_loop(blocks, coefs, bidx, dts, U, Y, est._prm, est._st, fz.centres,
-                      fz.counts, fz.cons, fz.var, fz.rule_idx, fz.rule_w, est._wk, est._out,
-                      est._lay, n, m, p, fz.max_mf, clock, cfg.dwell, est._ring_len, start,
-                      gamma, y_est, nis)
-        rules[start:i] = est.out.rules
-        est._time = float(clock[0])
-        est.out.structure_event = False
-        if clock[2] == 1.0:  # the test fired on sample i - 1: the event, as in step()
-            est.steps = int(clock[3])
-            est._u[:] = U[i - 1]
-            est._y[:] = Y[i - 1]
-            if est._structure_event():
-                est.out.structure_event = True
-                est.out.rules = fz.rule_count
-                event[i - 1] = True
-            rules[i - 1] = est.out.rules
-            # the event may have re-processed: the output of sample i - 1 is the new one
-            gamma[i - 1] = est.out.gamma
-            y_est[i - 1] = est.out.y_est
-            nis[i - 1] = est._stats[0]
-            clock[1] = est._last_event
-            clock[3] += 1.0
-            if gamma[i - 1].max() != gamma[i - 1].max():
+                return ManySteps(1, gamma, y_est, nis, rules, event, True)
+            if N == 1:
+                return ManySteps(1, gamma, y_est, nis, rules, event, False)
+        uniq, inv = np.unique(dts, return_inverse=True)
+        entries = []
+        for d in uniq.tolist():
+            blk = self._blocks.get(d)
+            entries.append(blk if blk is not None else self._block(d))
+        blocks = np.ascontiguousarray(np.stack([e[0] for e in entries]))
+        coefs = np.array([e[1] for e in entries])
+        bidx = inv.astype(np.int64).reshape(-1)
+        clock = np.array([self._time, self._last_event, 0.0, float(self.steps)])
+        fz = self.fuzzy
+        cfg = self.config
+        i = first
+        nan = False
+        while i < N:
+            start = i
+            i = step_loop(blocks, coefs, bidx, dts, U, Y, self._prm, self._st, fz.centres,
+                          fz.counts, fz.cons, fz.var, fz.rule_idx, fz.rule_w, self._wk, self._out,
+                          self._lay, n, m, p, fz.max_mf, clock, cfg.dwell, self._ring_len, start,
+                          gamma, y_est, nis)
+            rules[start:i] = self.out.rules
+            self._time = float(clock[0])
+            self.out.structure_event = False
+            if clock[2] == 1.0:  # the test fired on sample i - 1: the event, as in step()
+                self.steps = int(clock[3])
+                self._u[:] = U[i - 1]
+                self._y[:] = Y[i - 1]
+                if self._structure_event():
+                    self.out.structure_event = True
+                    self.out.rules = fz.rule_count
+                    event[i - 1] = True
+                rules[i - 1] = self.out.rules
+                # the event may have re-processed: the output of sample i - 1 is the new one
+                gamma[i - 1] = self.out.gamma
+                y_est[i - 1] = self.out.y_est
+                nis[i - 1] = self._stats[0]
+                clock[1] = self._last_event
+                clock[3] += 1.0
+                if gamma[i - 1].max() != gamma[i - 1].max():
+                    nan = True
+            elif clock[2] == 2.0:
                 nan = True
-        elif clock[2] == 2.0:
-            nan = True
-        if nan:
-            break
-    est.steps = int(clock[3])
-    est.out.nis = float(nis[i - 1])
-    est._u[:] = U[i - 1]
-    est._y[:] = Y[i - 1]
-    return ManySteps(i, gamma, y_est, nis, rules, event, nan)
+            if nan:
+                break
+        self.steps = int(clock[3])
+        self.out.nis = float(nis[i - 1])
+        self._u[:] = U[i - 1]
+        self._y[:] = Y[i - 1]
+        return ManySteps(i, gamma, y_est, nis, rules, event, nan)

@@ -49,7 +49,6 @@ J = 2e-5, b = 1e-5, Ke = Ki = 0.03, Ra = 1, La = 1e-3, sensor sigma 0.01 A):
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -57,16 +56,13 @@ from numpy.typing import NDArray
 from monitor.estimation.bias import BIAS_CONFIRM, beyond_bounds
 from monitor.estimation.kernel import reprocess_loop
 from monitor.estimation.layout import MODEL, RING
+from monitor.estimation.state import FilterState
 from monitor.jit import njit
-
-if TYPE_CHECKING:
-    from monitor.estimation.fuzzy_ukf import FuzzyUKF
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["locate_onset", "negligible", "onset_glr", "onset_scores", "onset_stats",
-           "reprocess", "ring_models", "structure_event"]
+__all__ = ["StructureLearning", "onset_glr", "onset_scores"]
 
 # Where the fields onset_glr reads start in `layout.offsets` (numba compiles them in)
 _R_U, _R_K, _R_STI, _R_NU = (RING.at(f) for f in ("u", "K", "Sti", "nu"))
@@ -154,56 +150,6 @@ def onset_glr(
                     Wc[r, a] = acc
 
 
-def ring_models(est: FuzzyUKF, first: int, count: int) -> tuple[Array, Array, IntArray]:
-    """The flat model blocks and NIS coefficients of the distinct dt among ring samples
-    first .. first + count - 1 (from the `_block` cache; k T after lost samples), and
-    each sample's index into them: a few blocks, not one per sample."""
-    L = est._ring_len
-    dts = est._ring[(first + np.arange(count)) % L, RING.span("dt", *est._dims)[0]]
-    if dts.min() == dts.max():  # no loss in the window: one block (the common case)
-        blk = est._block(float(dts[0]))
-        return blk[0][None, :], np.array([blk[1]]), np.zeros(count, np.int64)
-    uniq, inv = np.unique(dts, return_inverse=True)
-    entries = [est._block(d) for d in uniq.tolist()]
-    return (np.stack([e[0] for e in entries]), np.array([e[1] for e in entries]),
-            inv.astype(np.int64).reshape(-1))
-
-
-def onset_stats(est: FuzzyUKF, first: int, count: int, cands: IntArray,
-                 models: tuple[Array, Array, IntArray]) -> tuple[Array, Array]:
-    """(g, info) of the candidate onsets first + cands (see `locate_onset`)."""
-    n, m, p = est._dims
-    F = est._faulty
-    f = len(F)
-    if est.kernel_name == "jit":
-        g = np.zeros((len(cands), f))
-        info = np.zeros((len(cands), f, f))
-        onset_glr(models[0], models[2], est._ring, first, count, est._ring_len,
-                   est._lay, est._faulty_idx, n, m, p, cands, g, info)
-        return g, info
-    # Without the JIT (the hardened service's AOT kernel, or interpreted): the same
-    # statistics with numpy, every onset of the window at once, then the candidates'
-    eye = np.eye(n)
-    W = np.zeros((count, n, f))
-    ga = np.zeros((count, f))
-    ia = np.zeros((count, f, f))
-    for t in range(count):
-        i = first + t
-        u = est._field(i, "u")[F]
-        A, B, _, C, D = est._matrices(float(est._field(i, "dt")[0]))
-        K = est._field(i, "K").reshape(n, p)
-        Sti = est._field(i, "Sti").reshape(p, p)
-        nu = est._field(i, "nu")
-        Du = D[:, F] * u
-        Wm = A @ W[:t + 1] - B[:, F] * u
-        Mi = C @ Wm - Du
-        SM = Sti @ Mi
-        ga[:t + 1] += np.einsum("cpa,p->ca", SM, nu)
-        ia[:t + 1] += np.einsum("cpa,cpb->cab", Mi, SM)
-        W[:t + 1] = (eye - K @ C) @ Wm + K @ Du
-    return ga[cands], ia[cands]
-
-
 def onset_scores(g: Array, info: Array, vr: float) -> tuple[Array, Array]:
     """Log marginal likelihood ratio of a jump at each candidate, and the jump."""
     f = g.shape[1]
@@ -217,134 +163,184 @@ def onset_scores(g: Array, info: Array, vr: float) -> tuple[Array, Array]:
     return score, sol
 
 
-def locate_onset(est: FuzzyUKF, k: int) -> tuple[int, Array, tuple[Array, Array, IntArray]]:
-    """The most likely onset of the change detected at sample k (20), the jump of
-    gamma there (one entry per fault actuator), and the model blocks of the samples from
-    the window's first to k (`ring_models`, for `reprocess`).
+class StructureLearning(FilterState):
+    """The fuzzy UKF's structure learning (20)-(22), as methods of the filter
+    (`monitor.estimation.fuzzy_ukf.FuzzyUKF` inherits them): they read and rewind the
+    filter's own state, its onset ring and kernel buffers."""
 
-    For every candidate onset j in the ring (after the previous event's), a jump of
-    gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
-    the sensitivity M_i(j) of the two-stage filter started at j (V = 0 before j). Its
-    marginal likelihood against no jump, with the prior dgamma ~ N(0, var_reopen), is
-    g' (I + 1/var_reopen)^-1 g / 2 - log det(1 + var_reopen I) / 2 (g = sum M' S^-1 nu,
-    I = sum M' S^-1 M): the generalised likelihood ratio of Willsky and Jones (1976)
-    with the jump integrated out. The largest wins; its jump is (I + 1/var_reopen)^-1 g.
+    def _ring_models(self, first: int, count: int) -> tuple[Array, Array, IntArray]:
+        """The flat model blocks and NIS coefficients of the distinct dt among ring samples
+        first .. first + count - 1 (from the `_block` cache; k T after lost samples), and
+        each sample's index into them: a few blocks, not one per sample."""
+        L = self._ring_len
+        dts = self._ring[(first + np.arange(count)) % L, RING.span("dt", *self._dims)[0]]
+        if dts.min() == dts.max():  # no loss in the window: one block (the common case)
+            blk = self._block(float(dts[0]))
+            return blk[0][None, :], np.array([blk[1]]), np.zeros(count, np.int64)
+        uniq, inv = np.unique(dts, return_inverse=True)
+        entries = [self._block(d) for d in uniq.tolist()]
+        return (np.stack([e[0] for e in entries]), np.array([e[1] for e in entries]),
+                inv.astype(np.int64).reshape(-1))
 
-    Cost bound: the window holds count <= ring_len samples (ring_len = onset_window / T
-    + 1; a lost sample is one step of dt = k T, one slot, so loss never lengthens it).
-    Every candidate's signature is propagated over the samples after it, so a search
-    of all onsets is O(count^2). With more than `max_onsets` samples the search is
-    two-stage: every s-th onset (s = ceil(count / max_onsets), and the latest), then
-    every onset within s of the best of those -- O(count (max_onsets + 2 s)) -- which
-    finds the exact maximiser whenever the score is unimodal over s samples around it
-    (the score of an abrupt change peaks at its onset and falls off over the samples
-    in between, as the signature overlap does). Compiled with the JIT.
-    """
-    first = min(max(k - est._ring_len + 1, est._onset_floor, 0), k)
-    vr = est.config.var_reopen
-    count = k - first + 1
-    models = ring_models(est, first, count)
-    cap = max(2, est.config.max_onsets)
-    if count <= cap:
-        cands = np.arange(count, dtype=np.int64)
-    else:
-        s = -(-count // cap)
-        cands = np.unique(np.append(np.arange(0, count, s), count - 1)).astype(np.int64)
-        score, _ = onset_scores(*onset_stats(est, first, count, cands, models), vr)
-        b = int(cands[int(np.argmax(score))])
-        cands = np.arange(max(b - s + 1, 0), min(b + s, count), dtype=np.int64)
-    # the refined candidates include the coarse best, so the argmax of this pass is
-    # the best of both
-    score, sol = onset_scores(*onset_stats(est, first, count, cands, models), vr)
-    best = int(np.argmax(score))
-    return first + int(cands[best]), sol[best], models
+    def _onset_stats(self, first: int, count: int, cands: IntArray,
+                     models: tuple[Array, Array, IntArray]) -> tuple[Array, Array]:
+        """(g, info) of the candidate onsets first + cands (see `locate_onset`)."""
+        n, m, p = self._dims
+        F = self._faulty
+        f = len(F)
+        if self.kernel_name == "jit":
+            g = np.zeros((len(cands), f))
+            info = np.zeros((len(cands), f, f))
+            onset_glr(models[0], models[2], self._ring, first, count, self._ring_len,
+                       self._lay, self._faulty_idx, n, m, p, cands, g, info)
+            return g, info
+        # Without the JIT (the hardened service's AOT kernel, or interpreted): the same
+        # statistics with numpy, every onset of the window at once, then the candidates'
+        eye = np.eye(n)
+        W = np.zeros((count, n, f))
+        ga = np.zeros((count, f))
+        ia = np.zeros((count, f, f))
+        for t in range(count):
+            i = first + t
+            u = self._field(i, "u")[F]
+            A, B, _, C, D = self._matrices(float(self._field(i, "dt")[0]))
+            K = self._field(i, "K").reshape(n, p)
+            Sti = self._field(i, "Sti").reshape(p, p)
+            nu = self._field(i, "nu")
+            Du = D[:, F] * u
+            Wm = A @ W[:t + 1] - B[:, F] * u
+            Mi = C @ Wm - Du
+            SM = Sti @ Mi
+            ga[:t + 1] += np.einsum("cpa,p->ca", SM, nu)
+            ia[:t + 1] += np.einsum("cpa,cpb->cab", Mi, SM)
+            W[:t + 1] = (eye - K @ C) @ Wm + K @ Du
+        return ga[cands], ia[cands]
 
+    def _onset(self, k: int) -> tuple[int, Array, tuple[Array, Array, IntArray]]:
+        """The most likely onset of the change detected at sample k (20), the jump of
+        gamma there (one entry per fault actuator), and the model blocks of the samples from
+        the window's first to k (`ring_models`, for `reprocess`).
 
-def reprocess(est: FuzzyUKF, j: int, k: int, first: int,
-              models: tuple[Array, Array, IntArray], bias: bool = False) -> None:
-    """Back to the state before sample j, a structure event there -- of gamma, or with
-    bias True of the biases (their variance raised by var0, step 8) -- and samples j..k
-    again (k - j < ring_len samples; in one compiled call with the JIT). models: the
-    model blocks of samples first..k (`ring_models`)."""
-    n, m, p = est._dims
-    nx = est._nx
-    est.x[:] = est._field(j, "x")
-    est.P[:] = est._field(j, "P").reshape(n, n)
-    if bias:
-        est.P[nx:, nx:] += np.diag(est._bias_var0)
-    est.V[:] = est._field(j, "V").reshape(n, m)
-    est._zall[:] = est._field(j, "z")
-    est._ebar[:] = est._field(j, "ebar")
-    est.out.gamma[:] = est._field(j, "gamma")
-    est.common_var[:] = est._field(j, "vc")
-    est.noise_excess[:] = est._field(j, "rx")
-    # the event re-opens every consequent at that output: do it before the rules fire,
-    # so that what the samples since taught them under the old fault is forgotten
-    est.fuzzy.cons[:, est._faulty] = est.out.gamma[est._faulty]
-    if est.kernel_name == "jit":
-        fz = est.fuzzy
-        reprocess_loop(models[0], models[1], models[2][j - first:], est._ring, j, k - j + 1,
-                       est._ring_len, est._prm, est._st, fz.centres, fz.counts, fz.cons,
-                       fz.var, fz.rule_idx, fz.rule_w, est._wk, est._out, est._lay, n, m, p,
-                       fz.max_mf, est._u, est._y, 0.0 if bias else 2.0)
-        return
-    for i in range(j, k + 1):
-        est._u[:] = est._field(i, "u")
-        est._y[:] = est._field(i, "y")
-        est._run(i, float(est._field(i, "dt")[0]), 2.0 if i == j and not bias else 0.0)
+        For every candidate onset j in the ring (after the previous event's), a jump of
+        gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
+        the sensitivity M_i(j) of the two-stage filter started at j (V = 0 before j). Its
+        marginal likelihood against no jump, with the prior dgamma ~ N(0, var_reopen), is
+        g' (I + 1/var_reopen)^-1 g / 2 - log det(1 + var_reopen I) / 2 (g = sum M' S^-1 nu,
+        I = sum M' S^-1 M): the generalised likelihood ratio of Willsky and Jones (1976)
+        with the jump integrated out. The largest wins; its jump is (I + 1/var_reopen)^-1 g.
 
+        Cost bound: the window holds count <= ring_len samples (ring_len = onset_window / T
+        + 1; a lost sample is one step of dt = k T, one slot, so loss never lengthens it).
+        Every candidate's signature is propagated over the samples after it, so a search
+        of all onsets is O(count^2). With more than `max_onsets` samples the search is
+        two-stage: every s-th onset (s = ceil(count / max_onsets), and the latest), then
+        every onset within s of the best of those -- O(count (max_onsets + 2 s)) -- which
+        finds the exact maximiser whenever the score is unimodal over s samples around it
+        (the score of an abrupt change peaks at its onset and falls off over the samples
+        in between, as the signature overlap does). Compiled with the JIT.
+        """
+        first = min(max(k - self._ring_len + 1, self._onset_floor, 0), k)
+        vr = self.config.var_reopen
+        count = k - first + 1
+        models = self._ring_models(first, count)
+        cap = max(2, self.config.max_onsets)
+        if count <= cap:
+            cands = np.arange(count, dtype=np.int64)
+        else:
+            s = -(-count // cap)
+            cands = np.unique(np.append(np.arange(0, count, s), count - 1)).astype(np.int64)
+            score, _ = onset_scores(*self._onset_stats(first, count, cands, models), vr)
+            b = int(cands[int(np.argmax(score))])
+            cands = np.arange(max(b - s + 1, 0), min(b + s, count), dtype=np.int64)
+        # the refined candidates include the coarse best, so the argmax of this pass is
+        # the best of both
+        score, sol = onset_scores(*self._onset_stats(first, count, cands, models), vr)
+        best = int(np.argmax(score))
+        return first + int(cands[best]), sol[best], models
 
-def negligible(est: FuzzyUKF, gamma: Array, jump: Array) -> bool:
-    """Whether the jump, projected on the bounds of (28), is below min_jump for every
-    fault actuator."""
-    F = est._faulty
-    moved = np.clip(gamma[F] + jump, est._lower[F], est._upper[F]) - gamma[F]
-    return bool(F) and bool(np.all(np.abs(moved) < est.config.min_jump))
+    def _reprocess(self, j: int, k: int, first: int,
+                  models: tuple[Array, Array, IntArray], bias: bool = False) -> None:
+        """Back to the state before sample j, a structure event there -- of gamma, or with
+        bias True of the biases (their variance raised by var0, step 8) -- and samples j..k
+        again (k - j < ring_len samples; in one compiled call with the JIT). models: the
+        model blocks of samples first..k (`ring_models`)."""
+        n, m, p = self._dims
+        nx = self._nx
+        self.x[:] = self._field(j, "x")
+        self.P[:] = self._field(j, "P").reshape(n, n)
+        if bias:
+            self.P[nx:, nx:] += np.diag(self._bias_var0)
+        self.V[:] = self._field(j, "V").reshape(n, m)
+        self._zall[:] = self._field(j, "z")
+        self._ebar[:] = self._field(j, "ebar")
+        self.out.gamma[:] = self._field(j, "gamma")
+        self.common_var[:] = self._field(j, "vc")
+        self.noise_excess[:] = self._field(j, "rx")
+        # the event re-opens every consequent at that output: do it before the rules fire,
+        # so that what the samples since taught them under the old fault is forgotten
+        self.fuzzy.cons[:, self._faulty] = self.out.gamma[self._faulty]
+        if self.kernel_name == "jit":
+            fz = self.fuzzy
+            reprocess_loop(models[0], models[1], models[2][j - first:], self._ring, j, k - j + 1,
+                           self._ring_len, self._prm, self._st, fz.centres, fz.counts, fz.cons,
+                           fz.var, fz.rule_idx, fz.rule_w, self._wk, self._out, self._lay, n, m, p,
+                           fz.max_mf, self._u, self._y, 0.0 if bias else 2.0)
+            return
+        for i in range(j, k + 1):
+            self._u[:] = self._field(i, "u")
+            self._y[:] = self._field(i, "y")
+            self._run(i, float(self._field(i, "dt")[0]), 2.0 if i == j and not bias else 0.0)
 
+    def _negligible(self, gamma: Array, jump: Array) -> bool:
+        """Whether the jump, projected on the bounds of (28), is below min_jump for every
+        fault actuator."""
+        F = self._faulty
+        moved = np.clip(gamma[F] + jump, self._lower[F], self._upper[F]) - gamma[F]
+        return bool(F) and bool(np.all(np.abs(moved) < self.config.min_jump))
 
-def structure_event(est: FuzzyUKF) -> bool:
-    """(20)-(22): locate the change, re-learn from its onset, add an MF where it shows.
+    def _structure_event(self) -> bool:
+        """(20)-(22): locate the change, re-learn from its onset, add an MF where it shows.
 
-    The test fires some samples after a change began. Its onset is located (`locate_onset`),
-    the filter goes back to the state before it and processes the samples since
-    again, with a structure event first: an actuator's loss of effectiveness is not a
-    function of x_e, so no rule's old consequent is worth keeping and all are re-opened
-    at the current output (so f^ does not jump, the intent of (23)-(27)); the
-    sensitivity of the state to the new gamma starts there. Then an MF is inserted on
-    the input with the largest |z| (output-preserving).
-    """
-    k = est.steps
-    j, jump, models = est._onset(k)
-    g_j = est._field(j, "gamma")
-    if negligible(est, g_j, jump):
-        # a jump that the bounds of (28) reduce to less than min_jump -- typically
-        # evidence for a gamma below 0 where a fault-free actuator's estimate sits on
-        # that bound -- is no change of the loss of effectiveness: it has been looked
-        # at (the dwell restarts). Where it leaves the bounds by more than min_jump and
-        # the filter has bias states, it is a change of the load or an offset (step 8):
-        # the biases are re-opened at its onset and the samples since processed again
-        est._ebar[:] = 0.0
-        est._last_event = est._time
-        if est.bias_plan.count and beyond_bounds(g_j, jump, est._lower, est._upper,
-                                                 est._faulty, est.config.min_jump):
-            if est._time > est._bias_armed_until:
-                # the first sight of it: a burst of noise fires the test as well, and
-                # a bias learnt from one is kept (gamma^ takes the difference) --
-                # what persists fires the test again after the dwell time
-                est._bias_armed_until = est._time + BIAS_CONFIRM * est.config.dwell
-                return False
-            est._bias_armed_until = -math.inf
-            reprocess(est, j, k, k - len(models[2]) + 1, models, bias=True)
-            est._onset_floor = j + 1
-            est.bias_events += 1
-        return False
-    reprocess(est, j, k, k - len(models[2]) + 1, models)
-    est._onset_floor = j + 1
-    est._last_event = est._time
-    est._bias_armed_until = -math.inf
-    est.structure_events += 1
-    fz = est.fuzzy
-    v = int(np.argmax(np.abs(est.z)))
-    fz.insert(v, float(est.z[v]), est.config.var_rule)
-    fz.var[:, est._known] = 0.0  # known actuators have nothing to learn
-    return True
+        The test fires some samples after a change began. Its onset is located (`locate_onset`),
+        the filter goes back to the state before it and processes the samples since
+        again, with a structure event first: an actuator's loss of effectiveness is not a
+        function of x_e, so no rule's old consequent is worth keeping and all are re-opened
+        at the current output (so f^ does not jump, the intent of (23)-(27)); the
+        sensitivity of the state to the new gamma starts there. Then an MF is inserted on
+        the input with the largest |z| (output-preserving).
+        """
+        k = self.steps
+        j, jump, models = self._onset(k)
+        g_j = self._field(j, "gamma")
+        if self._negligible(g_j, jump):
+            # a jump that the bounds of (28) reduce to less than min_jump -- typically
+            # evidence for a gamma below 0 where a fault-free actuator's estimate sits on
+            # that bound -- is no change of the loss of effectiveness: it has been looked
+            # at (the dwell restarts). Where it leaves the bounds by more than min_jump and
+            # the filter has bias states, it is a change of the load or an offset (step 8):
+            # the biases are re-opened at its onset and the samples since processed again
+            self._ebar[:] = 0.0
+            self._last_event = self._time
+            if self.bias_plan.count and beyond_bounds(g_j, jump, self._lower, self._upper,
+                                                     self._faulty, self.config.min_jump):
+                if self._time > self._bias_armed_until:
+                    # the first sight of it: a burst of noise fires the test as well, and
+                    # a bias learnt from one is kept (gamma^ takes the difference) --
+                    # what persists fires the test again after the dwell time
+                    self._bias_armed_until = self._time + BIAS_CONFIRM * self.config.dwell
+                    return False
+                self._bias_armed_until = -math.inf
+                self._reprocess(j, k, k - len(models[2]) + 1, models, bias=True)
+                self._onset_floor = j + 1
+                self.bias_events += 1
+            return False
+        self._reprocess(j, k, k - len(models[2]) + 1, models)
+        self._onset_floor = j + 1
+        self._last_event = self._time
+        self._bias_armed_until = -math.inf
+        self.structure_events += 1
+        fz = self.fuzzy
+        v = int(np.argmax(np.abs(self.z)))
+        fz.insert(v, float(self.z[v]), self.config.var_rule)
+        fz.var[:, self._known] = 0.0  # known actuators have nothing to learn
+        return True

@@ -106,7 +106,10 @@ def time_many(mod: ModuleType, model: Any, u: np.ndarray, y: np.ndarray, dt: np.
     for s in range(0, len(dt), CHUNK):
         e = min(s + CHUNK, len(dt))
         t0 = clock()
-        mod.step_many(est, u[s:e], y[s:e], dt[s:e])
+        if hasattr(est, "step_many"):  # a method of the filter; a function in older trees
+            est.step_many(u[s:e], y[s:e], dt[s:e])
+        else:
+            mod.step_many(est, u[s:e], y[s:e], dt[s:e])
         per.append((clock() - t0) / (e - s))
     return np.array(per)
 

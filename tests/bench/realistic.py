@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from experiments.scoring import score_run
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier
 from monitor.diagnosis.classifier import MismatchDetector
-from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig, step_many
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import DCMotorParameters, dc_motor
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import scenario_from_dict
@@ -106,7 +106,7 @@ def run_one(r: Run, cfg: FuzzyUKFConfig) -> dict[str, Any]:
     model = dc_motor(params, q=1.44, r=MODEL_SIGMA**2).discretize(T)
     est = FuzzyUKF(model, cfg)
     N = len(sim.t)
-    res = step_many(est, sim.u, y, np.full(N, T))
+    res = est.step_many(sim.u, y, np.full(N, T))
     assert res.count == N, "the estimator stopped on a NaN"
     clf = OnlineClassifier(DEFAULT_THRESHOLDS, dwell_s=DWELL_S, hysteresis=0.02)
     mis = MismatchDetector(model.p, RATE)

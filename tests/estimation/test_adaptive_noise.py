@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, OnlineClassifier
 from monitor.diagnosis.classifier import MismatchDetector
-from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig, ManySteps, step_many
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig, ManySteps
 from monitor.estimation.model import dc_motor
 from sim_ecu.plant import SimulatedRun, simulate
 from sim_ecu.scenario import scenario_from_dict
@@ -37,7 +37,7 @@ def _run(sigma: float, duration: float, faults: list[dict[str, float]], seed: in
 
 def _estimate(run: SimulatedRun, cfg: FuzzyUKFConfig | None = None) -> tuple[FuzzyUKF, ManySteps]:
     est = FuzzyUKF(dc_motor(r=MODEL_R).discretize(T), cfg)
-    res = step_many(est, run.u, run.y, np.full(len(run.t), T))
+    res = est.step_many(run.u, run.y, np.full(len(run.t), T))
     assert res.count == len(run.t)
     return est, res
 
@@ -94,9 +94,9 @@ def test_a_loss_under_learnt_noise_is_found_and_not_learnt_as_noise(seed: int) -
     est = FuzzyUKF(dc_motor(r=MODEL_R).discretize(T))
     N = len(run.t)
     k0 = round(12.0 / T)
-    before = step_many(est, run.u[:k0], run.y[:k0], np.full(k0, T))
+    before = est.step_many(run.u[:k0], run.y[:k0], np.full(k0, T))
     r_before = float(est.noise_excess[0])
-    after = step_many(est, run.u[k0:], run.y[k0:], np.full(N - k0, T))
+    after = est.step_many(run.u[k0:], run.y[k0:], np.full(N - k0, T))
     gamma = np.concatenate([before.gamma[:, 0], after.gamma[:, 0]])
     clf = OnlineClassifier(DEFAULT_THRESHOLDS, dwell_s=0.03, hysteresis=0.02)
     alarm = None
@@ -128,7 +128,7 @@ def test_step_many_is_step_with_adaptive_noise(chunk: int) -> None:
         nis[k] = out.nis
         g[k] = out.gamma[0]
     dt = np.full(n, T)
-    parts = [step_many(b, run.u[s:s + chunk], run.y[s:s + chunk], dt[s:s + chunk])
+    parts = [b.step_many(run.u[s:s + chunk], run.y[s:s + chunk], dt[s:s + chunk])
              for s in range(0, n, chunk)]
     assert a.structure_events > 0
     assert a.noise_excess[0] > 0.0

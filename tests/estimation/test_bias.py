@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from monitor.bus.codec import load_database
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState
 from monitor.diagnosis.classifier import MismatchDetector
-from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig, step_many
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import DCMotorParameters, ModelError, dc_motor, model_from_matrices
 from monitor.pipeline.events import HEALTH
 from monitor.rig import RigError, load_rig
@@ -61,7 +61,7 @@ def _estimate(bias: str, *, duration: float, seed: int, faults: list[dict[str, f
     sim = simulate(dc_motor(PARAMS), sc, T, seed=seed, disturbance=[0.0, -1.0 / PARAMS.J, 0.0],
                    load=load)
     est = FuzzyUKF(dc_motor(PARAMS).discretize(T), FuzzyUKFConfig(bias=bias))
-    res = step_many(est, sim.u, sim.y + offset, np.full(len(sim.t), T))
+    res = est.step_many(sim.u, sim.y + offset, np.full(len(sim.t), T))
     assert res.count == len(sim.t) and est.repairs == 0
     det = MismatchDetector(1, 1.0 / T)
     flag = np.zeros(len(sim.t), dtype=bool)
@@ -135,7 +135,7 @@ def test_a_bias_event_is_the_same_in_both_engines() -> None:
     a = FuzzyUKF(model)
     ga = np.array([a.step(sim.u[k], sim.y[k], T).gamma[0] for k in range(len(sim.t))])
     b = FuzzyUKF(model)
-    res = step_many(b, sim.u, sim.y, np.full(len(sim.t), T))
+    res = b.step_many(sim.u, sim.y, np.full(len(sim.t), T))
     assert a.bias_events >= 1 and a.bias_events == b.bias_events
     assert np.array_equal(ga, res.gamma[:, 0])
     assert np.array_equal(a.out.bias, b.out.bias)

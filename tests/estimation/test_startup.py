@@ -30,7 +30,7 @@ from monitor.bus.codec import load_database
 from monitor.bus.rigcodec import RigCodec
 from monitor.columnar.replay import replay_file
 from monitor.diagnosis import HealthState
-from monitor.estimation.fuzzy_ukf import FuzzyUKF, select_kernel, start_state, step_many
+from monitor.estimation.fuzzy_ukf import FuzzyUKF, select_kernel, start_state
 from monitor.estimation.model import dc_motor
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.pipeline.feed import feed_log
@@ -294,7 +294,7 @@ def test_step_many_and_every_kernel_agree_on_a_start_from_the_output(plant: str)
         many = FuzzyUKF(model)
         got = []
         for i in range(0, len(u), chunk):
-            r = step_many(many, u[i:i + chunk], y[i:i + chunk], dt[i:i + chunk])
+            r = many.step_many(u[i:i + chunk], y[i:i + chunk], dt[i:i + chunk])
             got += [(r.gamma[k], r.y_est[k], r.nis[k]) for k in range(r.count)]
         assert len(got) == len(rows)
         for (g1, e1, n1), (g2, e2, n2) in zip(rows, got, strict=True):
