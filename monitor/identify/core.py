@@ -191,6 +191,8 @@ def _fit_black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
                             "bic": {str(k): v for k, v in fit.bic.items()},
                             "subspace_singular_values": fit.singular_values,
                             "selected": n, "given": order is not None,
+                            "holdout_error_input_p": {str(k): v for k, v in
+                                                      fit.holdout_input_p.items()},
                             "rule": "the lowest order whose hold-out simulation fit is "
                                     f"within {ORDER_MARGIN} points of the best"},
         "form": fit.form,
@@ -517,7 +519,12 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
             f"the hold-out fit ({fit_va:.0f} %) is far below the training fit ({fit_tr:.0f} %): "
             "the plant changes near the end of the capture (a fault or outage?); record a "
             "capture of the healthy node only")
-    tau = ev["slowest_time_constant_s"]
+    # the capture must span the slowest time constant the fit resolves; an integrator's
+    # pole (`integrating`) is none
+    lam = np.array([complex(re, im) for re, im in ev["poles_continuous"]])
+    tau = V.resolved_time_constant([[z.real, z.imag] for z in lam[~integrating(lam, ntr * T)]],
+                                   cand.params.get("poles_real"),
+                                   cand.params.get("poles_real_std"))
     if math.isfinite(tau) and ntr * T < V.MIN_TIME_CONSTANTS * tau:
         need = V.MIN_TIME_CONSTANTS * tau / (1.0 - holdout)
         raise IdentifyError(
@@ -577,9 +584,10 @@ def _input_delay(held: Array, y: Array, holdout: float, given: int | None) -> di
         est = estimate_input_delay(held[:ntr], y[:ntr], MAX_ESTIMATED_DELAY)
     except ValueError as exc:
         raise IdentifyError(f"{exc}: {RECORDING_ADVICE}") from None
-    return {"samples": est.delay, "given": False,
+    return {"samples": est.delay, "given": False, "placed": est.placed,
             "arx_loss": {str(d): v for d, v in est.loss.items()},
             "p_value": {str(d): v for d, v in est.p_value.items()},
             "method": "ARX models of every candidate delay on the training rows, nested "
                       "(the same last input tap); the largest delay whose dropped input "
-                      "taps an F-test does not find"}
+                      "taps an F-test does not find, 0 when no candidate's dropped taps "
+                      "matter (placed false: the response's start is not seen)"}

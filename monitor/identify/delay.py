@@ -14,6 +14,14 @@ taps an F-test does not find (level `ALPHA`). Equal-length taps, two poles and t
 loss misplace the delay of a second-order plant sampled fast, where the equation error of
 the noisy output lags outweighs the input's first small effect (the taps a few samples
 later fit that error better); nested models with `NA` output lags do not.
+
+A delay is placed only where the data bracket it: some candidate's dropped taps must
+matter (the response is seen to start). When no candidate's do -- a slow or smooth plant
+sampled fast, whose first samples of response are far below the noise, or a plant the
+output lags alone predict -- the taps give no start, and the delay is 0: a delay too short
+is absorbed by the model's dynamics (a lag, more order), whereas one too long leaves the
+model blind to the response's start, which no order repairs (the sequential rule alone
+would then run to `max_delay`).
 """
 
 from __future__ import annotations
@@ -41,17 +49,21 @@ ALPHA = 1e-3  # F-test level: a delay is refused only when its dropped taps clea
 class DelayEstimate:
     """The delay chosen and, per candidate delay, the ARX loss: the residual sum of squares
     over the output's own (mean-removed) sum of squares, averaged over the outputs; and the
-    F-test's p-value of the taps that delay drops (1 for delay 0)."""
+    F-test's p-value of the taps that delay drops (1 for delay 0). `placed`: some
+    candidate's dropped taps matter, so the taps show where the response starts (False:
+    delay 0 by default, see the module docstring)."""
 
     delay: int
     loss: dict[int, float]
     p_value: dict[int, float]
+    placed: bool = True
 
 
 def estimate_input_delay(held: Array, y: Array, max_delay: int = MAX_ESTIMATED_DELAY
                          ) -> DelayEstimate:
     """The input delay (0..max_delay samples) of held inputs `held` (N, m) and outputs `y`
-    (N, p): the largest delay whose ARX model fits as well as delay 0's by an F-test. One
+    (N, p): the largest delay whose ARX model fits as well as delay 0's by an F-test, and 0
+    when no candidate's dropped taps matter (the start of the response is not seen). One
     delay for every input and output, as the monitor applies one. ValueError for a record
     too short to fit the candidates."""
     h = np.asarray(held, dtype=float)
@@ -88,4 +100,5 @@ def estimate_input_delay(held: Array, y: Array, max_delay: int = MAX_ESTIMATED_D
         if p_value[d] > ALPHA and delay == d - 1:
             delay = d
     loss = {d: float(np.mean(r / ss)) for d, r in rss.items()}
-    return DelayEstimate(delay, loss, p_value)
+    placed = min(p_value.values()) <= ALPHA
+    return DelayEstimate(delay if placed else 0, loss, p_value, placed)

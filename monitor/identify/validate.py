@@ -4,7 +4,11 @@ Refusals (each an IdentifyError with one line saying what to record instead):
 
 * non-finite samples, or u and y of different lengths;
 * too short: fewer than MIN_SAMPLES samples, or (after the fit) a training part shorter
-  than MIN_TIME_CONSTANTS of the model's slowest time constant;
+  than MIN_TIME_CONSTANTS of the model's slowest time constant that the fit resolves
+  (`resolved_time_constant`: a pole whose distance from s = 0 is within RESOLVED_SD of
+  its standard deviations is an integrator as far as the capture tells -- a sensor offset
+  the black box carries as a near-integrating state, a position -- and asks for no
+  length; the replay of the capture judges whether such a model serves);
 * not exciting enough: an input that does not move (std below 1e-6 of its RMS), that
   changes fewer than MIN_CHANGES times, or that is not persistently exciting of the order
   the model needs (the smallest singular value of the block Hankel matrix of the centred
@@ -54,6 +58,7 @@ __all__ = [
     "fitted_x0_sim",
     "holdout_sim",
     "nrmse",
+    "resolved_time_constant",
     "whiteness_test",
 ]
 
@@ -61,6 +66,7 @@ MIN_SAMPLES = 1000
 MIN_LEVELS = 16  # an output with fewer distinct values is quantised too coarsely
 SATURATED = 0.05  # share of the capture at the output's extreme value: clipped
 MIN_TIME_CONSTANTS = 10.0
+RESOLVED_SD = 2.0  # a pole this many standard deviations from s = 0 is told from it
 MIN_CHANGES = 10
 MIN_FIT = 30.0
 CONSISTENCY_DROP = 10.0
@@ -69,6 +75,26 @@ HOLDOUT_DROP = 25.0
 CONFIDENCE = 0.99
 LAGS = 25
 MIN_PE_RATIO = 1e-7  # smallest/largest singular value of the input's Hankel matrix
+
+
+def resolved_time_constant(poles: Sequence[Sequence[float]], real: Sequence[float] | None,
+                           real_std: Sequence[float] | None) -> float:
+    """The slowest time constant (s) among the stable continuous `poles` ([re, im] each)
+    whose real part the fit tells from 0: the matching pole of the fit's invariants
+    (nearest real part in `real`, with standard deviation `real_std`) lies more than
+    RESOLVED_SD standard deviations from 0. Without invariants (None) every pole counts.
+    inf when none does."""
+    taus = []
+    for re, _ in poles:
+        if not re < 0.0:
+            continue
+        if real and real_std and len(real) == len(real_std):
+            j = int(np.argmin(np.abs(np.asarray(real, float) - re)))
+            sd = float(real_std[j])
+            if math.isfinite(sd) and abs(float(real[j])) <= RESOLVED_SD * sd:
+                continue
+        taus.append(-1.0 / re)
+    return max(taus, default=math.inf)
 
 
 def check_capture(u: Array, y: Array, T: float, holdout: float) -> tuple[Array, Array]:

@@ -20,6 +20,7 @@ from monitor.errors import MonitorError
 from monitor.estimation.fuzzy_ukf import FuzzyUKF
 from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, dc_motor
 from monitor.identify import Identification, IdentifyError, identify, prbs
+from monitor.identify import validate as V
 from monitor.identify.lti import d2c, dsim
 from sim_ecu.plant import SimulatedRun, simulate
 from sim_ecu.scenario import BUILTIN_SCENARIOS, FaultSegment, Scenario
@@ -300,3 +301,18 @@ def test_inverse_zero_order_hold() -> None:
     with pytest.raises(IdentifyError, match="negative real axis"):
         d2c(np.array([[-0.5]]), np.array([[1.0]]), T)
     assert math.isfinite(float(Ac[0, 0]))
+
+
+def test_the_capture_spans_only_time_constants_the_fit_resolves() -> None:
+    """A pole at -0.0034 1/s (a 290 s time constant: a sensor offset carried as a
+    near-integrating state) whose standard deviation reaches s = 0 asks for no capture of
+    ten times 290 s; the same pole well determined does, and a resolved faster pole sets
+    the length when the slow one is not."""
+    poles = [[-0.0034, 0.0], [-0.8, 0.0], [-160.0, 0.0]]
+    real = [-160.0, -0.8, -0.0034]
+    unresolved = [5.0, 0.01, 0.004]
+    resolved = [5.0, 0.01, 0.0005]
+    assert V.resolved_time_constant(poles, real, unresolved) == pytest.approx(1 / 0.8)
+    assert V.resolved_time_constant(poles, real, resolved) == pytest.approx(1 / 0.0034)
+    assert V.resolved_time_constant(poles, None, None) == pytest.approx(1 / 0.0034)
+    assert V.resolved_time_constant([[0.0, 0.0]], None, None) == math.inf

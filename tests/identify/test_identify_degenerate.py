@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import logging
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import can
@@ -143,12 +143,22 @@ def _refused(capfd: CapFD, caplog: CapLog,
 # ---- refused: the capture cannot give a model
 
 
-def test_output_stuck_at_one_value(tmp_path: Path, capfd: CapFD, caplog: CapLog) -> None:
+@pytest.mark.parametrize(("damage", "phrases"), [
+    pytest.param(lambda y: np.full_like(y, 7.0), ("output 'CurrentFb' is stuck at 7",),
+                 id="stuck at one value"),
+    pytest.param(lambda y: np.minimum(y, np.percentile(y, 70)),  # a current limit
+                 ("sits at its largest value", "saturated"), id="saturated"),
+    pytest.param(lambda y: 5.0 + 2.0 * np.digitize(y, np.percentile(y, [33, 66])).astype(float),
+                 ("takes only 3 distinct values", "resolution"), id="quantised to three levels"),
+])
+def test_an_output_that_cannot_give_a_model(tmp_path: Path, capfd: CapFD, caplog: CapLog,
+                                            damage: Callable[[np.ndarray], np.ndarray],
+                                            phrases: tuple[str, ...]) -> None:
     rig = _rig(tmp_path)
     u, y = _healthy()
-    cap = _write(tmp_path / "stuck.log", rig, _clock(len(u)), u, np.full_like(y, 7.0))
+    cap = _write(tmp_path / "output.log", rig, _clock(len(u)), u, damage(y))
     line = _refused(capfd, caplog, cap, rig)
-    assert "output 'CurrentFb' is stuck at 7" in line, line
+    assert all(phrase in line for phrase in phrases), line
 
 
 @pytest.mark.parametrize("model", ["auto", "state_space"])
@@ -158,24 +168,6 @@ def test_input_constant(tmp_path: Path, capfd: CapFD, caplog: CapLog, model: str
     cap = _write(tmp_path / "flat.log", rig, _clock(len(u)), np.full_like(u, 220.0), y)
     line = _refused(capfd, caplog, cap, rig, "--model", model)
     assert "input 'VoltageCmd' is constant (220)" in line and "record" in line, line
-
-
-def test_output_saturated(tmp_path: Path, capfd: CapFD, caplog: CapLog) -> None:
-    rig = _rig(tmp_path)
-    u, y = _healthy()
-    clipped = np.minimum(y, np.percentile(y, 70))  # a current limit
-    cap = _write(tmp_path / "clipped.log", rig, _clock(len(u)), u, clipped)
-    line = _refused(capfd, caplog, cap, rig)
-    assert "sits at its largest value" in line and "saturated" in line, line
-
-
-def test_output_quantised_to_three_levels(tmp_path: Path, capfd: CapFD, caplog: CapLog) -> None:
-    rig = _rig(tmp_path)
-    u, y = _healthy()
-    coarse = 5.0 + 2.0 * np.digitize(y, np.percentile(y, [33, 66])).astype(float)
-    cap = _write(tmp_path / "coarse.log", rig, _clock(len(u)), u, coarse)
-    line = _refused(capfd, caplog, cap, rig)
-    assert "takes only 3 distinct values" in line and "resolution" in line, line
 
 
 def test_nan_in_one_frame_of_seven(tmp_path: Path, capfd: CapFD, caplog: CapLog) -> None:

@@ -16,7 +16,13 @@ from numpy.typing import NDArray
 
 from monitor.estimation.model import DCMotorParameters
 from monitor.identify import IdentifyError, identify, prbs
-from monitor.identify.blackbox import ORDER_MARGIN, _continuous_oe, noise_ml, subspace_model
+from monitor.identify.blackbox import (
+    ORDER_MARGIN,
+    _continuous_oe,
+    noise_ml,
+    residual_input_p,
+    subspace_model,
+)
 from monitor.identify.lti import c2d, d2c, kalman, predict, van_loan
 
 Array = NDArray[np.float64]
@@ -242,3 +248,23 @@ def test_noise_model_gives_a_mean_nis_of_p_on_the_capture(start: float) -> None:
     e = predict(A, B, C, kf.K, u, y)
     assert float(np.mean(e[:, 0] ** 2) / kf.S[0, 0]) == pytest.approx(1.0, rel=1e-6)
     assert R[0, 0] == pytest.approx(0.09, rel=0.5)  # the sensor's, not the upper bound
+
+
+# ---- the order's input test: a left-out mode follows the input, coloured noise does not
+
+
+def test_a_left_out_resonance_is_seen_in_the_error_and_coloured_noise_is_not() -> None:
+    """`residual_input_p` on hold-out errors of the size a slow mode leaves: strongly
+    coloured noise independent of the input passes; the same noise plus a lightly damped
+    resonance's response to the input (a mode the order left out, under 1 % of the
+    output's swing, a point of NRMSE) fails."""
+    T = 0.002
+    rng = np.random.default_rng(4)
+    u = prbs(20.0, T, level=0.0, amplitude=1.0, clock=0.3, seed=4)
+    noise = scipy.signal.lfilter([1.0], [1.0, -0.97], 0.003 * rng.standard_normal(len(u)))
+    wn, zeta = 2 * np.pi * 20.0, 0.05
+    b, a, _ = scipy.signal.cont2discrete(([wn * wn], [1.0, 2 * zeta * wn, wn * wn]), T, "zoh")
+    mode = 0.01 * scipy.signal.lfilter(np.ravel(b), a, u[:, 0])
+    mode -= scipy.signal.lfilter([1.0 - 0.9], [1.0, -0.9], mode)  # the ringing, not the level
+    assert residual_input_p(noise[:, None], u) > 0.01
+    assert residual_input_p((noise + mode)[:, None], u) < 1e-6

@@ -69,6 +69,30 @@ def test_the_delay_of_a_dead_time_and_of_the_frame_order(order: int, dead: int,
     assert set(est.loss) == set(range(11))
 
 
+def _slow(seed: int, dead: int, *, n: int = 12000, T: float = 0.004, tau: float = 0.4,
+          sigma: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """A slow plant sampled fast (poles at 1/tau and 4/tau, tau = 100 samples: the
+    response starts as t^2, its first samples far below the noise sigma) behind `dead`
+    samples of dead time, driven by steps switching every 100-300 samples."""
+    rng = np.random.default_rng(seed)
+    den = np.polymul([tau, 1.0], [tau / 4, 1.0])
+    b, a, _ = scipy.signal.cont2discrete(([1.0], den), T, "zoh")
+    u = np.repeat(rng.choice([-1.0, 1.0], n), rng.integers(100, 300, n))[:n]
+    y = scipy.signal.lfilter(np.ravel(b), a, np.concatenate([np.zeros(dead), u[:n - dead]]))
+    return u[:, None], (y + sigma * rng.standard_normal(n))[:, None]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_start_the_data_do_not_show_is_not_placed(seed: int) -> None:
+    """No candidate's dropped taps matter (the first samples of a slow response are
+    buried): the delay is 0, which the model's dynamics absorb, not the largest candidate,
+    which would leave the model blind to the response's start."""
+    u, y = _slow(seed, 2)
+    est = estimate_input_delay(u, y)
+    assert min(est.p_value.values()) > 1e-3, est  # the taps do not show the start
+    assert not est.placed and est.delay == 0, est
+
+
 def test_identify_fits_for_the_monitors_pairing() -> None:
     """A dead time of two samples: identify reports it, the model written for it gives
     the monitor's own filter unit NIS on the capture, and the rig file carries it."""
