@@ -16,6 +16,7 @@ import can
 import canopen
 import pytest
 
+from monitor.app.identify import collect
 from monitor.app.options import monitor_config
 from monitor.bus.cia402 import DriveReport, DriveWatch, cia402_state, emcy_name
 from monitor.bus.codec import Decoded
@@ -438,6 +439,24 @@ def test_a_dbc_for_a_canopen_rig_is_one_line(tmp_path: Path) -> None:
         "--dbc", str(EXAMPLE.parents[1] / "dbc" / "motor.dbc")), "is a CANopen rig")
     outcome = run_cli_case(case, tmp_path, timeout=60)
     assert outcome.clean, (outcome.returncode, outcome.lines)
+
+
+def test_identify_reads_a_drive_as_the_monitor_does(tmp_path: Path) -> None:
+    """identify's capture of the twin with a drive Fault: the protocol's frames counted as
+    the protocol's (not unknown IDs), and the frames of the Fault left out of the plant's
+    samples, as many as the monitor leaves out of the same log."""
+    frames, _ = _twin_frames()
+    log = tmp_path / "twin.log"
+    with can.Logger(str(log)) as lg:
+        for m in frames:
+            lg.on_message_received(m)
+    rig = load_rig(EXAMPLE)
+    _, counts = collect(argparse.Namespace(rig=str(EXAMPLE), dbc=None, key=None), rig, [log])
+    pipe = MonitorPipeline(build_decoder(rig), monitor_config(NO_OVERRIDES, rig))
+    feed_log(pipe, read_log(log))
+    assert "rejected/unknown_id" not in counts
+    for key in ("ignored/canopen", "ignored/drive_not_operational"):
+        assert counts[key] == pipe.counters[key] > 0, key
 
 
 def test_the_events_carry_what_the_drive_says(tmp_path: Path) -> None:

@@ -46,7 +46,8 @@ from monitor.app.identify_check import (
     replay_capture,
     report_checks,
 )
-from monitor.bus.codec import Decoded, Rejected
+from monitor.bus.cia402 import IGNORED_NOT_OPERATIONAL, IGNORED_PROTOCOL, drive_watch
+from monitor.bus.codec import Decoded, Rejected, RejectReason
 from monitor.bus.logfile import read_log, suffix_list
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
@@ -94,6 +95,7 @@ def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
     counts: dict[str, int] = defaultdict(int)
     for index, path in enumerate(paths):
         decoder = options.database(args, rig)
+        drives = drive_watch(decoder)  # a CANopen rig's drives, read as the monitor reads them
         for number, msg in enumerate(read_log(path), 1):
             counts["frames"] += 1
             if msg.is_error_frame:
@@ -101,7 +103,15 @@ def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
                 continue
             d = decoder.decode_can(msg)
             if isinstance(d, Rejected):
-                counts[f"rejected/{d.reason}"] += 1
+                if drives is not None and d.reason == RejectReason.UNKNOWN_ID and drives.unread(
+                        msg.arbitration_id, msg.is_extended_id, bytes(msg.data),
+                        float(msg.timestamp))[0]:
+                    counts[IGNORED_PROTOCOL] += 1
+                else:
+                    counts[f"rejected/{d.reason}"] += 1
+                continue
+            if drives is not None and d.node in drives.nodes and not drives.operational(d.node):
+                counts[IGNORED_NOT_OPERATIONAL] += 1  # not driving its motor: not the plant
                 continue
             _row(nodes[d.node], d, m, counts, (index, number))
     return dict(nodes), dict(counts)
@@ -414,7 +424,8 @@ def _summary(ident: Identification, node: int, T: float, n: int) -> str:
     rep = ident.report
     fit = rep.get("fit", {})
     lines = [f"node {node}: {ident.kind} model, order {ident.order}, from {n} samples at "
-             f"{1.0 / T:g} Hz ({rep.get('seconds', 0.0):.1f} s)"]
+             f"{1.0 / T:g} Hz ({n * T:.1f} s of capture; fitted in "
+             f"{rep.get('seconds', 0.0):.1f} s)"]
     if "nrmse_holdout_pct" in fit:
         lines.append("  hold-out fit (NRMSE): " + ", ".join(
             f"{v:.1f} %" for v in fit["nrmse_holdout_pct"]))
@@ -435,7 +446,9 @@ def _summary(ident: Identification, node: int, T: float, n: int) -> str:
     if rep.get("checks"):
         lines.append("  checks (the replay's gate: a model that fails one is not written):")
         for c in rep["checks"]:
-            lines.append(f"    {'PASS' if c['passed'] else 'FAIL'} {c['check']}: "
+            # a failed check that does not gate is advice: it does not keep the model out
+            verdict = "PASS" if c["passed"] else "FAIL" if c["gating"] else "NOTE"
+            lines.append(f"    {verdict} {c['check']}: "
                          f"{_shown(c['value'])} (limit {_shown(c['limit'])}"
                          f"{'' if c['gating'] else ', advice only'})"
                          + (f": {c['advice']}" if c["advice"] else ""))

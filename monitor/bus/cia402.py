@@ -194,6 +194,14 @@ class DriveWatch:
                                             f"CiA 402 {state} (statusword 0x{word:04X})", word))
         return out
 
+    def unread(self, arbitration_id: int, is_extended: bool, data: bytes, t: float
+               ) -> tuple[bool, list[DriveReport]]:
+        """A frame that is no rig message (the codec's unknown_id): whether it is the
+        CANopen protocol's own (`IGNORED_PROTOCOL`, not unknown_id) and what the drive says
+        in it (`feed`). The one rule of the per-frame engine, identify and `check`."""
+        return (not is_extended and arbitration_id in self.protocol_ids,
+                self.feed(arbitration_id, data, t))
+
     def tick(self, t: float) -> list[DriveReport]:
         """Heartbeats lost by time `t` (each once, until the next heartbeat)."""
         out = []

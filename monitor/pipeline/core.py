@@ -297,11 +297,13 @@ class MonitorPipeline:
         if isinstance(res, Rejected):
             drives = self._drives
             if drives is not None and res.reason == RejectReason.UNKNOWN_ID:
-                if not msg.is_extended_id and msg.arbitration_id in drives.protocol_ids:
+                protocol, reports = drives.unread(msg.arbitration_id, msg.is_extended_id,
+                                                  bytes(msg.data), float(msg.timestamp))
+                if protocol:
                     self.counters.inc(IGNORED_PROTOCOL)
                 else:
                     self._rejected(res)
-                for r in drives.feed(msg.arbitration_id, bytes(msg.data), float(msg.timestamp)):
+                for r in reports:
                     self.counters.inc(report_counter(r))
                     self.sink.on_bus_event(drive_event(r))
             else:

@@ -155,7 +155,6 @@ class Survey:
 def survey(codec: MotorDatabase | RigCodec, frames: Iterable[can.Message]) -> Survey:
     """Every frame of `frames` through `codec` (the monitor's frame checks), by ID."""
     watch = drive_watch(codec)
-    protocol = watch.protocol_ids if watch is not None else frozenset()
     out = Survey(canopen=watch is not None)
     for msg in frames:
         out.frames += 1
@@ -171,8 +170,9 @@ def survey(codec: MotorDatabase | RigCodec, frames: Iterable[can.Message]) -> Su
         s.lengths[len(msg.data)] += 1
         res = codec.decode_can(msg)
         if isinstance(res, Rejected):
-            if (res.reason == RejectReason.UNKNOWN_ID and not msg.is_extended_id
-                    and msg.arbitration_id in protocol):
+            if res.reason == RejectReason.UNKNOWN_ID and watch is not None and watch.unread(
+                    msg.arbitration_id, msg.is_extended_id, bytes(msg.data),
+                    float(msg.timestamp))[0]:
                 s.outcomes[IGNORED_PROTOCOL] += 1
                 s.read_as = cob_id_name(msg.arbitration_id)
             else:
