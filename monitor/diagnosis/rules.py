@@ -23,10 +23,11 @@ State and parameters are float64 vectors, laid out as `STATE` and `PARAMS` name 
 (`new_state`, `params`); NaN stands for "none" in a time field. What a step reports goes
 to a small int64 vector laid out as `OUT` (`new_out`). Plain ints and floats throughout,
 so numba compiles every function here and a step costs one call from Python; with the JIT
-off (`monitor.jit`) the same functions run as plain Python (on lists when called
-one step at a time, `step_vectors`). The loop `run` is
-in this module with the steps because numba's on-disk cache tracks a kernel's own source
-file only: a loop elsewhere would keep a cached copy of steps edited here.
+off (`monitor.jit`) the same functions run as plain Python (on lists when called one step at
+a time, `step_vectors`). The loop `run` is in this module with the steps because numba's
+on-disk cache tracks a kernel's own source file only: a loop elsewhere would keep a cached
+copy of steps edited here. `warm_up` loads the steps before the first sample (the daemon,
+the install's cache warm-up).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from monitor.jit import JIT_DISABLED, njit
 __all__ = ["FLAG_CAUSES", "HEALTH_CAUSES", "NO_DATA", "OUT", "PARAMS", "STATE", "FloatVector",
            "IntVector", "cls_no_data", "cls_update", "mm_reset", "mm_update", "new_out",
            "new_state", "on_sample", "on_tick", "params", "region", "report", "reported_state",
-           "run", "step_vectors"]
+           "run", "step_vectors", "warm_up"]
 
 F8 = NDArray[np.float64]
 I8 = NDArray[np.int64]
