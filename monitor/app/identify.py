@@ -110,7 +110,7 @@ def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
                 else:
                     counts[f"rejected/{d.reason}"] += 1
                 continue
-            if drives is not None and d.node in drives.nodes and not drives.operational(d.node):
+            if drives is not None and not drives.operational(d.node):
                 counts[IGNORED_NOT_OPERATIONAL] += 1  # not driving its motor: not the plant
                 continue
             _row(nodes[d.node], d, m, counts, (index, number))

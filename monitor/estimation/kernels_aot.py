@@ -88,13 +88,12 @@ def warm_jit_cache() -> Path | None:
     if directory is None:
         raise RuntimeError("no writable directory for numba's kernel cache (NUMBA_CACHE_DIR, "
                            "XDG_CACHE_HOME, ~/.cache)")
-    from monitor.diagnosis import rules
-    from monitor.diagnosis.thresholds import Thresholds
+    from monitor.diagnosis import DEFAULT_THRESHOLDS, rules
     from monitor.estimation.fuzzy_ukf import FuzzyUKF
     from monitor.estimation.model import dc_motor
 
     FuzzyUKF(dc_motor().discretize(0.01)).warm_up()
-    rules.warm_up(rules.params(Thresholds(0.15, 0.85)))  # the classifier's steps
+    rules.warm_up(rules.params(DEFAULT_THRESHOLDS))  # the classifier's steps
     return directory
 
 

@@ -61,6 +61,7 @@ from numpy.typing import NDArray
 from monitor.bus.cia402 import (
     IGNORED_NOT_OPERATIONAL,
     IGNORED_PROTOCOL,
+    DriveReport,
     drive_watch,
     report_counter,
 )
@@ -303,9 +304,7 @@ class MonitorPipeline:
                     self.counters.inc(IGNORED_PROTOCOL)
                 else:
                     self._rejected(res)
-                for r in reports:
-                    self.counters.inc(report_counter(r))
-                    self.sink.on_bus_event(drive_event(r))
+                self._drive_reports(reports)
             else:
                 self._rejected(res)
             return
@@ -505,12 +504,16 @@ class MonitorPipeline:
         self.sink.on_diagnosis(Diagnosis(nm.node, t, nm.state, nm.gamma, nm.fault_input,
                                          nm.estimator.out.rules, nm.model_mismatch))
 
+    def _drive_reports(self, reports: list[DriveReport]) -> None:
+        """What a CANopen drive said about itself: counted, and a bus event each."""
+        for r in reports:
+            self.counters.inc(report_counter(r))
+            self.sink.on_bus_event(drive_event(r))
+
     def tick(self, now: float) -> None:
         """Timeouts and steady publication, at bus time `now` (no frame needed)."""
         if self._drives is not None:  # a heartbeat lost on a bus gone silent
-            for r in self._drives.tick(now):
-                self.counters.inc(report_counter(r))
-                self.sink.on_bus_event(drive_event(r))
+            self._drive_reports(self._drives.tick(now))
         for nm in self.nodes.values():  # silence, and steady publication while silent
             if rules.on_tick(nm.diag, nm.prm, now, nm.out):
                 self._report(nm, now)
