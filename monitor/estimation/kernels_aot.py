@@ -88,7 +88,8 @@ def warm_jit_cache() -> Path | None:
     if directory is None:
         raise RuntimeError("no writable directory for numba's kernel cache (NUMBA_CACHE_DIR, "
                            "XDG_CACHE_HOME, ~/.cache)")
-    from monitor.diagnosis import DEFAULT_THRESHOLDS, rules
+    from monitor.diagnosis import rules
+    from monitor.diagnosis.thresholds import DEFAULT_THRESHOLDS
     from monitor.estimation.fuzzy_ukf import FuzzyUKF
     from monitor.estimation.model import dc_motor
 
