@@ -11,4 +11,4 @@ bash scripts/setup-venv.sh dev
 shellcheck -x scripts/*.sh .ci/run .ci/*.sh tests/support/scripts/*.sh tests/systemd_guest/*.sh
 .venv/bin/mypy
 .venv/bin/lint-imports --no-cache
-.venv/bin/pytest -q "$@"
+.venv/bin/pytest -q --durations=25 "$@"
