@@ -1,5 +1,6 @@
 """Alive-counter supervision of the 4-bit E2E counters, per (kind or message, node) stream.
 
+`frames_lost` is the rule, over plain integers (the columnar engine compiles it);
 `CounterTracker.observe` classifies each decoded frame's counter against the previous one
 of its stream as `CounterOutcome.OK`, ``REPEATED`` (a duplicate or replay) or ``JUMP``
 (frames lost, `CounterCheck.lost` of them); counting the outcomes is the caller's job
@@ -15,7 +16,20 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from monitor.bus.codec import Decoded
 
-__all__ = ["CounterCheck", "CounterOutcome", "CounterTracker"]
+__all__ = ["REPEATED", "CounterCheck", "CounterOutcome", "CounterTracker", "frames_lost"]
+
+REPEATED = -1
+"""`frames_lost` of the same counter again: a duplicate or replay."""
+
+
+def frames_lost(last: int, counter: int) -> int:
+    """Frames lost between a stream's previous alive counter `last` (-1: none yet) and
+    `counter`: 0 for the next counter (or the stream's first), 1..14 after a jump,
+    `REPEATED` for the same counter again."""
+    if last < 0:
+        return 0
+    step = (counter - last) % 16
+    return REPEATED if step == 0 else step - 1
 
 
 class CounterOutcome(StrEnum):
@@ -49,17 +63,19 @@ class CounterTracker:
         """Classify `counter` against the previous one of the same stream."""
         if not isinstance(counter, int) or not 0 <= counter <= 15:
             raise ValueError(f"alive counter must be an int in 0..15, got {counter!r}")
-        key = (kind, node)
-        last = self._last.get(key)
-        self._last[key] = counter
-        if last is None:
+        lost = self.lost(kind, node, counter)
+        if lost == 0:
             return CounterCheck(CounterOutcome.OK)
-        step = (counter - last) % 16
-        if step == 1:
-            return CounterCheck(CounterOutcome.OK)
-        if step == 0:
+        if lost == REPEATED:
             return CounterCheck(CounterOutcome.REPEATED)
-        return CounterCheck(CounterOutcome.JUMP, step - 1)
+        return CounterCheck(CounterOutcome.JUMP, lost)
+
+    def lost(self, kind: str, node: int, counter: int) -> int:
+        """`frames_lost` of `counter` in the (kind, node) stream; remembers it."""
+        key = (kind, node)
+        lost = frames_lost(self._last.get(key, -1), counter)
+        self._last[key] = counter
+        return lost
 
     def observe(self, sample: Decoded) -> CounterCheck | None:
         """`update` for a decoded frame; None for frames without a counter (truth)."""

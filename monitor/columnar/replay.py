@@ -26,7 +26,6 @@ from monitor.bus.cia402 import (
     drive_watch,
     report_counter,
 )
-from monitor.bus.faults import describe_error_frame
 from monitor.columnar import kernels as K
 from monitor.columnar.decode import REASONS, DecodedChunk, NotColumnar, RouteTable
 from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, read_chunks
@@ -35,17 +34,18 @@ from monitor.diagnosis import HealthState
 from monitor.diagnosis.rules import FLAG_CAUSES, FLAGGED, HEALTH_CAUSES, REPORTED, new_state
 from monitor.estimation.fuzzy_ukf import FuzzyUKF
 from monitor.estimation.model import DiscreteModel
-from monitor.pipeline import MonitorConfig
+from monitor.pipeline import MonitorConfig, admission
 from monitor.pipeline import counters as C
+from monitor.pipeline.admission import DROP, NO_COUNTER
 from monitor.pipeline.counters import Counters
 from monitor.pipeline.events import (
     HEALTH,
     MODEL_MISMATCH,
-    BusEvent,
     Diagnosis,
     DiagnosisEvent,
     SampleColumns,
     drive_event,
+    error_frame_event,
 )
 from monitor.pipeline.feed import replay_frames
 from monitor.pipeline.samples import delayed, held_column, no_past
@@ -94,7 +94,7 @@ class _Node:
         self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
         self.truth = math.nan
         self.has_truth = False
-        self.last_admit = np.array([math.nan])
+        self.admission = admission.new_state()  # last admitted sample, resumption pending
         self.diag = new_state(cls_prm)  # the diagnosis rules' state (`monitor.diagnosis.rules`)
         self.gamma = np.zeros(model.m)  # the estimator's latest gamma^ (fresh: zeros)
         self.rules = self.est.out.rules
@@ -117,10 +117,18 @@ class _Replay:
         self.counters = Counters()
         self.nodes: dict[int, _Node] = {}
         self.cls_prm = cfg.diagnosis_params(self.model.p)
-        self.tracker: dict[int, int] = {}
+        routes = self.table.routes
+        self.stream_of = np.array([r.stream for r in routes] or [0], np.int64)
+        self.output_only = np.array([bool(r.outputs) and not r.inputs and r.truth is None
+                                     for r in routes] or [False])
+        self.alive_last = np.full(max(1, len(self.table.streams)), -1, np.int64)
+        self.route_node = np.array([r.node for r in routes] or [0], np.int64)
+        not_read = [admission.not_read(r.kind, r.node, cfg.nodes, self.secoc) for r in routes]
+        self.skip_names = sorted({x for x in not_read if x is not None})
+        self.route_skip = np.array([0 if x is None else 1 + self.skip_names.index(x)
+                                    for x in not_read] or [0], np.int64)
         self.drives = drive_watch(db)  # a CANopen rig's drives, as the per-frame engine
         self.held: set[int] = set()  # nodes whose drive said it was not operational
-        self.resumed: set[int] = set()  # ... and is again, no sample admitted since
         self.resume_rows: dict[int, NDArray[np.int64]] = {}  # this chunk's resumptions
         self.last_tick = np.array([-math.inf])
         self.offset = 0
@@ -149,23 +157,44 @@ class _Replay:
         if n == 0:
             return
         cnt = self.counters
-        cnt.inc(C.FRAMES_RECEIVED, n)
-        fd = c.is_fd
-        if fd.any():  # sub-counts of frames/received, as MonitorPipeline.feed counts them
-            cnt.inc(C.FRAMES_FD, int(fd.sum()))
-            esi = fd & c.is_esi
-            if esi.any():
-                cnt.inc(C.FRAMES_FD_ESI, int(esi.sum()))
+        cnt.received(n, int(c.is_fd.sum()), int((c.is_fd & c.is_esi).sum()))
         events: list[tuple[int, int, int, Any]] = []  # (key, node order, seq, event)
         for i in np.flatnonzero(c.error).tolist():
             self._error_frame(c, i, events)
         dec = self.table.decode(c)
+        tick_idx = np.zeros(n, np.int64)  # the frames after which `feed_log` ticks
+        nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S)
+        tick_idx = tick_idx[:nt]
         rejected = (dec.code > 0) & ~c.error
-        protocol = None
-        if self.drives is not None:  # the CANopen protocol's own frames (IGNORED_PROTOCOL)
-            protocol = ((dec.code == _UNKNOWN_ID) & ~c.error & ~c.extended
-                        & np.isin(c.arbitration_id, np.fromiter(self.drives.protocol_ids,
-                                                                np.int64)))
+        # a CANopen rig's drives: their frames are no rig message (unknown_id), read in
+        # order (`DriveWatch.unread`: the protocol's own are IGNORED_PROTOCOL), and a lost
+        # heartbeat is also found at a tick (a bus gone silent); `gate` holds, per node, the
+        # rows after which the drive's operational state changed, from `gate_start` at the
+        # chunk's start (the per-frame engine's rule)
+        gate: dict[int, list[tuple[int, bool]]] = {}
+        gate_start: dict[int, bool] = {}
+        if self.drives is not None:
+            watch = self.drives
+            now = {nd: watch.operational(nd) for nd in watch.nodes}
+            gate_start = dict(now)
+            protocol = np.zeros(n, np.bool_)
+            frames = np.flatnonzero((dec.code == _UNKNOWN_ID) & ~c.error)
+            keys = np.sort(np.concatenate([2 * frames, 2 * tick_idx + 1]))  # tick after feed
+            for key in keys.tolist():
+                i = key // 2
+                if key % 2:
+                    reports = watch.tick(float(c.t[i]))
+                else:
+                    m = c.message(i)
+                    protocol[i], reports = watch.unread(m.arbitration_id, m.is_extended_id,
+                                                        bytes(m.data), float(c.t[i]))
+                for r in reports:
+                    cnt.inc(report_counter(r))
+                    events.append((key, -1, len(events), drive_event(r)))
+                    state = watch.operational(r.node)
+                    if state != now[r.node]:
+                        now[r.node] = state
+                        gate.setdefault(r.node, []).append((i, state))
             if protocol.any():
                 cnt.inc(IGNORED_PROTOCOL, int(protocol.sum()))
                 rejected &= ~protocol
@@ -176,58 +205,16 @@ class _Replay:
                     reason = REASONS[code]
                     cnt.inc(C.rejected(reason), k)
                     self._warn(reason, f"frame rejected ({reason}): {k} in a chunk")
-        tick_idx = np.zeros(n, np.int64)  # the frames after which `feed_log` ticks
-        nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S)
-        tick_idx = tick_idx[:nt]
-        # a CANopen rig's drives: their frames are no rig message (unknown_id), read in
-        # order, and a lost heartbeat is also found at a tick (a bus gone silent); `gate`
-        # holds, per node, the rows after which the drive's operational state changed, from
-        # `gate_start` at the chunk's start (the per-frame engine's rule)
-        gate: dict[int, list[tuple[int, bool]]] = {}
-        gate_start: dict[int, bool] = {}
-        if self.drives is not None:
-            watch = self.drives
-            now = {nd: watch.operational(nd) for nd in watch.nodes}
-            gate_start = dict(now)
-            frames = np.flatnonzero((dec.code == _UNKNOWN_ID) & ~c.error)
-            keys = np.sort(np.concatenate([2 * frames, 2 * tick_idx + 1]))  # tick after feed
-            for key in keys.tolist():
-                i = key // 2
-                if key % 2:
-                    reports = watch.tick(float(c.t[i]))
-                else:
-                    m = c.message(i)
-                    reports = watch.feed(m.arbitration_id, bytes(m.data), float(c.t[i]))
-                for r in reports:
-                    cnt.inc(report_counter(r))
-                    events.append((key, -1, len(events), drive_event(r)))
-                    state = watch.operational(r.node)
-                    if state != now[r.node]:
-                        now[r.node] = state
-                        gate.setdefault(r.node, []).append((i, state))
         acc = np.flatnonzero(dec.code == 0)
-        routes = self.table.routes
-        r_kind = np.array([r.kind for r in routes] or [""], dtype=object)
-        r_node = np.array([r.node for r in routes] or [0], np.int64)
-        r_stream = np.array([r.stream for r in routes] or [0], np.int64)
         ra = dec.route[acc]
-        kind = r_kind[ra]
-        is_diag = kind == "diagnosis"
-        is_sync = kind == "sync"
-        if is_diag.any():
-            cnt.inc(C.IGNORED_DIAGNOSIS, int(is_diag.sum()))
-        if is_sync.any():
-            cnt.inc(C.SAMPLES_SECOC_SYNC if self.secoc else C.IGNORED_SECOC_SYNC,
-                    int(is_sync.sum()))
-        keep = ~(is_diag | is_sync)
+        skip = self.route_skip[ra]  # `admission.not_read`, per route
+        for j, name in enumerate(self.skip_names):
+            k_skip = int((skip == j + 1).sum())
+            if k_skip:
+                cnt.inc(name, k_skip)
+        keep = skip == 0
         acc, ra = acc[keep], ra[keep]
-        node = r_node[ra]
-        wanted = self.cfg.nodes
-        if wanted is not None:
-            ok = np.isin(node, np.array(wanted, np.int64))
-            if (~ok).any():
-                cnt.inc(C.IGNORED_NODE, int((~ok).sum()))
-            acc, ra, node = acc[ok], ra[ok], node[ok]
+        node = self.route_node[ra]
         self.resume_rows = {}
         if self.drives is not None and len(acc):
             ok = np.ones(len(acc), dtype=bool)
@@ -258,51 +245,28 @@ class _Replay:
                 if nd not in self.nodes:
                     first_pos[nd] = int(acc[f])
                 self._node(nd)
-        # alive counters, per (kind, node) stream, in frame order
-        lost = np.full(n, -1, np.int64)
-        wrap = np.zeros(n, np.bool_)  # repeated counters `K.admit` judges
-        ctr = dec.counter[acc]
-        has_c = ctr >= 0
+        # alive counters, per (kind, node) stream, in frame order (`admission.alive_verdict`)
+        lost = np.full(n, NO_COUNTER, np.int64)
+        wrap = np.zeros(n, np.bool_)  # repeated counters `admit` judges by time
+        has_c = dec.counter[acc] >= 0
         if has_c.any():
             ci = acc[has_c]
-            sid = r_stream[ra[has_c]]
-            cv = ctr[has_c]
-            order = np.lexsort((ci, sid))
-            s_sid, s_c = sid[order], cv[order]
-            prev = np.empty_like(s_c)
-            prev[1:] = s_c[:-1]
-            start = np.ones(len(s_c), np.bool_)
-            start[1:] = s_sid[1:] != s_sid[:-1]
-            for j in np.flatnonzero(start).tolist():
-                prev[j] = self.tracker.get(int(s_sid[j]), -1)
-            ends = np.flatnonzero(np.append(start[1:], True))
-            for j in ends.tolist():
-                self.tracker[int(s_sid[j])] = int(s_c[j])
-            step = (s_c - prev) % 16
-            first_seen = prev < 0
-            repeated = (step == 0) & ~first_seen
-            jump = (step > 1) & ~first_seen
-            lost_s = np.where(jump, step - 1, 0)
-            rep = np.zeros(len(cv), np.bool_)
-            rep[order] = repeated
-            lz = np.zeros(len(cv), np.int64)
-            lz[order] = lost_s
-            # A repeat of an output-only message may be 16 m - 1 lost samples: `K.admit` judges
-            # it by the time since the previous sample (`MonitorPipeline._check_counter`).
-            r_out_only = np.array([bool(r.outputs) and not r.inputs and r.truth is None
-                                   for r in routes] or [False])
-            deferred = rep & r_out_only[ra[has_c]]
-            lz[deferred] = 15
-            rep &= ~deferred
+            rc = ra[has_c]
+            lz = np.zeros(len(ci), np.int64)
+            wz = np.zeros(len(ci), np.bool_)
+            K.alive(self.stream_of[rc], dec.counter[ci], self.output_only[rc], self.alive_last,
+                    lz, wz)
             lost[ci] = lz
-            wrap[ci] = deferred
+            wrap[ci] = wz
+            rep = lz == DROP
             n_rep = int(rep.sum())
             if n_rep:
                 cnt.inc(C.E2E_REPEATED, n_rep)
                 self._warn("repeat", f"repeated alive counters: {n_rep} frames")
+            jump = (lz > 0) & ~wz
             if jump.any():
                 cnt.inc(C.E2E_COUNTER_JUMPS, int(jump.sum()))
-                cnt.inc(C.E2E_LOST_FRAMES, int(lost_s.sum()))
+                cnt.inc(C.E2E_LOST_FRAMES, int(lz[jump].sum()))
             drop = np.zeros(len(acc), np.bool_)
             drop[np.flatnonzero(has_c)[rep]] = True
             acc, ra, node = acc[~drop], ra[~drop], node[~drop]
@@ -327,37 +291,12 @@ class _Replay:
 
     def _error_frame(self, c: FrameChunk, i: int, events: list[tuple[int, int, int, Any]]
                      ) -> None:
-        names = describe_error_frame(c.message(i))
         self.counters.inc(C.BUS_ERROR_FRAMES)
+        names, event = error_frame_event(c.message(i))
         for name in names:
             self.counters.inc(C.bus_error(name))
-        text = "CAN error frame: " + ", ".join(names)
-        severe = any(x in ("bus_off", "controller/rx_overflow") or x.endswith("error_passive")
-                     for x in names)
-        self._warn("errframe-" + ",".join(names), text)
-        events.append((2 * i, -1, len(events),  # keys: rows of this chunk
-                       BusEvent(float(c.t[i]), text, "ERROR" if severe else "WARN")))
-
-    def _resume(self, node: int, rows: NDArray[np.int64], status: NDArray[np.int64],
-                kk: NDArray[np.int64], restart: NDArray[np.bool_], jitter: NDArray[np.bool_],
-                had_last: bool) -> None:
-        """The first sample admitted after the node's drive is operational again restarts
-        the estimator (the per-frame engine's `_resumed`): its state is not the plant's."""
-        resumed = self.resume_rows.get(node, np.zeros(0, np.int64))
-        pending = node in self.resumed
-        p = 0
-        for j in np.flatnonzero(status == 0).tolist():
-            while p < len(resumed) and resumed[p] <= rows[j]:
-                pending, p = True, p + 1
-            if pending and had_last:
-                restart[j], kk[j], jitter[j] = True, 1, False
-            pending, had_last = False, True
-        if p < len(resumed):
-            pending = True
-        if pending:
-            self.resumed.add(node)
-        else:
-            self.resumed.discard(node)
+        self._warn("errframe-" + ",".join(names), event.text)
+        events.append((2 * i, -1, len(events), event))  # keys: rows of this chunk
 
     def _node_chunk(self, nm: _Node, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
                     ra: NDArray[np.int64], lost_all: NDArray[np.int64],
@@ -404,24 +343,40 @@ class _Replay:
         restart = np.zeros(len(oi), np.bool_)
         jitter = np.zeros(len(oi), np.bool_)
         cand = wrap_all[fr[oi]]
-        had_last = not math.isnan(nm.last_admit[0])
-        K.admit(t_o, lost_all[fr[oi]], cand, seen[oi], nm.last_admit, cfg.rate, cfg.max_gap_s,
-                cfg.silence_timeout_s, cfg.jitter_fraction, status, kk, restart, jitter)
-        if self.drives is not None:
-            self._resume(nm.node, fr[oi], status, kk, restart, jitter, had_last)
+        # the node's drive operational again (a row of this chunk): at its next sample
+        resume = np.zeros(len(oi), np.bool_)
+        resumed = self.resume_rows.get(nm.node)
+        late = False
+        if resumed is not None and len(resumed):
+            at = np.searchsorted(fr[oi], resumed, side="left")
+            resume[at[at < len(oi)]] = True
+            late = bool((at >= len(oi)).any())
+        rate_change = np.zeros(len(oi), np.int64)
+        K.admit(t_o, lost_all[fr[oi]], cand, seen[oi], resume, nm.admission, cfg.rate,
+                cfg.max_gap_s, cfg.silence_timeout_s, cfg.jitter_fraction, status, kk, restart,
+                jitter, rate_change)
+        for j in np.flatnonzero(rate_change).tolist():
+            counter, event = admission.rate_event(float(t_o[j]), nm.node, int(rate_change[j]),
+                                                  cfg.rate)
+            if counter is not None:
+                cnt.inc(counter)
+                self._warn(f"rate-{nm.node}", event.text)
+            events.append((2 * int(fr[oi[j]]), order, len(events), event))
+        if late:
+            nm.admission[admission.RESUME] = 1.0
         if cand.any():
-            n_rep = int((status[cand] == 3).sum())
+            n_rep = int((status[cand] == admission.REPEATED).sum())
             n_wrap = int(cand.sum()) - n_rep
             if n_rep:
                 cnt.inc(C.E2E_REPEATED, n_rep)
                 self._warn("repeat", f"repeated alive counters: {n_rep} frames")
             if n_wrap:
                 cnt.inc(C.E2E_COUNTER_JUMPS, n_wrap)
-                cnt.inc(C.E2E_LOST_FRAMES, 15 * n_wrap)
-        if (status == 1).any():
-            cnt.inc(C.SAMPLES_NO_INPUT, int((status == 1).sum()))
-        if (status == 2).any():
-            cnt.inc(C.TIME_NON_MONOTONIC, int((status == 2).sum()))
+                cnt.inc(C.E2E_LOST_FRAMES, admission.WRAP_LOST * n_wrap)
+        for code, name in admission.REFUSED.items():
+            k_refused = int((status == code).sum())
+            if k_refused and code != admission.REPEATED:
+                cnt.inc(name, k_refused)
         if jitter.any():
             cnt.inc(C.TIME_JITTER, int(jitter.sum()))
         A = np.flatnonzero(status == 0)

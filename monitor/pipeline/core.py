@@ -66,8 +66,7 @@ from monitor.bus.cia402 import (
     report_counter,
 )
 from monitor.bus.codec import Decoded, Rejected, RejectReason
-from monitor.bus.counters import CounterOutcome, CounterTracker
-from monitor.bus.faults import describe_error_frame
+from monitor.bus.counters import CounterTracker
 from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, Thresholds, rules
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import (
@@ -77,6 +76,20 @@ from monitor.estimation.model import (
     dc_motor,
 )
 from monitor.pipeline import counters as C
+from monitor.pipeline.admission import (
+    ADMITTED,
+    DROP,
+    NO_COUNTER,
+    REFUSED,
+    REPEATED,
+    RESUME,
+    admit,
+    alive_verdict,
+    new_state,
+    not_read,
+    rate_event,
+    warm_up,
+)
 from monitor.pipeline.counters import Counters
 from monitor.pipeline.events import (
     HEALTH,
@@ -87,8 +100,8 @@ from monitor.pipeline.events import (
     InputSample,
     Sample,
     drive_event,
+    error_frame_event,
 )
-from monitor.pipeline.periods import counter_periods, wrapped
 from monitor.pipeline.samples import delayed, hold, input_delay_problem, no_past
 from monitor.pipeline.sink import Sink
 
@@ -205,7 +218,7 @@ class NodeMonitor:
         self.u_seen = np.zeros(model.m, dtype=bool)
         self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
         self.y = np.zeros(model.p)
-        self.last_t: float | None = None
+        self.admission = new_state()  # `monitor.pipeline.admission`: last sample, resumption
         self.truth_gamma: float | None = None
         self.samples = 0
 
@@ -266,12 +279,12 @@ class MonitorPipeline:
         self.tracker = CounterTracker()
         self._drives = drive_watch(db)  # a CANopen rig's drives: EMCY, heartbeat, statusword
         self._held: set[int] = set()  # nodes whose drive said it was not operational
-        self._resumed: set[int] = set()  # ... and is again: its next sample restarts
         # Load the compiled kernels now, not on the first frame of a live bus.
         # (the structure event's onset search and re-processing too: a JIT compile in the
         # middle of a flood would stall the daemon for seconds)
         FuzzyUKF(self._model, self.cfg.estimator).warm_up()
         rules.warm_up(self._diag_prm)
+        warm_up()
         for n in self.cfg.nodes or ():
             self._node(n)
 
@@ -286,11 +299,8 @@ class MonitorPipeline:
 
     def feed(self, msg: can.Message) -> None:
         """One frame from the bus or a log; never raises on the frame's content."""
-        self.counters.inc(C.FRAMES_RECEIVED)
-        if msg.is_fd:
-            self.counters.inc(C.FRAMES_FD)
-            if msg.error_state_indicator:
-                self.counters.inc(C.FRAMES_FD_ESI)
+        fd = msg.is_fd
+        self.counters.received(1, fd, fd and msg.error_state_indicator)
         if msg.is_error_frame:
             self._on_error_frame(msg)
             return
@@ -313,15 +323,11 @@ class MonitorPipeline:
     def _on_error_frame(self, msg: can.Message) -> None:
         """A SocketCAN error frame: counted per condition, logged, shown in the recording."""
         self.counters.inc(C.BUS_ERROR_FRAMES)
-        names = describe_error_frame(msg)
+        names, event = error_frame_event(msg)
         for name in names:
             self.counters.inc(C.bus_error(name))
-        text = "CAN error frame: " + ", ".join(names)
-        severe = any(n in ("bus_off", "controller/rx_overflow") or n.endswith("error_passive")
-                     for n in names)
-        self._warn.warn("errframe-" + ",".join(names), text)
-        self.sink.on_bus_event(BusEvent(float(msg.timestamp), text,
-                                        "ERROR" if severe else "WARN"))
+        self._warn.warn("errframe-" + ",".join(names), event.text)
+        self.sink.on_bus_event(event)
 
     def _rejected(self, res: Rejected) -> None:
         reason = str(res.reason)
@@ -330,17 +336,9 @@ class MonitorPipeline:
                                 f"{res.detail}")
 
     def _dispatch(self, d: Decoded) -> None:
-        kind = d.kind
-        if kind == "diagnosis":
-            self.counters.inc(C.IGNORED_DIAGNOSIS)
-            return
-        if kind == "sync":  # SecOC freshness sync: the codec has applied it (with a key)
-            self.counters.inc(C.SAMPLES_SECOC_SYNC if self.db.secoc_enabled
-                              else C.IGNORED_SECOC_SYNC)
-            return
-        wanted = self.cfg.nodes
-        if wanted is not None and d.node not in wanted:
-            self.counters.inc(C.IGNORED_NODE)
+        skip = not_read(d.kind, d.node, self.cfg.nodes, self.db.secoc_enabled)
+        if skip is not None:
+            self.counters.inc(skip)
             return
         if self._drives is not None:
             if not self._drives.operational(d.node):
@@ -349,11 +347,19 @@ class MonitorPipeline:
                 return
             if d.node in self._held:  # the estimate from before is not the plant's now
                 self._held.discard(d.node)
-                self._resumed.add(d.node)
+                self._node(d.node).admission[RESUME] = 1.0
         nm = self._node(d.node)
-        lost = self._check_counter(d, nm)
-        if lost is None:
-            return
+        lost, wrap = NO_COUNTER, False
+        if d.counter is not None:
+            lost, wrap = alive_verdict(
+                self.tracker.lost(d.kind, d.node, d.counter),
+                bool(d.outputs) and not d.inputs and d.truth is None)
+            if lost == DROP:
+                self._repeated(d.kind, d.node, d.counter)
+                return
+            if lost and not wrap:
+                self.counters.inc(C.E2E_COUNTER_JUMPS)
+                self.counters.inc(C.E2E_LOST_FRAMES, lost)
         if d.inputs:
             hold(nm.u, nm.u_seen, d.inputs)
             self.counters.inc(C.SAMPLES_INPUT)
@@ -363,61 +369,47 @@ class MonitorPipeline:
             nm.truth_gamma = d.truth
             self.counters.inc(C.SAMPLES_TRUTH)
         if d.outputs:
-            self._on_output(nm, d.timestamp, d.outputs, lost if d.counter is not None else None)
+            self._on_output(nm, d, lost, wrap)
 
-    def _check_counter(self, d: Decoded, nm: NodeMonitor) -> int | None:
-        """Frames lost before this one by its alive counter (0 if none), None to drop it.
+    def _repeated(self, kind: str, node: int, counter: int | None) -> None:
+        self.counters.inc(C.E2E_REPEATED)
+        self._warn.warn(f"repeat-{kind}-{node}", f"node {node}: repeated {kind} alive "
+                                                 f"counter {counter} (replay or duplicate)")
 
-        The same counter again is a duplicate or replay, unless the frame carries only
-        output samples and is due 16 periods or more after the previous one, within the
-        silence timeout (`periods.wrapped`): then 16 m - 1 samples were lost (a held-up
-        socket's drops, an ECU skipping samples), 15 by the counter."""
-        check = self.tracker.observe(d)
-        if check is None or check.outcome == CounterOutcome.OK:
-            return 0
-        if check.outcome == CounterOutcome.REPEATED:
-            last = nm.last_t
-            if not (d.outputs and not d.inputs and d.truth is None and last is not None
-                    and wrapped(d.timestamp - last, self.cfg.rate,
-                                self.cfg.silence_timeout_s)):
-                self.counters.inc(C.E2E_REPEATED)
-                self._warn.warn(f"repeat-{d.kind}-{d.node}", f"node {d.node}: repeated "
-                                f"{d.kind} alive counter {d.counter} (replay or duplicate)")
-                return None
-            lost = 15
-        else:
-            lost = check.lost
-        self.counters.inc(C.E2E_COUNTER_JUMPS)
-        self.counters.inc(C.E2E_LOST_FRAMES, lost)
-        return lost
-
-    def _on_output(self, nm: NodeMonitor, t: float, outputs: tuple[float, ...],
-                   lost: int | None) -> None:
-        """One output sample; `lost` frames before it by the alive counter (None: the
-        message has no counter, the timestamps tell)."""
-        if not nm.u_seen.all():
-            self.counters.inc(C.SAMPLES_NO_INPUT)
-            return
-        last = nm.last_t
-        restart = None
-        if last is None:
-            k = 1
-        else:
-            dt = t - last
-            if not dt > 0.0:
-                self.counters.inc(C.TIME_NON_MONOTONIC)
+    def _on_output(self, nm: NodeMonitor, d: Decoded, lost: int, wrap: bool) -> None:
+        """One output sample, admitted or refused by `admission.admit`; `lost` frames before
+        it by the alive counter (`NO_COUNTER`: the time stamps tell), `wrap` a repeated
+        counter that may be 16 m periods on (`admission.alive_verdict`)."""
+        t = d.timestamp
+        cfg = self.cfg
+        status, k, restarted, jitter, rate_change = admit(
+            nm.admission, t, lost, wrap, bool(nm.u_seen.all()), False, cfg.rate,
+            cfg.max_gap_s, cfg.silence_timeout_s, cfg.jitter_fraction)
+        if rate_change:
+            counter, event = rate_event(t, nm.node, rate_change, cfg.rate)
+            if counter is not None:
+                self.counters.inc(counter)
+                log.warning("%s", event.text)
+            self.sink.on_bus_event(event)
+        if wrap:
+            if status == REPEATED:
+                self._repeated(d.kind, d.node, d.counter)
                 return
-            if dt > self.cfg.max_gap_s or nm.node in self._resumed:
-                self.counters.inc(C.ESTIMATOR_RESTARTS)
-                nm.restart()
-                restart = _RESTART
-                k = 1
-            else:
-                k = self._periods(dt, lost)
-                if k > 1:
-                    self.counters.inc(C.SAMPLES_PREDICTED_THROUGH, k - 1)
-        nm.last_t = t
-        self._resumed.discard(nm.node)
+            self.counters.inc(C.E2E_COUNTER_JUMPS)
+            self.counters.inc(C.E2E_LOST_FRAMES, lost)
+        if status != ADMITTED:
+            self.counters.inc(REFUSED[status])
+            return
+        if jitter:
+            self.counters.inc(C.TIME_JITTER)
+        restart = None
+        if restarted:
+            self.counters.inc(C.ESTIMATOR_RESTARTS)
+            nm.restart()
+            restart = _RESTART
+        elif k > 1:
+            self.counters.inc(C.SAMPLES_PREDICTED_THROUGH, k - 1)
+        outputs = d.outputs
         y = nm.y
         for i, v in enumerate(outputs):
             y[i] = v
@@ -447,25 +439,6 @@ class MonitorPipeline:
                                    gammas=tuple(out.gamma.tolist())))
         if t - self._last_counters_t >= self.cfg.counters_period_s:
             self.emit_counters(t)
-
-    def _periods(self, dt: float, lost: int | None) -> int:
-        """Sample periods since the previous output sample.
-
-        The alive counter says it exactly, modulo 16 (lost + 1): a frame delayed on the
-        bus or in a driver queue does not make a missed sample. The time since the
-        previous sample only picks the multiple of 16 (`periods.counter_periods`: the
-        whole wraps that fit, so a late frame is not taken for 16 lost). A message without
-        a counter has only its time stamps: the nearest whole number of nominal periods,
-        and a sample further than `jitter_fraction` of a period from that grid is counted
-        as late (`time/jitter`).
-        """
-        k_time = dt * self.cfg.rate
-        if lost is None:
-            k = max(1, round(k_time))
-            if abs(k_time - k) > self.cfg.jitter_fraction:
-                self.counters.inc(C.TIME_JITTER)
-            return k
-        return counter_periods(k_time, lost + 1)
 
     # ------------------------------------------------------------------ diagnosis out
 

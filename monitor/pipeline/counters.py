@@ -34,6 +34,7 @@ E2E_COUNTER_JUMPS: Final = "e2e/counter_jumps"
 E2E_LOST_FRAMES: Final = "e2e/lost_frames"
 TIME_NON_MONOTONIC: Final = "time/non_monotonic"
 TIME_JITTER: Final = "time/jitter"
+TIME_OFF_RATE: Final = "time/off_rate"
 SAMPLES_ESTIMATED: Final = "samples/estimated"
 SAMPLES_INPUT: Final = "samples/input"
 SAMPLES_TRUTH: Final = "samples/truth"
@@ -74,6 +75,15 @@ class Counters(dict[str, int]):
 
     def inc(self, name: str, n: int = 1) -> None:
         self[name] = self.get(name, 0) + n
+
+    def received(self, frames: int, fd: int, fd_esi: int) -> None:
+        """Frames received, of them CAN FD and FD with the error state indicator set
+        (sub-counts of `frames/received`, not outcomes): counted alike by both engines."""
+        self.inc(FRAMES_RECEIVED, frames)
+        if fd:
+            self.inc(FRAMES_FD, fd)
+            if fd_esi:
+                self.inc(FRAMES_FD_ESI, fd_esi)
 
     def rejected_total(self) -> int:
         """Frames rejected by the codec, for every reason."""

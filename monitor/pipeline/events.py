@@ -8,10 +8,12 @@ import json
 from dataclasses import asdict, dataclass
 from typing import Final
 
+import can
 import numpy as np
 from numpy.typing import NDArray
 
 from monitor.bus.cia402 import DriveReport, report_level, report_text
+from monitor.bus.faults import describe_error_frame
 from monitor.diagnosis.classifier import HealthState
 
 __all__ = ["DRIVE", "HEALTH", "MODEL_MISMATCH", "BusEvent", "Diagnosis", "DiagnosisEvent",
@@ -199,6 +201,17 @@ class DriveEvent(BusEvent):
         return json.dumps({"t": self.t, "node": self.node, "kind": DRIVE,
                            "report": self.report, "value": self.value, "text": self.text,
                            "level": self.level}, separators=(",", ":"))
+
+
+def error_frame_event(msg: can.Message) -> tuple[list[str], BusEvent]:
+    """The conditions a SocketCAN error frame reports (`monitor.bus.faults`, one
+    `bus/errors/<condition>` counter each) and its event, the one form both engines give:
+    an error when the controller is bus-off, error-passive or lost frames, else a warning."""
+    names = describe_error_frame(msg)
+    severe = any(n in ("bus_off", "controller/rx_overflow") or n.endswith("error_passive")
+                 for n in names)
+    return names, BusEvent(float(msg.timestamp), "CAN error frame: " + ", ".join(names),
+                           "ERROR" if severe else "WARN")
 
 
 def drive_event(report: DriveReport) -> DriveEvent:
