@@ -8,7 +8,9 @@ out and counted; lost output samples split the capture into segments and the lon
 is fitted (`monitor.identify` needs a regular sampling). The sample period is the
 capture's own (the median spacing of the output samples). The fit and its report come
 from `monitor.identify.identify`; RIG_OUT is the input rig with the learned model (DC-motor
-parameters or state-space matrices), noise (process_noise / Q and R), rate and input delay
+parameters or state-space matrices), noise (process_noise / Q and R, each output's R no
+lower than step^2 / 12 where its signal is integer-coded in steps the rig knows:
+`monitor.bus.rigcodec.output_quantisation`), rate and input delay
 (estimated: samples from an input to its first effect); the report is written beside it
 as JSON (and PNG when matplotlib is installed) and summarised on standard output.
 
@@ -49,6 +51,7 @@ from monitor.app.identify_check import (
 from monitor.bus.cia402 import IGNORED_NOT_OPERATIONAL, IGNORED_PROTOCOL, drive_watch
 from monitor.bus.codec import Decoded, Rejected, RejectReason
 from monitor.bus.logfile import read_log, suffix_list
+from monitor.bus.rigcodec import output_quantisation
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.files import read_user_toml, shown_path
@@ -328,10 +331,13 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     T, u, y, seg, dropped, span = series[:6]
     template = DCMotorParameters(**rig.model.motor) \
         if rig.model is not None and rig.model.kind == "dc_motor" else DCMotorParameters()
+    # the step each output is decoded in: its R is floored at the rounding's variance
+    steps = output_quantisation(options.database(args, rig), node)
     ident = identify(u, y, T, kind=model_kind(rig, args.model), order=args.order,
                      template=template,
                      input_names=[r.signal for r in rig.inputs],
-                     output_names=[r.signal for r in rig.outputs])
+                     output_names=[r.signal for r in rig.outputs],
+                     output_steps=steps if len(steps) == len(rig.outputs) else None)
     ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
                                "frames": counts, "period_s": T,
                                "segment": [seg.start, seg.stop], "samples": int(u.shape[0]),
@@ -436,6 +442,11 @@ def _summary(ident: Identification, node: int, T: float, n: int) -> str:
     if "identifiable" in rep:
         lines.append(f"  identifiable: {rep['identifiable']}")
     lines.append(f"  R = {json.dumps(np.asarray(ident.R).tolist())}, q = {ident.q:.4g}")
+    for f in rep.get("noise", {}).get("quantisation_floor", []):
+        if f["applied"]:
+            lines.append(f"  R of {f['output']} floored at its quantisation: learned "
+                         f"{f['learned']:.3g}, floor {f['floor']:.3g} = step^2 / 12 (step "
+                         f"{f['step']:.3g} from {f['source']})")
     if "replay" in rep:
         r = rep["replay"]
         states = ", ".join(f"{k} {v:.1f} s" for k, v in r["state_seconds"].items()) or "none"

@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING, NamedTuple, cast
 
 import cantools.database
 import numpy as np
@@ -41,7 +41,14 @@ from cantools.database.can import Database, Message, Signal
 from cantools.database.can.formats.arxml import AutosarEnd2EndProperties, AutosarMessageSpecifics
 from numpy.typing import NDArray
 
-from monitor.bus.codec import VERDICT_REASON, Decoded, Rejected, RejectReason, load_dbcs
+from monitor.bus.codec import (
+    VERDICT_REASON,
+    Decoded,
+    MotorDatabase,
+    Rejected,
+    RejectReason,
+    load_dbcs,
+)
 from monitor.bus.errors import CodecError, SecOCError
 from monitor.bus.secoc import DEFAULT_WINDOW, SecOC, SecOCHolder, SecOCLayout, SyncLayout
 from monitor.errors import one_line
@@ -51,7 +58,8 @@ if TYPE_CHECKING:
 
     from monitor.bus.canopen import CanopenNode
 
-__all__ = ["Resolver", "RigCodec", "RigMessage", "RigRoute", "RigSecOC", "RigSync", "load_rig_dbcs"]
+__all__ = ["Quantisation", "Resolver", "RigCodec", "RigMessage", "RigRoute", "RigSecOC", "RigSync",
+           "load_rig_dbcs", "output_quantisation"]
 
 
 @dataclass(frozen=True)
@@ -385,6 +393,45 @@ class RigCodec(SecOCHolder):
         """`decode` for a python-can message."""
         return self.decode(msg.arbitration_id, bytes(msg.data), msg.is_extended_id,
                            msg.is_remote_frame, msg.is_error_frame, msg.timestamp, msg.is_fd)
+
+
+class Quantisation(NamedTuple):
+    """The step between two values an output can take, in the model's unit, and the signal it
+    comes from (what a report names)."""
+
+    step: float
+    source: str
+
+
+def output_quantisation(decoder: MotorDatabase | RigCodec, node: int
+                        ) -> tuple[Quantisation | None, ...]:
+    """Per model output of `node`, in output order, the step of its decoded values: an
+    integer-coded signal carries whole raw counts, so its values are multiples of the
+    signal's scale (a DBC's factor; a CANopen object's scaling, `monitor.bus.canopen`) times
+    the unit factor to the model's unit. None for a float-coded signal (its resolution is
+    relative to its value, no fixed step); () for a node without outputs on this bus."""
+    signals: list[tuple[Message, tuple[tuple[str, float], ...]]]
+    if isinstance(decoder, MotorDatabase):  # our own bus: the armature current, unscaled
+        signals = [(r.message, ((r.value_signal, 1.0),)) for r in decoder.routes.values()
+                   if r.kind == "current" and r.node == node]
+    else:
+        signals = [(r.message, r.spec.outputs) for r in decoder.routes.values()
+                   if r.node == node and r.spec.outputs]
+    if not signals:
+        return ()
+    message, outputs = signals[0]  # every output is in the one output message
+    out: list[Quantisation | None] = []
+    for name, factor in outputs:
+        sig: Signal = message.get_signal_by_name(name)
+        step = abs(float(sig.scale) * factor)
+        if sig.is_float or not (math.isfinite(step) and step > 0):
+            out.append(None)
+            continue
+        unit = f" {sig.unit}" if sig.unit else ""
+        scaled = f", times {factor:g} to the model's unit" if factor != 1.0 else ""
+        out.append(Quantisation(step, f"{message.name}.{name}: integer-coded, scale "
+                                      f"{float(sig.scale):g}{unit}{scaled}"))
+    return tuple(out)
 
 
 def _limits(message: Message, spec: RigMessage) -> tuple[tuple[str, float, float], ...]:

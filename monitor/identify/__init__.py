@@ -3,7 +3,8 @@
 `identify(u, y, T)` fits either the Table-1 DC-motor structure (63)-(68) on its physical
 parameters (`dcmotor`) or a black-box continuous-time state-space model (`blackbox`), with
 the noise model (1)-(2) the estimator needs (process-noise intensity q and per-sample R,
-chosen so the Kalman filter's normalised innovations are white with unit variance), and
+chosen so the Kalman filter's normalised innovations are white with unit variance; R no
+lower than the variance an output's known quantisation step adds, `quantisation_floor`), and
 a report of what a practitioner checks before trusting it (`validate`): hold-out NRMSE by
 simulation, innovation whiteness (Ljung-Box), input-innovation cross-correlation,
 parameter standard deviations, R and Q, the mean NIS of the Kalman filter and of the
@@ -28,8 +29,9 @@ too slow inside a fit (a Python loop per sample): `lti.dsim` runs the same recur
 through the complex Schur form and lfilter.
 """
 
-from monitor.identify.core import KINDS, Identification, identify
+from monitor.identify.core import KINDS, Identification, identify, quantisation_floor
 from monitor.identify.errors import IdentifyError
 from monitor.identify.excitation import RECORDING_ADVICE, prbs
 
-__all__ = ["KINDS", "RECORDING_ADVICE", "Identification", "IdentifyError", "identify", "prbs"]
+__all__ = ["KINDS", "RECORDING_ADVICE", "Identification", "IdentifyError", "identify", "prbs",
+           "quantisation_floor"]

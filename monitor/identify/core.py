@@ -7,7 +7,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,10 +35,13 @@ from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, fit_rows, no_past
 
 Array = NDArray[np.float64]
 
-__all__ = ["KINDS", "Identification", "identify"]
+__all__ = ["KINDS", "QUANTISATION_VARIANCE", "Identification", "identify", "quantisation_floor"]
 
 KINDS = ("auto", "dc_motor", "state_space")
 MAX_ORDER = 10  # the largest state the estimator's rule base holds (`estimator_bytes`)
+QUANTISATION_VARIANCE = 1.0 / 12.0
+"""The variance rounding to whole steps adds to a measurement, in steps squared: the error
+is uniform over one step (Widrow's model of uniform quantisation noise), step^2 / 12."""
 
 _log = logging.getLogger(__name__)
 
@@ -322,6 +325,42 @@ def _dc_gain(dm: DiscreteModel) -> list[Any] | None:
         return None
 
 
+def quantisation_floor(R: ArrayLike, steps: Sequence[float | None]) -> Array:
+    """R (p x p, per sample) with the variance of each output i whose step is known raised
+    to step_i^2 / 12 where it lies below (`QUANTISATION_VARIANCE`).
+
+    An output decoded from whole counts of `step` carries at least that much noise, so an R
+    below it (a fit that gave the rounding to the process noise) makes the estimator trust
+    a measurement more than the sensor resolves: its estimate of y follows y, and the NIS
+    is inflated by the rounding it was not told about. Raising diagonal entries adds a
+    positive semidefinite matrix: a symmetric positive definite R stays so, its covariances
+    kept. A step of None (a float-coded signal, or no rig to say) leaves its output as it
+    is."""
+    out = np.array(R, dtype=float, copy=True)
+    if out.ndim != 2 or out.shape[0] != out.shape[1] or out.shape[0] != len(steps):
+        raise ValueError(f"R of shape {out.shape} for {len(steps)} output step(s)")
+    out = 0.5 * (out + out.T)
+    for i, step in enumerate(steps):
+        if step is not None:
+            out[i, i] = max(out[i, i], QUANTISATION_VARIANCE * float(step) ** 2)
+    return out
+
+
+def _floored(cand: _Candidate, steps: Sequence[tuple[float, str] | None],
+             names: Sequence[str]) -> tuple[_Candidate, list[dict[str, Any]]]:
+    """The candidate with its R floored at each output's quantisation
+    (`quantisation_floor`), and a report entry per output whose step is known."""
+    learned = np.asarray(cand.model.R, dtype=float)
+    R = quantisation_floor(learned, [None if s is None else s[0] for s in steps])
+    rows = [{"output": names[i], "step": float(s[0]), "source": s[1],
+             "learned": float(learned[i, i]), "floor": QUANTISATION_VARIANCE * float(s[0]) ** 2,
+             "applied": bool(R[i, i] > learned[i, i])}
+            for i, s in enumerate(steps) if s is not None]
+    if not any(r["applied"] for r in rows):
+        return cand, rows
+    return replace(cand, model=replace(cand.model, R=R)), rows
+
+
 def _fuzzy_ukf(model: ContinuousDescriptor, held: Array, y: Array, ntr: int,
                T: float, delay: int) -> dict[str, Any]:
     """The monitor's own filter on the capture's rows (held inputs, outputs), paired as the
@@ -372,6 +411,7 @@ def identify(
     output_names: Sequence[str] | None = None,
     run_filter: bool = True,
     input_delay: int | None = None,
+    output_steps: Sequence[tuple[float, str] | None] | None = None,
 ) -> Identification:
     """Identify a model of one node from a healthy capture of inputs u (N, m) and outputs
     y (N, p) sampled every T seconds.
@@ -392,11 +432,18 @@ def identify(
     whiteness and cross-correlation figures are measured on it.
     `template` gives J (not identifiable from current) and the fallback initial guess.
     `run_filter` runs the FuzzyUKF over the capture for the report (about 10 us a sample).
+    `output_steps` gives, per output, the step its values come in and where that is known
+    from (a rig signal's scale: `monitor.bus.rigcodec.output_quantisation`), None where it
+    is not (a float-coded signal): the learned R is floored at step^2 / 12
+    (`quantisation_floor`) before the model is evaluated, so every figure of the report is
+    the returned model's.
 
     report keys: fit (hold-out and training NRMSE %, by simulation), whiteness (innovation
     autocorrelation, 99 % band, Ljung-Box p), cross_correlation (innovation x input, band,
     joint chi-square p), parameters (value and std; black box: DC gain and poles with std),
-    identifiable / fixed (motor), noise (q, Qc, R), mean_nis_kalman_holdout, fuzzy_ukf (its
+    identifiable / fixed (motor), noise (q, Qc, R; with output_steps, R_learned and
+    quantisation_floor: per output with a known step, its step, source, floor, learned R and
+    whether the floor applied), mean_nis_kalman_holdout, fuzzy_ukf (its
     mean NIS and gamma^ on the hold-out), consistency (halves NRMSE drop), excitation,
     order_selection (black box), dc_gain, poles_continuous, auto, seconds, timing_s,
     input_delay (samples, given or estimated, with each candidate's ARX loss and F-test p).
@@ -411,7 +458,8 @@ def identify(
                                                                    invalid="ignore"):
         try:
             ident = _identify(u, y, T, kind, order, holdout, template or DCMotorParameters(),
-                              input_names, output_names, run_filter, input_delay)
+                              input_names, output_names, run_filter, input_delay,
+                              output_steps)
         except IdentifyError:
             raise
         except NUMERIC_FAILURES as exc:  # a degenerate record no check above foresaw
@@ -426,7 +474,9 @@ def identify(
 def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int | None,
               holdout: float, template: DCMotorParameters, input_names: Sequence[str] | None,
               output_names: Sequence[str] | None, run_filter: bool,
-              input_delay: int | None = None) -> Identification:
+              input_delay: int | None = None,
+              output_steps: Sequence[tuple[float, str] | None] | None = None
+              ) -> Identification:
     requested = kind
     if kind not in KINDS:
         raise IdentifyError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
@@ -449,6 +499,11 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
     if len(names[0]) != m or len(names[1]) != p:
         raise IdentifyError(f"{len(names[0])} input and {len(names[1])} output names for "
                             f"{m} inputs and {p} outputs")
+    steps = list(output_steps) if output_steps is not None else [None] * p
+    if len(steps) != p or not all(s is None or (math.isfinite(s[0]) and s[0] > 0)
+                                  for s in steps):
+        raise IdentifyError(f"output_steps must give {p} positive steps or None, got "
+                            f"{output_steps!r}")
     ntr = N - round(holdout * N)
     utr, ytr = u[:ntr], y[:ntr]
     timing: dict[str, float] = {}
@@ -492,6 +547,11 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
     if kind == "auto" and "reason" not in auto_note:
         auto_note["reason"] = "better hold-out fit" if siso else "more than one input or output"
     cand, ev, traces = best
+    learned_R = cand.model.R
+    # the model written is the one every check below, and the replay's, must judge
+    cand, floor = _floored(cand, steps, names[1])
+    if cand is not best[0]:
+        ev, traces = _evaluate(cand.model, u, y, ntr, T)
     timing["fit"] = time.perf_counter() - t
 
     # Refusals after the fit: a change inside the capture first (it spoils every figure).
@@ -548,7 +608,11 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         "parameters": cand.params,
         "noise": {"q": cand.q, "Qc": _floats(cand.model.Qc), "R": _floats(cand.model.R),
                   "method": "maximum likelihood of the steady-state Kalman filter's "
-                            "innovations (noise model (1)-(2)); mean NIS = p at the optimum"},
+                            "innovations (noise model (1)-(2)); mean NIS = p at the optimum",
+                  **({"R_learned": _floats(learned_R), "quantisation_floor": floor,
+                      "quantisation_rule": "R[i][i] >= step_i^2 / 12, the variance of "
+                                           "rounding to whole steps (Widrow)"}
+                     if floor else {})},
         "excitation": excitation,
         "consistency": {"halves_nrmse_drop_pct": drops, "threshold": V.CONSISTENCY_DROP},
         **ev,
