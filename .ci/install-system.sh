@@ -2,7 +2,7 @@
 # System packages for the test suite on Debian 12 (bookworm):
 #   user-mode-linux  /usr/bin/linux.uml, a real Linux kernel (with vcan modules) run as a
 #                    process, for the vcan tests on hosts whose kernel has no SocketCAN
-#                    (see tests/vcan_harness.py and /work/shared/VCAN.md)
+#                    (see tests/support/vcan_harness.py and /work/shared/VCAN.md)
 #   kmod             insmod, used inside the User-Mode Linux guest
 #   can-utils        candump, cansend, cangen, canplayer
 #   iproute2         ip link add/set/del
@@ -11,7 +11,7 @@
 #                    run by scripts/setup-venv.sh)
 #   python3-dev      the Python headers that build needs when the venv's Python is Debian's own
 #                    (a pyenv or python.org build brings its own)
-#   mesa-vulkan-drivers  software Vulkan for the headless Rerun viewer (tests/test_viewer.py)
+#   mesa-vulkan-drivers  software Vulkan for the headless Rerun viewer (tests/sinks/test_viewer.py)
 #   ShellCheck       (package shellcheck) lints the shell of the tests and scripts (scripts/test.sh runs it)
 #   mmdebstrap       builds the small Debian root file system of the User-Mode Linux guest that
 #                    runs the units under a real systemd (tests/systemd_guest; built once, cached
@@ -49,7 +49,8 @@ else
         >/dev/null
 fi
 
-# Sanity checks: the UML kernel and its vcan module must be where tests/vcan_harness.py looks.
+# Sanity checks: the UML kernel and its vcan module must be where
+# tests/support/vcan_harness.py looks.
 test -x /usr/bin/linux.uml || { echo "install-system.sh: /usr/bin/linux.uml missing" >&2; exit 1; }
 uml_version="$(/usr/bin/linux.uml --version)"
 vcan_ko="/usr/lib/uml/modules/${uml_version}/kernel/drivers/net/can/vcan.ko"

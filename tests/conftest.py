@@ -7,7 +7,7 @@ from collections.abc import Callable, Generator
 
 import pytest
 
-from tests.vcan_harness import VcanResult, run_on_vcan, vcan_unavailable_reason
+from tests.support.vcan_harness import VcanResult, run_on_vcan, vcan_unavailable_reason
 
 
 def _ci_enabled() -> bool:
@@ -16,7 +16,8 @@ def _ci_enabled() -> bool:
 
 @pytest.fixture(scope="session")
 def vcan() -> Callable[..., VcanResult]:
-    """``run_on_vcan`` (see tests/vcan_harness.py); skips without vcan, fails if CI is set."""
+    """``run_on_vcan`` (see tests/support/vcan_harness.py); skips without vcan, fails if CI is
+    set."""
     reason = vcan_unavailable_reason()
     if reason is not None:
         if _ci_enabled():

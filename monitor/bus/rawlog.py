@@ -12,7 +12,7 @@ for BLF it closes the open compressed container and rewrites the file header (st
 object count), which python-can's `BLFWriter` otherwise does only in `stop`, so that a file
 cut short by a kill still reads back with absolute timestamps. The BLF writer has no public
 call for either; the two private ones used are pinned with python-can in constraints.txt
-and tested (tests/test_rawlog.py).
+and tested (tests/bus/test_rawlog.py).
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ scanners that hand what they do not take to python-can's readers, .mf4 as asammd
    diagnoses and bus events in their order.
 
 The same transitions, due diagnoses, bus events, samples and counters as
-``feed_log(MonitorPipeline(db, cfg, sink), read_log(path))`` (tests/test_columnar.py). What
+``feed_log(MonitorPipeline(db, cfg, sink), read_log(path))`` (tests/columnar/test_columnar.py). What
 differs: samples and inputs reach a sink node by node per chunk (each node's in order),
 before that chunk's events; the counters reach the sink once per chunk (at its last frame's
 time) rather than about once a second of bus time; rejected frames are logged once per

@@ -5,7 +5,7 @@ length, byte order, sign, float or integer, and its conversion -- and `extract(l
 returns the physical values of that signal for every payload of a chunk, as
 `cantools` ``Message.decode(..., decode_choices=False, scaling=True)`` gives them one frame
 at a time. Nothing here knows our bus: every rig's DBC goes through the same code, and the
-property test (tests/test_columnar.py) checks it against cantools on random payloads.
+property test (tests/columnar/test_columnar.py) checks it against cantools on random payloads.
 
 Bit numbering, as cantools defines it: a little-endian (Intel) signal's `start` is its least
 significant bit, bit ``start % 8`` of byte ``start // 8``, so it is ``(LE >> start) & mask`` of

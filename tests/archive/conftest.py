@@ -10,7 +10,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -21,8 +20,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from tests.archive.logs import SCENARIOS, corrupt_blf, corrupt_candump, ecu_frames, write_log
+from tests.support import BIN
 
-BIN = Path(sys.executable).parent
 MONITOR = str(BIN / "motor-monitor")
 DASK = str(BIN / "dask")
 

@@ -51,7 +51,7 @@ from tests.support.boots import (
 )
 from tests.support.cli_cases import CliOutcome, cli_cases, guest_cli_outcomes, run_cli_cases
 from tests.support.rrd import RERUN_EXE, bad_outcomes, outcome_total
-from tests.vcan_harness import run_on_vcan, vcan_unavailable_reason
+from tests.support.vcan_harness import run_on_vcan, vcan_unavailable_reason
 
 
 @dataclass

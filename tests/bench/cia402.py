@@ -9,7 +9,7 @@ by side: abrupt losses of 0.3 and 0.6, a drive Fault (the scenario's outage: the
 reports Fault and an EMCY, and its frames are not read until it is operational again), a
 loss of 0.4 followed by a drive Fault and the recovery, and a healthy hour (5 minutes with
 `--quick`). The frames are the twin's own (`Cia402ECU.frames`, the frames it sends on a
-bus, here without waiting for real time); `tests/test_canopen_vcan.py` shows the live
+bus, here without waiting for real time); `tests/integration/test_canopen_vcan.py` shows the live
 monitor on vcan gives the events a replay of the capture gives.
 
 Scored from the events (`tests.bench.zoo.score`): accuracy outside 0.3 s after each true
@@ -43,8 +43,8 @@ from sim_ecu.cia402 import Cia402ECU
 from sim_ecu.scenario import scenario_from_dict
 from tests.bench.rig_zoo import Cmd, json_safe, run_cmd
 from tests.bench.zoo.score import ALARM, NodeTruth, read_events, score_node
+from tests.support.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "rigs" / "cia402-example.toml"
 NODE = 1
 START = 1.7e9  # the capture's time base (epoch seconds, as a logger's)

@@ -35,8 +35,8 @@ from monitor.estimation import fuzzy_ukf as new_mod
 from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, dc_motor
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import scenario_from_dict
+from tests.support.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[2]
 CHUNK = 50
 
 

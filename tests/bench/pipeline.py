@@ -46,7 +46,7 @@ from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.rerun import REPLAY_BATCH_SIZE, REPLAY_PART_BYTES, RerunSink, recording_parts
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario
-from tests.log_readers import write_mf4
+from tests.support.log_readers import write_mf4
 
 BUS_LIMIT_FPS = 1_000_000 / 111  # 8-byte standard frames, no stuff bits: the upper bound
 STAGES = ("decode", "pipeline", "pipeline+rerun", "columnar+rerun", "mf4+rerun", "read-log",

@@ -93,6 +93,7 @@ import numpy as np
 
 from tests.bench.zoo import gen
 from tests.bench.zoo.score import NodeTruth, read_events, score_node
+from tests.support import BIN
 
 RUNS = ("loss30", "loss60", "outage", "healthy")
 TIMEOUT_S = 1800.0
@@ -110,7 +111,7 @@ R = [[1.0]]
 
 
 def monitor_exe() -> str:
-    beside = Path(sys.executable).parent / "motor-monitor"
+    beside = BIN / "motor-monitor"
     if beside.exists():
         return str(beside)
     found = shutil.which("motor-monitor")

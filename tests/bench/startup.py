@@ -13,14 +13,14 @@ Side by side in one run, interleaved (the same machine load for each):
 * ``cold``: an empty numba cache (NUMBA_CACHE_DIR): every kernel compiled at start, as on
   a fresh install whose kernels were not made at install, or on another CPU;
 * ``install``: the cache warmed as scripts/setup-venv.sh warms it
-  (`python -m monitor.estimation.kernels_aot --only cache`, whose time is printed too);
+  (`python -m monitor.pipeline.warm`, whose time is printed too);
 * ``aot``: NUMBA_DISABLE_JIT=1, the hardened unit's mode (the ahead-of-time step kernel,
   no numba; "interpreted" is printed when that module is missing or stale).
 
 The bus: python-can's ``udp_multicast`` interface on a random IPv4 group (the two processes
 are apart as on a real bus; concurrent runs do not mix), or ``--interface socketcan
 --channel vcan0``. ``--uml`` runs this bench inside a User-Mode Linux guest on vcan0
-(tests/vcan_harness.py), where the vcan tests run the monitor: the host's virtual
+(tests/support/vcan_harness.py), where the vcan tests run the monitor: the host's virtual
 environment and source through hostfs, so its cached kernels are the host's. On a loaded
 machine every figure grows; compare the modes of one run. Last line JSON.
 """
@@ -46,7 +46,8 @@ from typing import Any
 
 import can
 
-BIN = Path(sys.executable).parent
+from tests.support import BIN
+
 MODES = ("cold", "install", "aot")
 #: Seconds a daemon may take to its first frame before the run counts as failed.
 LIMIT_S = 300.0
@@ -142,7 +143,7 @@ def _warm(cache: Path) -> float:
     `-m` imports the package the daemon imports (a PYTHONPATH, or else the install)."""
     t0 = time.monotonic()
     proc = subprocess.run(
-        [sys.executable, "-m", "monitor.estimation.kernels_aot", "--only", "cache", "--quiet"],
+        [sys.executable, "-m", "monitor.pipeline.warm", "--quiet"],
         env=dict(os.environ, NUMBA_CACHE_DIR=str(cache), NUMBA_DISABLE_JIT="0"),
         cwd=cache, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
@@ -191,11 +192,12 @@ def bench(interface: str, channel: str | None, runs: int,
 
 
 def _in_uml(runs: int, modes: tuple[str, ...]) -> dict[str, Any]:
-    from tests.vcan_harness import PROJECT_ROOT, run_on_vcan
+    from tests.support.paths import ROOT
+    from tests.support.vcan_harness import run_on_vcan
 
     res = run_on_vcan(f"python -m tests.bench.startup --interface socketcan --channel vcan0 "
                       f"--runs {runs} --modes {','.join(modes)}",
-                      timeout=runs * len(modes) * LIMIT_S, cwd=str(PROJECT_ROOT))
+                      timeout=runs * len(modes) * LIMIT_S, cwd=str(ROOT))
     print(res.stdout, end="")
     lines = res.stdout.strip().splitlines()
     if res.returncode != 0 or not lines:
@@ -211,7 +213,7 @@ def main() -> None:
     ap.add_argument("--channel", default=None,
                     help="default: a random IPv4 multicast group (udp_multicast)")
     ap.add_argument("--uml", action="store_true",
-                    help="inside a User-Mode Linux guest, on vcan0 (tests/vcan_harness.py)")
+                    help="inside a User-Mode Linux guest, on vcan0 (tests/support/vcan_harness.py)")
     ap.add_argument("--modes", default=",".join(MODES),
                     help=f"which of {', '.join(MODES)} (default: all)")
     args = ap.parse_args()

@@ -32,9 +32,10 @@ from monitor.setup import monitor_config
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import scenario_from_dict
-from tests.test_mismatch import T0, _diagnose, _offset
+from tests.diagnosis.test_mismatch import T0, _diagnose, _offset
+from tests.support.paths import TEST_RIGS
 
-SERVO = Path(__file__).resolve().parents[1] / "rigs" / "servo.toml"
+SERVO = TEST_RIGS / "servo.toml"
 T = 0.01
 PARAMS = DCMotorParameters()
 LOAD_GAIN = PARAMS.Ke / (PARAMS.Ra * PARAMS.b + PARAMS.Ke * PARAMS.Ki)  # A of current per N m
@@ -201,8 +202,8 @@ def test_the_rig_file_refuses_an_unobservable_bias_in_one_line(tmp_path: Path) -
 
 
 def test_the_monitor_learns_a_sensor_offset_and_lowers_its_flag() -> None:
-    """Through the whole pipeline (tests/test_mismatch.py: without the bias states the same
-    10 A offset keeps the model-mismatch flag up): the diagnosis stays fault_free, and the
+    """Through the whole pipeline (tests/diagnosis/test_mismatch.py: without the bias states
+    the same 10 A offset keeps the model-mismatch flag up): the diagnosis stays fault_free, and the
     flag, if it rises while the offset is learnt, is down again at the end."""
     db = load_database()
     healthy = scenario_from_dict({"name": "h", "duration": 20.0})

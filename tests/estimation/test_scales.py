@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,8 +34,8 @@ from monitor.estimation.model import (
 )
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
+from tests.support.paths import TEST_RIGS
 
-RIGS = Path(__file__).resolve().parents[1] / "rigs"
 TH = Thresholds(0.15, 0.85)
 WINDOW = 0.15
 
@@ -150,7 +149,7 @@ def test_servo_rig_scenario() -> None:
     """The rig's own scenario file (24 V, 40 % loss at 2 s, outage at 4 s) with the
     rig's sensor noise, 0.01 A."""
     plant = servo()
-    sc = replace(load_scenario(RIGS / "servo_scenario.toml"), current_sigma=plant.sigma)
+    sc = replace(load_scenario(TEST_RIGS / "servo_scenario.toml"), current_sigma=plant.sigma)
     r = _run(plant, sc, seed=1)
     _check_changes(r, [2.0, 4.0])
     # the first samples after the loss carry a 900-sigma innovation: no overshoot to an

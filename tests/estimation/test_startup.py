@@ -39,9 +39,9 @@ from sim_ecu.ecu import VirtualECU
 from sim_ecu.plant import PlantSimulator, steady_state
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import scenario_from_dict
+from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import Recorder
 
-RIGS = Path(__file__).resolve().parents[1] / "rigs"
 T0 = 1000.0
 
 
@@ -74,7 +74,7 @@ def _paper() -> Plant:
 
 
 def _servo() -> Plant:
-    rig = load_rig(RIGS / "servo.toml")
+    rig = load_rig(TEST_RIGS / "servo.toml")
 
     def rig_codec() -> RigCodec:
         codec = build_decoder(rig)
@@ -251,7 +251,7 @@ def _rest_start(plant: str) -> tuple[Any, np.ndarray, np.ndarray, float]:
     if plant == "paper":
         cont, T, volts, sigma = dc_motor(), 0.01, 220.0, 0.5
     else:
-        rig = load_rig(RIGS / "servo.toml")
+        rig = load_rig(TEST_RIGS / "servo.toml")
         cont, T, volts, sigma = monitor_config(
             argparse.Namespace(nodes=None, rate=None, thresholds=None), rig).plant(), \
             1e-3, 24.0, 0.01

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import can
@@ -15,10 +14,10 @@ from monitor.bus.rigcodec import RigCodec
 from monitor.rig import build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario, scenario_from_dict
+from tests.support import BIN
+from tests.support.paths import TEST_RIGS
 
-ROOT = Path(__file__).resolve().parents[2]
-PRESS = ROOT / "tests" / "rigs" / "press.toml"
-BIN = Path(sys.executable).parent
+PRESS = TEST_RIGS / "press.toml"
 
 
 def _capture(path: Path, scenario_toml: Path | None = None, *, steady: bool = False) -> Path:

@@ -41,11 +41,11 @@ from monitor.estimation.model import ContinuousDescriptor, DCMotorParameters, dc
 from monitor.identify import IdentifyError, identify, prbs
 from monitor.rig import build_decoder, load_rig
 from tests.identify.captures import capture
+from tests.support.paths import TEST_RIGS
 
 CapFD = pytest.CaptureFixture[str]
 CapLog = pytest.LogCaptureFixture
-ROOT = Path(__file__).resolve().parents[2]
-SERVO = ROOT / "tests" / "rigs" / "servo.toml"
+SERVO = TEST_RIGS / "servo.toml"
 T = 0.01  # the Table-1 motor at 100 Hz
 SECONDS = 40.0
 START = 1.7e9

@@ -18,7 +18,8 @@ from monitor.bus.codec import Decoded, load_database
 from monitor.rig import RigError, load_rig
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import scenario_from_dict
-from tests.identify.test_identify_cli import BIN, PRESS, _capture, _identify
+from tests.identify.test_identify_cli import PRESS, _capture, _identify
+from tests.support import BIN
 
 T0 = 1.7e9
 GATING = {"replay_fault_free", "replay_gamma_margin", "replay_model_mismatch", "replay_mean_nis",

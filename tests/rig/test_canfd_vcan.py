@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import sys
 from pathlib import Path
 
 import pytest
@@ -25,13 +24,12 @@ from monitor.bus.logfile import read_log
 from monitor.columnar.replay import replay_file
 from monitor.pipeline.feed import feed_log
 from monitor.rig import build_decoder, load_rig
+from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import pipeline
 from tests.support.rrd import outcome_total
 from tests.support.vcan_scripts import RunOnVcan, run_ready
 
-ROOT = Path(__file__).resolve().parents[2]
-RIG = ROOT / "tests" / "rigs" / "fd_servo.toml"
-BIN = Path(sys.executable).parent
+RIG = TEST_RIGS / "fd_servo.toml"
 
 
 def _counters(prom: Path) -> dict[str, int]:

@@ -16,8 +16,8 @@ from sim_ecu.cia402 import Cia402ECU
 from sim_ecu.scenario import scenario_from_dict
 from tests.archive.logs import ecu_frames, write_log
 from tests.support import BIN
+from tests.support.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "rigs" / "cia402-example.toml"
 
 

@@ -4,7 +4,6 @@ key, problem) from the loader and from the command line, exit status 2."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,12 +12,12 @@ import pytest
 from monitor.bus.codec import MotorDatabase
 from monitor.bus.rigcodec import RigCodec
 from monitor.rig import build_decoder, build_model, builtin_rig, load_rig
+from tests.support import BIN
+from tests.support.paths import ROOT, TEST_RIGS
 from tests.support.rig_files import rig_refusal
 
-ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "rigs" / "motor.toml"
-SERVO = ROOT / "tests" / "rigs" / "servo.toml"
-BIN = Path(sys.executable).parent
+SERVO = TEST_RIGS / "servo.toml"
 
 
 def test_example_rig_is_the_builtin_one() -> None:

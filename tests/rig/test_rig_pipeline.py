@@ -4,7 +4,6 @@ two actuators and two outputs, the foreign layouts, lost samples without counter
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import can
 import pytest
@@ -15,17 +14,17 @@ from monitor.pipeline.feed import feed_log
 from monitor.rig import build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
+from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import pipeline
 
-RIGS = Path(__file__).resolve().parents[1] / "rigs"
 NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
 
 
 def _run(rig_name: str, scenario: str, node: int, *, drop: int = 0
          ) -> tuple[MonitorPipeline, list[DiagnosisEvent]]:
-    rig = load_rig(RIGS / rig_name)
+    rig = load_rig(TEST_RIGS / rig_name)
     codec = build_decoder(rig)
-    ecu = RigECU(None, build_decoder(rig), rig, node, load_scenario(RIGS / scenario), seed=5)
+    ecu = RigECU(None, build_decoder(rig), rig, node, load_scenario(TEST_RIGS / scenario), seed=5)
     events: list[DiagnosisEvent] = []
     pipe = pipeline(codec, monitor_config(NO_OVERRIDES, rig), events=events)
     frames = ecu.frames(start_time=1000.0)
@@ -60,7 +59,7 @@ def test_lost_samples_are_found_and_predicted_through(rig: str, scenario: str,
 
 
 def test_a_frame_of_the_wrong_length_or_crc_is_rejected() -> None:
-    rig = load_rig(RIGS / "press.toml")
+    rig = load_rig(TEST_RIGS / "press.toml")
     codec = build_decoder(rig)
     fid, ext, data = codec.encode_sample("Fb", 1, [220.0], [60.0], counter=3)
     bad_crc = bytes([data[0] ^ 0xFF]) + data[1:]

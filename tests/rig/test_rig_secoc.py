@@ -12,7 +12,6 @@ import argparse
 import json
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import can
@@ -28,13 +27,12 @@ from monitor.pipeline.feed import feed_log
 from monitor.rig import RigError, build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
+from tests.support import BIN
+from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import pipeline
 from tests.support.rig_files import rig_refusal
 
-ROOT = Path(__file__).resolve().parents[2]
-RIGS = ROOT / "tests" / "rigs"
-RIG = RIGS / "secure_drive.toml"
-BIN = Path(sys.executable).parent
+RIG = TEST_RIGS / "secure_drive.toml"
 KEY = bytes.fromhex("000102030405060708090a0b0c0d0e0f")
 OTHER_KEY = bytes.fromhex("ff0102030405060708090a0b0c0d0e0f")
 NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
@@ -213,7 +211,7 @@ def test_sim_ecu_signs_a_rigs_frames_and_keeps_its_counters(tmp_path: Path) -> N
     tx = json.loads(state.read_text())["freshness"]
     assert tx["tx/axisstatus/2"] >= 150 and "tx/axiscommand/2" in tx, tx
     # a rig without SecOC refuses the key in one line
-    res = subprocess.run([*argv[:2], str(RIGS / "press.toml"), *argv[3:]], capture_output=True,
+    res = subprocess.run([*argv[:2], str(TEST_RIGS / "press.toml"), *argv[3:]], capture_output=True,
                          text=True, timeout=300)
     assert res.returncode == 2 and len(res.stderr.strip().splitlines()) == 1, res.stderr
     assert "no message of the rig has SecOC" in res.stderr, res.stderr
@@ -263,7 +261,7 @@ MISTAKES = [
 @pytest.mark.parametrize(("what", "text", "needle"), MISTAKES, ids=[m[0] for m in MISTAKES])
 def test_each_secoc_mistake_is_one_line(tmp_path: Path, what: str, text: str,
                                         needle: str) -> None:
-    (tmp_path / "secure_drive.dbc").write_text((RIGS / "secure_drive.dbc").read_text())
+    (tmp_path / "secure_drive.dbc").write_text((TEST_RIGS / "secure_drive.dbc").read_text())
     path = tmp_path / "rig.toml"
     path.write_text(text)
     msg = rig_refusal(path)
@@ -273,4 +271,4 @@ def test_each_secoc_mistake_is_one_line(tmp_path: Path, what: str, text: str,
 def test_a_key_for_a_rig_without_secoc_is_one_line() -> None:
     with pytest.raises(RigError, match=r"press.toml: secoc: a SecOC key \(--key\) was given, "
                                        r"but no message of the rig has SecOC"):
-        build_decoder(load_rig(RIGS / "press.toml"), secoc_key=KEY)
+        build_decoder(load_rig(TEST_RIGS / "press.toml"), secoc_key=KEY)

@@ -8,16 +8,15 @@ from __future__ import annotations
 import json
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
+from tests.support import BIN
+from tests.support.paths import TEST_RIGS
 from tests.support.vcan_scripts import RunOnVcan, run_ready
 
-ROOT = Path(__file__).resolve().parents[2]
-RIG = ROOT / "tests" / "rigs" / "press.toml"
-BIN = Path(sys.executable).parent
+RIG = TEST_RIGS / "press.toml"
 
 
 @pytest.mark.vcan

@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import logging
 import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -22,15 +21,14 @@ from monitor.bus.rigcodec import RigCodec
 from monitor.columnar.replay import replay_file
 from monitor.rig import RigError, build_decoder, build_model, builtin_rig, load_rig
 from tests.archive.logs import ecu_frames, write_log
+from tests.support import BIN
+from tests.support.dbc import REPO_DBC
+from tests.support.paths import ROOT, TEST_RIGS
 from tests.support.pipeline import Recorder
 from tests.support.rig_files import rig_refusal
 
-ROOT = Path(__file__).resolve().parents[2]
-RIGS = ROOT / "tests" / "rigs"
-OUR_DBC = ROOT / "dbc" / "motor.dbc"
 MOTOR_TEXT = (ROOT / "rigs" / "motor.toml").read_text().replace('"../dbc/motor.dbc"',
-                                                               f'"{OUR_DBC}"')
-BIN = Path(sys.executable).parent
+                                                               f'"{REPO_DBC}"')
 CURRENT_LINE = ('outputs = [{ message = "MotorCurrent", signal = "ArmatureCurrent", '
                 'unit = "A" }]')
 TRUTH_LINE = 'truth = { message = "SimTruth", signal = "TrueGamma" }'
@@ -164,7 +162,7 @@ def test_our_dbc_in_milliamps_is_scaled_not_taken_as_amps(tmp_path: Path) -> Non
     """The built-in rig on a DBC of our bus that gives the current in mA: `MotorDatabase`
     would hand the estimator mA as A; the rig codec converts."""
     dbc = tmp_path / "motor_ma.dbc"
-    text = OUR_DBC.read_text(encoding="cp1252")
+    text = REPO_DBC.read_text(encoding="cp1252")
     old = 'ArmatureCurrent : 16|16@1- (0.01,0) [-300|300] "A"'
     assert old in text
     dbc.write_text(text.replace(old, 'ArmatureCurrent : 16|16@1- (10,0) [-300000|300000] '
@@ -220,9 +218,9 @@ OUR_MISTAKES = [
      "protection.MonitorDiagnosis: not a message of the rig's signals"),
     ("a node our DBC does not have", MOTOR_TEXT.replace('nodes = "all"', "nodes = [20]"),
      "signals.inputs[0].message: no MotorVoltage message for nodes [20]"),
-    ("the same DBC twice", MOTOR_TEXT.replace(f'dbc = "{OUR_DBC}"',
-                                              f'dbc = ["{OUR_DBC}", "{OUR_DBC}"]'),
-     f"bus.dbc: {OUR_DBC}: listed twice"),
+    ("the same DBC twice", MOTOR_TEXT.replace(f'dbc = "{REPO_DBC}"',
+                                              f'dbc = ["{REPO_DBC}", "{REPO_DBC}"]'),
+     f"bus.dbc: {REPO_DBC}: listed twice"),
 ]
 
 
@@ -240,17 +238,17 @@ def test_a_key_our_bus_used_to_ignore_is_checked(tmp_path: Path, what: str, text
 
 
 def _twin(tmp_path: Path, rig_text: str, dbc_text: str | None = None) -> Path:
-    (tmp_path / "twin.dbc").write_text(dbc_text or (RIGS / "twin.dbc").read_text())
+    (tmp_path / "twin.dbc").write_text(dbc_text or (TEST_RIGS / "twin.dbc").read_text())
     return _rig(tmp_path, rig_text)
 
 
-TWIN = (RIGS / "twin.toml").read_text()
+TWIN = (TEST_RIGS / "twin.toml").read_text()
 TWIN_Y1 = '{ message = "TwinSense", signal = "Y1" }'
-SERVO = (RIGS / "servo.toml").read_text()
+SERVO = (TEST_RIGS / "servo.toml").read_text()
 
 
 def _servo(tmp_path: Path, rig_text: str, voltage_unit: str = "V") -> Path:
-    dbc = (RIGS / "servo.dbc").read_text()
+    dbc = (TEST_RIGS / "servo.dbc").read_text()
     old = 'VoltageCmd : 0|32@1- (1,0) [-50|50] "V"'
     assert old in dbc
     (tmp_path / "servo.dbc").write_text(dbc.replace(
@@ -297,7 +295,7 @@ def test_each_unit_mistake_is_one_line(tmp_path: Path, what: str, base: str, rig
                                        dbc_change: tuple[str, str] | str | None,
                                        needle: str) -> None:
     if base == "twin":
-        dbc = (RIGS / "twin.dbc").read_text()
+        dbc = (TEST_RIGS / "twin.dbc").read_text()
         if isinstance(dbc_change, tuple):
             assert dbc_change[0] in dbc
             dbc = dbc.replace(*dbc_change)
@@ -409,7 +407,7 @@ def test_two_files_that_clash_are_refused_naming_both(tmp_path: Path) -> None:
 
 def test_a_clashing_dbc_is_one_line_on_the_command_line(tmp_path: Path) -> None:
     """cantools' own warnings do not reach the terminal: one error line, exit 2."""
-    (tmp_path / "twin.dbc").write_text((RIGS / "twin.dbc").read_text().replace("1553", "1537"))
+    (tmp_path / "twin.dbc").write_text((TEST_RIGS / "twin.dbc").read_text().replace("1553", "1537"))
     path = _rig(tmp_path, TWIN)
     (tmp_path / "x.log").write_text("")
     res = subprocess.run([str(BIN / "motor-monitor"), "replay", "x.log", "--rig", str(path)],
@@ -427,6 +425,6 @@ def test_a_clashing_dbc_is_one_line_on_the_command_line(tmp_path: Path) -> None:
                                   "secure_drive.toml", "fd_servo.toml"])
 def test_the_example_rigs_load_as_before(name: str, caplog: pytest.LogCaptureFixture) -> None:
     with caplog.at_level(logging.INFO, logger="monitor.rig.check"):
-        assert isinstance(build_decoder(load_rig(RIGS / name)), RigCodec)
+        assert isinstance(build_decoder(load_rig(TEST_RIGS / name)), RigCodec)
     # their DBCs give every unit they use: nothing taken from the rig, nothing to say
     assert not [r for r in caplog.records if r.name == "monitor.rig.check"], caplog.text

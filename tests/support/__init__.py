@@ -10,6 +10,10 @@
 * `pipeline`: a `MonitorPipeline` driven in tests, and `Recorder`, a sink that keeps all.
 * `dbc`: the repository's DBC, and copies of it with one edit (`edited_dbc`).
 * `rig_files`: the one-line refusal every bad rig file gets (`rig_refusal`).
+* `paths`: the repository (`ROOT`) and the tests' data (`TEST_RIGS`, `TEST_DATA`, `SCRIPTS`).
+* `vcan_harness`: shell scripts run on real vcan, natively or in User-Mode Linux.
+* `vcan_scripts`: the scripts of ``scripts/`` run on vcan, and what they print.
+* `log_readers`: a log's frames as each reader gives them, random frames, MF4 files.
 """
 
 from __future__ import annotations

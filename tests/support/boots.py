@@ -1,9 +1,9 @@
 """The two robustness boots: bad input against the real monitor daemon on a real vcan bus,
-shared by ``tests/test_robustness_vcan.py`` (assertions) and ``tests/bench/bad_input.py``
-(the matrix).
+shared by ``tests/integration/test_robustness_vcan.py`` (assertions) and
+``tests/bench/bad_input.py`` (the matrix).
 
-Two User-Mode Linux boots (or native vcan, see tests/vcan_harness.py) do everything; their
-shell scripts are ``scripts/boot_a.sh`` and ``scripts/boot_b.sh`` beside this file (with
+Two User-Mode Linux boots (or native vcan, see tests/support/vcan_harness.py) do everything;
+their shell scripts are ``scripts/boot_a.sh`` and ``scripts/boot_b.sh`` beside this file (with
 ``scripts/common.sh``), read here and given their parameters as environment variables:
 
 * **Boot A** -- the daemon (``motor-monitor -v run --nodes 0 --rrd --events``), a healthy
@@ -47,6 +47,7 @@ from monitor.bus.codec import Decoded, MotorDatabase
 from tests.support.bad_frames import NODE, FrameKind, frame_kinds
 from tests.support.candump import Captured, Frame, parse_frame, read_candump
 from tests.support.rrd import Array, Snapshots, read_rrd, series
+from tests.support.vcan_harness import VcanResult
 from tests.support.vcan_scripts import (
     RunOnVcan,
     logs_tail,
@@ -54,7 +55,6 @@ from tests.support.vcan_scripts import (
     run_script,
     script_values,
 )
-from tests.vcan_harness import VcanResult
 
 __all__ = [
     "F1",

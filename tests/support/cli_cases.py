@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tests.support import BIN
-from tests.vcan_harness import PROJECT_ROOT
+from tests.support.dbc import REPO_DBC
+from tests.support.paths import ROOT
 
 __all__ = [
     "CliCase",
@@ -60,7 +61,7 @@ class CliOutcome:
 def write_bad_files(d: Path) -> dict[str, str]:
     """Malformed DBC, threshold and scenario files; returns name -> path."""
     d.mkdir(parents=True, exist_ok=True)
-    dbc = (PROJECT_ROOT / "dbc" / "motor.dbc").read_text()
+    dbc = REPO_DBC.read_text()
     files = {
         "garbage.dbc": 'VERSION ""\nBO_ 1 broken\n',
         "empty.dbc": "",
@@ -116,8 +117,8 @@ def cli_cases(d: Path) -> list[CliCase]:
         CliCase("dbc_missing", "DBC: no such file", (*run, "--dbc", f["missing"]),
                 "no such file"),
         CliCase("dbc_canopen", "DBC: given with a CANopen rig (described by its EDS)",
-                (*run, "--rig", str(PROJECT_ROOT / "rigs" / "cia402-example.toml"),
-                 "--dbc", str(PROJECT_ROOT / "dbc" / "motor.dbc")), "is a CANopen rig"),
+                (*run, "--rig", str(ROOT / "rigs" / "cia402-example.toml"),
+                 "--dbc", str(REPO_DBC)), "is a CANopen rig"),
         CliCase("thr_toml", "thresholds: invalid TOML", (*run, "--thresholds", f["bad.toml"]),
                 "not valid TOML"),
         CliCase("thr_swapped", "thresholds: f1 >= f2",

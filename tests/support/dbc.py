@@ -5,7 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-REPO_DBC = Path(__file__).resolve().parents[2] / "dbc" / "motor.dbc"
+from tests.support.paths import ROOT
+
+REPO_DBC = ROOT / "dbc" / "motor.dbc"
 
 
 def edited_dbc(directory: Path, old: str, new: str) -> Path:

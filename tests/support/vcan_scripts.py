@@ -3,7 +3,7 @@
 Each script sources ``scripts/common.sh`` (found through ``SCRIPTS``) and prints ``key=value``
 lines (``ready=1`` once the programs under test are up, ``<name>_rc=<status>`` as each one
 ends); the programs' stderr goes to ``*.err`` files in the directory ``OUT``. The vcan
-harness (tests/vcan_harness.py) runs the script's text with /bin/sh.
+harness (tests/support/vcan_harness.py) runs the script's text with /bin/sh.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import re
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
-from tests.vcan_harness import VcanResult
+from tests.support.paths import SCRIPTS
+from tests.support.vcan_harness import VcanResult
 
 __all__ = [
     "SCRIPTS",
@@ -26,8 +27,6 @@ __all__ = [
 
 #: `run_on_vcan` (the ``vcan`` fixture of tests/conftest.py).
 RunOnVcan = Callable[..., VcanResult]
-
-SCRIPTS = Path(__file__).resolve().parent / "scripts"
 
 
 def script_values(stdout: str) -> dict[str, str]:

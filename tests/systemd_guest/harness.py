@@ -44,8 +44,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tests.vcan_harness import (
-    PROJECT_ROOT,
+from tests.support.paths import ROOT
+from tests.support.vcan_harness import (
     UML_KERNEL,
     _kill_group,
     _read,
@@ -220,21 +220,21 @@ def rootfs_tarball() -> tuple[Path, float]:
 def ensure_aot_kernel() -> str:
     """Build the AOT estimator kernel on the host unless a current one is there: the guest
     mounts the project read-only and has no compiler. Returns "present" or "built"."""
-    est = PROJECT_ROOT / "monitor" / "estimation"
+    est = ROOT / "monitor" / "estimation"
     # the step kernel, the kernels and layout it compiles in, the build, the numba switch
-    sources = [*est.glob("*.py"), PROJECT_ROOT / "monitor" / "jit.py"]
+    sources = [*est.glob("*.py"), ROOT / "monitor" / "jit.py"]
     newest_source = max(p.stat().st_mtime for p in sources)
     built = sorted(est.glob("_fuzzy_ukf_aot*.so"))
     check = ("from monitor.estimation.fuzzy_ukf import select_kernel; "
              "assert select_kernel('aot')[0] == 'aot'")
     if built and built[-1].stat().st_mtime >= newest_source:
         ok = subprocess.run([sys.executable, "-c", check], capture_output=True,
-                            cwd=PROJECT_ROOT, timeout=120, check=False)
+                            cwd=ROOT, timeout=120, check=False)
         if ok.returncode == 0:
             return "present"
     proc = subprocess.run(
-        [sys.executable, "-m", "monitor.estimation.kernels_aot", "--only", "aot"],
-        capture_output=True, text=True, cwd=PROJECT_ROOT, timeout=600, check=False)
+        [sys.executable, "-m", "monitor.estimation.kernels_aot"],
+        capture_output=True, text=True, cwd=ROOT, timeout=600, check=False)
     if proc.returncode != 0:
         raise GuestSetupError(f"cannot build the AOT kernel: {proc.stdout}{proc.stderr}")
     return "built"
@@ -245,7 +245,7 @@ def compile_bytecode() -> None:
     set PYTHONDONTWRITEBYTECODE=1, so without this every start would compile every module
     again on the guest's slow CPU."""
     subprocess.run([sys.executable, "-m", "compileall", "-q", "monitor", "sim_ecu"],
-                   cwd=PROJECT_ROOT, capture_output=True, timeout=300, check=False)
+                   cwd=ROOT, capture_output=True, timeout=300, check=False)
 
 
 # ---------------------------------------------------------------------------- the root
@@ -343,18 +343,18 @@ def prepare_root(root: Path, tarball: Path) -> None:
     # What systemd/README.md installs, verbatim.
     system = root / "etc/systemd/system"
     for unit in ("motor-monitor@.service", "sim-ecu@.service"):
-        shutil.copy(PROJECT_ROOT / "systemd" / unit, system / unit)
+        shutil.copy(ROOT / "systemd" / unit, system / unit)
     network = root / "etc/systemd/network"
     network.mkdir(parents=True, exist_ok=True)
     for name in ("80-vcan0.netdev", "80-vcan0.network"):
-        shutil.copy(PROJECT_ROOT / "systemd" / name, network / name)
+        shutil.copy(ROOT / "systemd" / name, network / name)
     # The project, its venv and Python.
     venv = host_venv()
     for mountpoint in (GUEST_PROJECT, GUEST_PYTHON, GUEST_SITE):
         (root / mountpoint.lstrip("/")).mkdir(parents=True)
-    _install_project(root, PROJECT_ROOT)
+    _install_project(root, ROOT)
     _install_venv(root, venv)
-    (root / "etc/fstab").write_text(_fstab(PROJECT_ROOT, venv))
+    (root / "etc/fstab").write_text(_fstab(ROOT, venv))
     # Settings of the units (world-readable, as systemd/README.md asks) and the SecOC key
     # (root only, delivered by LoadCredential=).
     etc = root / "etc/motor-monitor"

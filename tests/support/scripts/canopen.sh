@@ -1,8 +1,9 @@
 #!/bin/sh
-# tests/test_canopen_vcan.py (run by tests/support/vcan_scripts.py with /bin/sh): candump and
-# `motor-monitor run --rig` (node 1) on vcan0, a CANopen master (canopen_master.py, the
-# canopen library's Network) listening, then the CiA 402 twin (`sim-ecu --rig`) running scenario.toml;
-# the master ends once the twin is done (ecu.done), then the monitor, then candump.
+# tests/integration/test_canopen_vcan.py (run by tests/support/vcan_scripts.py with /bin/sh):
+# candump and `motor-monitor run --rig` (node 1) on vcan0, a CANopen master
+# (canopen_master.py, the canopen library's Network) listening, then the CiA 402 twin
+# (`sim-ecu --rig`) running scenario.toml; the master ends once the twin is done (ecu.done),
+# then the monitor, then candump.
 #
 # Parameters (environment): SCRIPTS, this directory; OUT, the directory to write into (with
 # scenario.toml); RIG, the rig file; EDS, the drive's EDS.

@@ -1,7 +1,7 @@
 # shellcheck shell=sh
 # The shell functions of every vcan script in this directory, each once: the test scripts
 # (run by tests/support/vcan_scripts.py and tests/support/boots.py with /bin/sh, so POSIX sh)
-# and the User-Mode Linux init of tests/vcan_harness.py (uml_init.sh) source this file.
+# and the User-Mode Linux init of tests/support/vcan_harness.py (uml_init.sh) source this file.
 # Sourcing it only sets -u, STARTED and CATCH_UP and defines functions; a test script then
 # enters its directory:
 #   : "${SCRIPTS:?}" "${OUT:?}"

@@ -1,7 +1,8 @@
 #!/bin/sh
-# tests/test_vcan_harness.py, what a script sees (run by the vcan harness with /bin/sh): its
-# working directory, environment (VCAN_TEST_TOKEN) and tools; Python with the project's heavy
-# imports and 256 MiB more (memory), /dev/shm (multiprocessing); stderr; exit status 3.
+# tests/integration/test_vcan_harness.py, what a script sees (run by the vcan harness with
+# /bin/sh): its working directory, environment (VCAN_TEST_TOKEN) and tools; Python with the
+# project's heavy imports and 256 MiB more (memory), /dev/shm (multiprocessing); stderr; exit
+# status 3.
 
 echo "cwd=$(pwd)"
 echo "token=$VCAN_TEST_TOKEN"

@@ -1,6 +1,7 @@
 #!/bin/sh
-# tests/test_vcan_harness.py, real peers on vcan0 and vcan1 (run by the vcan harness with
-# /bin/sh): (a) cansend -> candump; (b) python-can <-> can-utils; (c) ip link down/up/del/add.
+# tests/integration/test_vcan_harness.py, real peers on vcan0 and vcan1 (run by the vcan
+# harness with /bin/sh): (a) cansend -> candump; (b) python-can <-> can-utils; (c) ip link
+# down/up/del/add.
 # Prints key=value lines and the captures (A: ..., B: ..., B_JSON: ..., C_...: ...).
 #
 # Parameters (environment): SCRIPTS, this directory.

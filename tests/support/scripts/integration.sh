@@ -1,6 +1,6 @@
 #!/bin/sh
-# The live runs of tests/test_integration_vcan.py (run by tests/support/vcan_scripts.py with
-# /bin/sh): candump and the monitor on vcan0, then, by RUN:
+# The live runs of tests/integration/test_integration_vcan.py (run by
+# tests/support/vcan_scripts.py with /bin/sh): candump and the monitor on vcan0, then, by RUN:
 #   live       one ECU (node 0, fault-outage-recovery), the monitor recording to live.rrd;
 #   player     canplayer replaying $OUT/short.log (recorded on "can0") into vcan0;
 #   two_nodes  node 0 (fault-outage-recovery) and node 1 (healthy, 16 s) at once.

@@ -1,6 +1,6 @@
 #!/bin/sh
-# tests/test_systemd.py (run by the vcan harness with /bin/sh, as root): in a new network
-# namespace (the host's interfaces untouched) and mount namespace, with a tmpfs on
+# tests/integration/test_systemd.py (run by the vcan harness with /bin/sh, as root): in a new
+# network namespace (the host's interfaces untouched) and mount namespace, with a tmpfs on
 # /run/systemd holding only our two files and a read-only sysfs (networkd then does not wait
 # for udev, which is not running here), start systemd-networkd, wait until it reports vcan0
 # configured, and print the link after "=== link"; networkd's log goes to

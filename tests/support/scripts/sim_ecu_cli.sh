@@ -1,5 +1,5 @@
 #!/bin/sh
-# tests/test_sim_ecu.py (run by tests/support/vcan_scripts.py with /bin/sh): sim-ecu's
+# tests/sim_ecu/test_sim_ecu.py (run by tests/support/vcan_scripts.py with /bin/sh): sim-ecu's
 # command line on real SocketCAN: a second of a fault run
 # captured by candump into cap.log (every sample sent, late if the guest is loaded: the
 # frames are compared with an offline run), a missing interface, an interface set down.

@@ -1,5 +1,5 @@
 #!/bin/sh
-# PID 1 of a User-Mode Linux guest of tests/vcan_harness.py, started as
+# PID 1 of a User-Mode Linux guest of tests/support/vcan_harness.py, started as
 # `init=/bin/sh -- THIS_FILE W` (the kernel appends arguments of its own after W): mounts the
 # guest's pseudo file systems, loads the CAN modules, brings the vcan interfaces up, runs
 # W/script.sh with only the environment of W/env.sh, writes its exit status to W/rc and powers
@@ -10,7 +10,7 @@
 # working directory) and DEADLINE (host epoch seconds when the script must be over).
 
 W=$1
-# shellcheck source=/dev/null # written by tests/vcan_harness.py for this run
+# shellcheck source=/dev/null # written by tests/support/vcan_harness.py for this run
 . "$W/init.env"
 export PATH="$SYSTEM_PATH"
 exec >"$W/init.log" 2>&1
