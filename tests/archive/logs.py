@@ -4,27 +4,20 @@ writers (candump .log, Vector .asc, .blf), and damaged files."""
 from __future__ import annotations
 
 import heapq
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import can
 
 from monitor.bus.codec import load_database
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario
+from tests.support.log_readers import WRITERS, write_log
 
 __all__ = ["SCENARIOS", "WRITERS", "corrupt_blf", "corrupt_candump", "ecu_frames", "write_log"]
 
 T0 = 1.7e9
 SCENARIOS = ("healthy", "fault-outage-recovery", "incipient", "intermittent")
-
-WRITERS: dict[str, Callable[[Path], Any]] = {
-    ".log": lambda p: can.CanutilsLogWriter(p, channel="vcan0"),
-    ".asc": lambda p: can.ASCWriter(p),
-    ".blf": lambda p: can.BLFWriter(p),
-}
-
 
 def ecu_frames(scenarios: Sequence[str], *, seed: int = 0, duration: float | None = None,
                start_time: float = T0) -> list[can.Message]:
@@ -35,15 +28,6 @@ def ecu_frames(scenarios: Sequence[str], *, seed: int = 0, duration: float | Non
                  .frames(duration=duration, start_time=start_time))
             for node, name in enumerate(scenarios)]
     return list(heapq.merge(*runs, key=lambda m: m.timestamp))
-
-
-def write_log(path: Path, frames: Sequence[can.Message]) -> Path:
-    """`frames` to `path` with the writer of its suffix."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with WRITERS[path.suffix](path) as writer:
-        for m in frames:
-            writer.on_message_received(m)
-    return path
 
 
 def corrupt_blf(path: Path) -> Path:

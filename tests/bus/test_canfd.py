@@ -34,6 +34,7 @@ from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.support import BIN
+from tests.support.log_readers import write_log
 from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import pipeline
 from tests.support.rrd import outcome_total
@@ -62,13 +63,6 @@ def _fd_pipe(events: list[DiagnosisEvent] | None = None) -> MonitorPipeline:
 def _balanced(c: Counters | dict[str, int]) -> None:
     """frames/received is the sum of the outcomes; frames/fd is none of them."""
     assert c.get(C.FRAMES_RECEIVED, 0) == outcome_total(c), c
-
-
-def _write(frames: list[can.Message], path: Path) -> Path:
-    with can.Logger(str(path)) as lg:
-        for m in frames:
-            lg.on_message_received(m)
-    return path
 
 
 # ------------------------------------------------------------------ the rig's DBC
@@ -174,7 +168,7 @@ def _compare(path: Path, make_db: Any, cfg: MonitorConfig) -> tuple[Any, Monitor
 def test_fd_rig_log_replays_in_both_engines(tmp_path: Path, suffix: str,
                                             caplog: pytest.LogCaptureFixture) -> None:
     frames = _fd_frames()
-    path = _write(frames, tmp_path / f"fd{suffix}")
+    path = write_log(tmp_path / f"fd{suffix}", frames)
     if suffix == ".log":
         text = path.read_text()
         assert "022##" in text and "021##" in text  # candump's FD format
@@ -209,7 +203,7 @@ def _classic_with_fd(n: int = 4000) -> list[can.Message]:
 @pytest.mark.parametrize("suffix", [".log", ".blf"])
 def test_fd_frames_in_a_log_of_our_bus_get_their_outcome_in_both_engines(
         tmp_path: Path, suffix: str) -> None:
-    path = _write(_classic_with_fd(), tmp_path / f"mixed{suffix}")
+    path = write_log(tmp_path / f"mixed{suffix}", _classic_with_fd())
     res, _, events = _compare(path, load_database, MonitorConfig(nodes=(0,)))
     assert res.columnar  # our bus stays columnar: FD frames get their verdict in columns
     c = res.counters
@@ -252,7 +246,7 @@ def test_candump_fd_lines_parse_as_python_can_reads_them(tmp_path: Path) -> None
 
 @pytest.mark.parametrize("engine", ["columnar", "per-frame"])
 def test_replay_command_takes_an_fd_log(tmp_path: Path, engine: str) -> None:
-    path = _write(_fd_frames(scenario="fault-outage-recovery"), tmp_path / "fd.log")
+    path = write_log(tmp_path / "fd.log", _fd_frames(scenario="fault-outage-recovery"))
     # node 1's frames: --nodes 1 (the rig's node 2 would have no sample, which is no success)
     rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(path), "--rig", str(FD_RIG),
                           "--nodes", "1", "--engine", engine], capture_output=True, text=True,

@@ -20,16 +20,9 @@ from hypothesis import strategies as st
 from monitor.columnar.asc import _header, _scan_asc
 from monitor.columnar.chunk import empty_chunk
 from monitor.jit import JIT_DISABLED
-from tests.support.log_readers import columnar, per_frame, random_frames
+from tests.support.log_readers import columnar, per_frame, random_frames, write_log
 
 pytestmark = pytest.mark.skipif(JIT_DISABLED, reason="the scanner runs compiled only")
-
-
-def _write(frames: list[can.Message], path: Path) -> Path:
-    with can.Logger(str(path)) as writer:
-        for m in frames:
-            writer.on_message_received(m)
-    return path
 
 
 def _data_frames(n: int, seed: int) -> list[can.Message]:
@@ -46,7 +39,7 @@ def test_files_python_can_writes_read_the_same(tmp_path: Path, seed: int,
                                                chunk_frames: int) -> None:
     for name, frames in (("mixed", random_frames(2000, seed)),
                          ("data", _data_frames(2000, seed))):
-        path = _write(frames, tmp_path / f"{name}.asc")
+        path = write_log(tmp_path / f"{name}.asc", frames)
         rows, error = columnar(path, chunk_frames)
         assert error is None
         assert (rows, error) == per_frame(path)
@@ -57,7 +50,7 @@ def test_the_scanner_itself_takes_python_cans_data_lines(tmp_path: Path) -> None
     """The comparison above would pass on python-can alone: here the scanner reads the body
     of a file of data frames without handing it over."""
     frames = _data_frames(3000, 5)
-    raw = _write(frames, tmp_path / "d.asc").read_bytes()
+    raw = write_log(tmp_path / "d.asc", frames).read_bytes()
     header = _header(raw)
     assert header is not None and header[0] == "hex"
     body = np.frombuffer(raw[header[1]:], np.uint8)
@@ -136,7 +129,7 @@ _ALPHABET: list[int | bytes] = [*b"0123456789ABCDEFabcdefxXrRdD. \t\n\r", b"CANF
 def _base() -> bytes:
     if "b" not in _BASE:
         with tempfile.TemporaryDirectory() as td:
-            p = _write(_data_frames(1500, 9), Path(td) / "b.asc")
+            p = write_log(Path(td) / "b.asc", _data_frames(1500, 9))
             _BASE["b"] = p.read_bytes()
     return _BASE["b"]
 

@@ -37,12 +37,12 @@ from monitor.columnar.signals import SignalExtractor, payload_integers
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.pipeline.feed import TICK_S, feed_log
 from monitor.rig import build_decoder, load_rig
-from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
-from tests.support.bad_frames import frame_kinds
+from tests.support.engines import compare_engines, sim_frames
+from tests.support.log_readers import write_log
 from tests.support.paths import TEST_RIGS
-from tests.support.pipeline import Recorder, stalled, without_currents
+from tests.support.pipeline import Recorder
 
 NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
 
@@ -97,76 +97,6 @@ def test_crc_equals_cantools(rows: list[tuple[bytes, bool]], kind: str) -> None:
 # ------------------------------------------------------------------ logs
 
 
-def _bad_frames(start: float, period: float) -> list[can.Message]:
-    """Every kind of bad frame of the robustness tests, one after another."""
-    db = load_database()
-    out: list[can.Message] = []
-    t = start
-    for kind in frame_kinds(db, n=6):
-        for f in kind.frames:
-            out.append(f.message(t))
-            t += period
-    return out
-
-
-def _sim_frames(scenario: str, *, bad: bool = False, drop: int = 0, repeat: int = 0,
-                late: bool = False, nodes: tuple[int, ...] = (0,)) -> list[can.Message]:
-    db = load_database()
-    frames: list[can.Message] = []
-    for node in nodes:
-        ecu = VirtualECU(None, db, node, load_scenario(scenario), seed=3 + node)
-        frames += list(ecu.frames(start_time=1000.0 + 0.0013 * node))
-    frames.sort(key=lambda m: m.timestamp)
-    if drop:
-        frames = [m for i, m in enumerate(frames) if i % drop != 5]
-    if repeat:
-        frames = [x for i, m in enumerate(frames) for x in ((m, m) if i % repeat == 3 else (m,))]
-    if late:
-        # a held-up sender's backlogs (late, not lost), counter wraps of lost frames (not
-        # repeats), and a frame replayed after a silence (a repeat)
-        for t0, periods in ((1003.0005, 14), (1004.5005, 9), (1021.0005, 40)):
-            frames = stalled(frames, t0, t0 + periods / 100.0)
-        frames = without_currents(without_currents(frames, 600, 15), 900, 31)
-        last = max((m for m in frames if m.arbitration_id == 0x110), key=lambda m: m.timestamp)
-        frames.append(can.Message(arbitration_id=0x110, data=last.data, is_extended_id=False,
-                                  timestamp=last.timestamp + 0.7))
-        frames.sort(key=lambda m: m.timestamp)
-    if bad:
-        # a gap that restarts the estimator, with frames of other kinds in it: a silence
-        frames = [m for m in frames if not 1010.0 <= m.timestamp < 1015.6]
-        frames += _bad_frames(1002.0005, 0.0031)
-        frames += _bad_frames(1010.2007, 0.0109)  # in the gap below: ticks see a silence
-        frames.sort(key=lambda m: m.timestamp)
-    return frames
-
-
-def _write(frames: list[can.Message], path: Path) -> Path:
-    with can.Logger(str(path)) as lg:
-        for m in frames:
-            lg.on_message_received(m)
-    return path
-
-
-def _compare(path: Path, db: Any, db2: Any, cfg: MonitorConfig, chunk: int = 997) -> Any:
-    a = Recorder()
-    pipe = MonitorPipeline(db, cfg, sink=a)
-    n = feed_log(pipe, read_log(path))
-    b = Recorder()
-    res = replay_file(path, db2, cfg, b, chunk_frames=chunk)
-    assert res.frames == n
-    assert res.counters == dict(pipe.counters)
-    assert b.transitions == a.transitions
-    assert res.events == a.transitions
-    assert b.diagnoses == a.diagnoses
-    assert b.bus == a.bus
-    # samples and voltages go to the sinks as columns, node by node: each node's in order
-    assert sorted(b.inputs, key=lambda v: v.node) == sorted(a.inputs, key=lambda v: v.node)
-    assert len(b.samples) == len(a.samples)
-    assert sorted(b.samples, key=lambda v: v.node) == sorted(a.samples, key=lambda v: v.node)
-    assert res.nodes == pipe.summary()["nodes"]
-    return res, pipe, a
-
-
 def test_a_silence_is_reported_at_the_same_tick_by_both_engines(tmp_path: Path) -> None:
     """Node 0 falls silent for 1.2 s while frames of an id of no node go on every 7.3 ms.
     Both engines tick at frames, every `TICK_S` of bus time (`feed_log`'s rule; the
@@ -175,13 +105,13 @@ def test_a_silence_is_reported_at_the_same_tick_by_both_engines(tmp_path: Path) 
     that ticked at another period would report it at another time."""
     db = load_database()
     gap = (1005.0, 1006.2)
-    frames = [m for m in _sim_frames("healthy") if not gap[0] <= m.timestamp < gap[1]]
+    frames = [m for m in sim_frames("healthy") if not gap[0] <= m.timestamp < gap[1]]
     frames += [can.Message(timestamp=gap[0] + 0.0001 + 0.0073 * k, arbitration_id=0x7F0,
                            data=bytes(8), is_extended_id=False) for k in range(160)]
     frames.sort(key=lambda m: m.timestamp)
-    path = _write(frames, tmp_path / "silence.log")
+    path = write_log(tmp_path / "silence.log", frames)
     cfg = MonitorConfig(nodes=(0,))
-    res, _, a = _compare(path, db, load_database(), cfg)
+    res, _, a = compare_engines(path, db, load_database(), cfg)
     assert res.columnar
     current = db.frame_id("current", 0)
     frames = list(read_log(path))  # the time stamps as the log holds them
@@ -200,13 +130,13 @@ def test_a_silence_is_reported_at_the_same_tick_by_both_engines(tmp_path: Path) 
 
 @pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
 def test_reader_gives_python_cans_frames(tmp_path: Path, suffix: str) -> None:
-    frames = _sim_frames("healthy", bad=True)[:3000]
+    frames = sim_frames("healthy", bad=True)[:3000]
     frames.append(can.Message(timestamp=frames[-1].timestamp + 0.01, arbitration_id=0x123,
                               data=bytes(range(12)), is_fd=True, is_extended_id=False))
     frames.append(can.Message(timestamp=frames[-1].timestamp + 0.01, arbitration_id=0x124,
                               data=bytes(range(64)), is_fd=True, bitrate_switch=True,
                               error_state_indicator=True, is_extended_id=False))
-    path = _write(frames, tmp_path / f"x{suffix}")
+    path = write_log(tmp_path / f"x{suffix}", frames)
     want = list(can.LogReader(str(path)))
     got = [c.message(i) for c in read_chunks(path, 256) for i in range(len(c))]
     assert len(got) == len(want)
@@ -231,9 +161,9 @@ def test_reader_gives_python_cans_frames(tmp_path: Path, suffix: str) -> None:
 def test_columnar_equals_per_frame_on_sim_logs(tmp_path: Path, scenario: str, bad: bool,
                                                drop: int, repeat: int, late: bool,
                                                suffix: str) -> None:
-    frames = _sim_frames(scenario, bad=bad, drop=drop, repeat=repeat, late=late)
-    path = _write(frames, tmp_path / f"run{suffix}")
-    res, _, a = _compare(path, load_database(), load_database(), MonitorConfig(nodes=(0,)))
+    frames = sim_frames(scenario, bad=bad, drop=drop, repeat=repeat, late=late)
+    path = write_log(tmp_path / f"run{suffix}", frames)
+    res, _, a = compare_engines(path, load_database(), load_database(), MonitorConfig(nodes=(0,)))
     assert res.columnar
     assert a.transitions  # something to compare
     if bad:
@@ -252,9 +182,9 @@ def test_columnar_equals_per_frame_on_sim_logs(tmp_path: Path, scenario: str, ba
 
 
 def test_columnar_equals_per_frame_two_nodes_all_monitored(tmp_path: Path) -> None:
-    frames = _sim_frames("fault-outage-recovery", nodes=(0, 1), drop=53)
-    path = _write(frames, tmp_path / "two.log")
-    _compare(path, load_database(), load_database(), MonitorConfig(nodes=None), chunk=4096)
+    frames = sim_frames("fault-outage-recovery", nodes=(0, 1), drop=53)
+    path = write_log(tmp_path / "two.log", frames)
+    compare_engines(path, load_database(), load_database(), MonitorConfig(nodes=None), chunk=4096)
 
 
 @pytest.mark.parametrize(("rig", "scenario", "node", "drop"), [
@@ -270,15 +200,15 @@ def test_columnar_equals_per_frame_on_rigs(tmp_path: Path, rig: str, scenario: s
     ecu = RigECU(None, codec, r, node, load_scenario(TEST_RIGS / scenario), seed=5)
     frames = [m for i, m in enumerate(ecu.frames(start_time=1000.0))
               if not (drop and i % drop == 7)]
-    path = _write(frames, tmp_path / "rig.log")
-    res, _, a = _compare(path, build_decoder(r), build_decoder(r),
-                         monitor_config(NO_OVERRIDES, r), chunk=1500)
+    path = write_log(tmp_path / "rig.log", frames)
+    res, _, a = compare_engines(path, build_decoder(r), build_decoder(r),
+                                monitor_config(NO_OVERRIDES, r), chunk=1500)
     assert res.columnar and a.samples
 
 
 def test_secoc_falls_back_to_the_per_frame_path(tmp_path: Path,
                                                 caplog: pytest.LogCaptureFixture) -> None:
-    path = _write(_sim_frames("healthy")[:2000], tmp_path / "s.log")
+    path = write_log(tmp_path / "s.log", sim_frames("healthy")[:2000])
     key = bytes(range(16))
     a = Recorder()
     pipe = MonitorPipeline(load_database(secoc_key=key), MonitorConfig(nodes=(0,)), sink=a)
@@ -298,7 +228,7 @@ def test_rerun_sink_gets_the_same_columns(tmp_path: Path) -> None:
     flushes a node's buffers at each of its events, the columnar one per chunk)."""
     from monitor.sinks.rerun import RerunSink
 
-    path = _write(_sim_frames("fault-outage-recovery"), tmp_path / "r.log")
+    path = write_log(tmp_path / "r.log", sim_frames("fault-outage-recovery"))
     names = ("t", "measured", "estimated", "gamma", "rules", "health", "nis")
 
     def spy(sink: RerunSink) -> dict[str, list[np.ndarray]]:

@@ -1,11 +1,14 @@
 """Both engines, one set of rules: random frame streams -- frames lost, repeated, late,
-corrupted, silences, CAN FD and error frames, frames of no node, two nodes -- through the
+corrupted, silences, CAN FD and error frames, frames of no node, two nodes of our bus, and
+two test rigs (E2E with the command in another frame; no protection at all) -- through the
 per-frame engine (the live daemon's, `feed_log`) and the columnar engine (replay, in chunks
 of a random size), which must give the same events, samples and counters
-(`tests.columnar.test_columnar._compare`). Hypothesis shrinks a disagreement to a short program."""
+(`tests.support.engines.compare_engines`). Hypothesis shrinks a disagreement to a short
+program."""
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -14,31 +17,58 @@ import can
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from monitor.app.options import monitor_config
 from monitor.bus.codec import load_database
+from monitor.bus.rigcodec import RigCodec
 from monitor.pipeline import MonitorConfig
-from tests.columnar.test_columnar import _bad_frames, _compare, _sim_frames, _write
+from monitor.rig import Rig, build_decoder, load_rig
+from sim_ecu.rig_ecu import RigECU
+from sim_ecu.scenario import load_scenario
+from tests.support.engines import bad_frames, compare_engines, sim_frames
+from tests.support.log_readers import write_log
+from tests.support.paths import TEST_RIGS
 
-BASE = _sim_frames("fault-outage-recovery", nodes=(0, 1))
+NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
+
+BASE = sim_frames("fault-outage-recovery", nodes=(0, 1))
 """Two nodes' 30 s of a fault, outage and recovery: the stream every program edits."""
-T0, T1 = BASE[0].timestamp, BASE[-1].timestamp
 
-_index = st.integers(0, len(BASE) - 1)
+
+def _rig_stream(rig: str, scenario: str) -> tuple[Rig, list[can.Message]]:
+    """A test rig and its twin's frames of node 1 (as `test_columnar_equals_per_frame_on_rigs`)."""
+    r = load_rig(TEST_RIGS / rig)
+    codec = build_decoder(r)
+    assert isinstance(codec, RigCodec)
+    ecu = RigECU(None, codec, r, 1, load_scenario(TEST_RIGS / scenario), seed=5)
+    return r, list(ecu.frames(start_time=1000.0))
+
+
+RIGS = {"press": _rig_stream("press.toml", "press_excite.toml"),
+        "twin": _rig_stream("twin.toml", "twin_fault.toml")}
+"""Rigs that are not our bus: `press` (E2E with a fixed data ID, the command in another
+frame at another rate), `twin` (no protection: the time stamps alone tell lost and late
+samples)."""
+
+_where = st.floats(0.0, 1.0, exclude_max=True)  # a place in the stream, as a fraction
 _op = st.one_of(
-    st.tuples(st.just("drop"), _index, st.integers(1, 40)),
-    st.tuples(st.just("repeat"), _index, st.integers(1, 3)),
-    st.tuples(st.just("late"), _index, st.floats(0.001, 0.3)),
-    st.tuples(st.just("corrupt"), _index, st.integers(0, 7), st.integers(0, 255)),
-    st.tuples(st.just("silence"), st.floats(T0, T1), st.floats(0.05, 2.0)),
-    st.tuples(st.just("fd"), _index, st.integers(9, 64)),
-    st.tuples(st.just("error"), _index, st.integers(0, 0x1FFFFFFF)),
-    st.tuples(st.just("unknown"), _index, st.integers(0, 0x7FF)),
-    st.tuples(st.just("bad"), _index),
+    st.tuples(st.just("drop"), _where, st.integers(1, 40)),
+    st.tuples(st.just("repeat"), _where, st.integers(1, 3)),
+    st.tuples(st.just("late"), _where, st.floats(0.001, 0.3)),
+    st.tuples(st.just("corrupt"), _where, st.integers(0, 7), st.integers(0, 255)),
+    st.tuples(st.just("silence"), _where, st.floats(0.05, 2.0)),
+    st.tuples(st.just("fd"), _where, st.integers(9, 64)),
+    st.tuples(st.just("error"), _where, st.integers(0, 0x1FFFFFFF)),
+    st.tuples(st.just("unknown"), _where, st.integers(0, 0x7FF)),
+    st.tuples(st.just("bad"), _where),
 )
 
 
-def _apply(ops: list[tuple[Any, ...]]) -> list[can.Message]:
-    """The base stream edited by `ops`, in time order."""
-    frames = list(BASE)
+def _apply(base: list[can.Message], ops: list[tuple[Any, ...]]) -> list[can.Message]:
+    """The `base` stream edited by `ops`, in time order."""
+    frames = list(base)
+    t0, t1 = base[0].timestamp, base[-1].timestamp
+    ops = [(kind, (t0 + where * (t1 - t0)) if kind == "silence" else int(where * len(base)),
+            *rest) for kind, where, *rest in ops]
     drop: set[int] = set()
     extra: list[can.Message] = []
     moved: dict[int, float] = {}
@@ -78,7 +108,7 @@ def _apply(ops: list[tuple[Any, ...]]) -> list[can.Message]:
                                      arbitration_id=int(a[1]), data=bytes(8)))
         elif kind == "bad":
             t = frames[int(a[0])].timestamp
-            extra += _bad_frames(t + 0.0004, 0.0009)[:12]
+            extra += bad_frames(t + 0.0004, 0.0009)[:12]
     out = []
     for k, m in enumerate(frames):
         if k in drop:
@@ -99,7 +129,21 @@ def _apply(ops: list[tuple[Any, ...]]) -> list[can.Message]:
 def test_the_engines_agree_on_random_streams(ops: list[tuple[Any, ...]], chunk: int,
                                               both: bool) -> None:
     with tempfile.TemporaryDirectory() as d:
-        path = _write(_apply(ops), Path(d) / "run.log")
+        path = write_log(Path(d) / "run.log", _apply(BASE, ops))
         cfg = MonitorConfig(nodes=None if both else (0,))
-        res, _, _ = _compare(path, load_database(), load_database(), cfg, chunk=chunk)
+        res, _, _ = compare_engines(path, load_database(), load_database(), cfg, chunk=chunk)
+        assert res.columnar
+
+
+@settings(max_examples=8, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(rig=st.sampled_from(sorted(RIGS)), ops=st.lists(_op, min_size=1, max_size=10),
+       chunk=st.integers(64, 5000))
+def test_the_engines_agree_on_random_streams_of_other_rigs(rig: str, ops: list[tuple[Any, ...]],
+                                                           chunk: int) -> None:
+    r, base = RIGS[rig]
+    with tempfile.TemporaryDirectory() as d:
+        path = write_log(Path(d) / "run.log", _apply(base, ops))
+        res, _, _ = compare_engines(path, build_decoder(r), build_decoder(r),
+                                    monitor_config(NO_OVERRIDES, r), chunk=chunk)
         assert res.columnar

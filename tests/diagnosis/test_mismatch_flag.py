@@ -31,9 +31,10 @@ from monitor.sinks.publisher import BusPublisher
 from monitor.sinks.rerun import RerunSink
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import scenario_from_dict
-from tests.columnar.test_columnar import _compare, _write
 from tests.sinks.test_rerun_sink import _read, _series
 from tests.support.dbc import REPO_DBC
+from tests.support.engines import compare_engines
+from tests.support.log_readers import write_log
 from tests.support.paths import ROOT
 
 T0 = 1_700_000_000.0
@@ -73,10 +74,10 @@ def _cfg(withhold: bool) -> MonitorConfig:
 
 def _both(tmp_path: Path, withhold: bool) -> list[DiagnosisEvent]:
     """The events of both engines (asserted identical, with samples, diagnoses and
-    counters, by `tests.columnar.test_columnar._compare`)."""
-    path = _write(list(_frames()), tmp_path / f"noisy-{withhold}.log")
+    counters, by `tests.support.engines.compare_engines`)."""
+    path = write_log(tmp_path / f"noisy-{withhold}.log", list(_frames()))
     db = load_database()
-    res, pipe, rec = _compare(path, db, load_database(), _cfg(withhold))
+    res, pipe, rec = compare_engines(path, db, load_database(), _cfg(withhold))
     # the samples carry the flag as the events say it
     flags = [e for e in rec.transitions if e.kind == MODEL_MISMATCH]
     for s in rec.samples:

@@ -12,7 +12,8 @@ import pytest
 from monitor.bus.codec import load_database
 from monitor.pipeline import MonitorConfig
 from monitor.pipeline.admission import RATE_WINDOW
-from tests.columnar.test_columnar import _compare, _sim_frames, _write
+from tests.support.engines import compare_engines, sim_frames
+from tests.support.log_readers import write_log
 
 OFF_RATE = "time/off_rate"
 
@@ -35,9 +36,9 @@ def _restamped(frames: list[can.Message], start: float, end: float, stretch: flo
 @pytest.mark.parametrize("rate", [5.0, 1000.0])
 def test_a_wrong_nominal_rate_is_said_once(tmp_path: Path, rate: float) -> None:
     # the ECU sends at 100 Hz; the rig says 5 Hz (or 1 kHz)
-    path = _write(_sim_frames("healthy"), tmp_path / "run.log")
+    path = write_log(tmp_path / "run.log", sim_frames("healthy"))
     db = load_database()
-    res, _, seen = _compare(path, db, load_database(), MonitorConfig(rate=rate))
+    res, _, seen = compare_engines(path, db, load_database(), MonitorConfig(rate=rate))
     assert res.counters[OFF_RATE] == 1
     [event] = [b for b in seen.bus if "nominal" in b.text]
     assert event.level == "WARN" and f"nominal {rate:g} Hz" in event.text
@@ -48,18 +49,18 @@ def test_a_wrong_nominal_rate_is_said_once(tmp_path: Path, rate: float) -> None:
 
 
 def test_the_nominal_rate_says_nothing(tmp_path: Path) -> None:
-    path = _write(_sim_frames("healthy"), tmp_path / "run.log")
-    res, _, seen = _compare(path, load_database(), load_database(), MonitorConfig())
+    path = write_log(tmp_path / "run.log", sim_frames("healthy"))
+    res, _, seen = compare_engines(path, load_database(), load_database(), MonitorConfig())
     assert OFF_RATE not in res.counters
     assert not [b for b in seen.bus if "nominal" in b.text]
 
 
 def test_an_ecu_that_slows_down_and_recovers_is_said_both_times(tmp_path: Path) -> None:
     # 3 s at 100 Hz, then 1.5 s of samples sent 20x slower (30 s at 5 Hz), then 100 Hz again
-    frames = _restamped(_sim_frames("healthy"), 3.0, 4.5, 20.0)
-    path = _write(frames, tmp_path / "slow.log")
-    res, _, seen = _compare(path, load_database(), load_database(), MonitorConfig(),
-                            chunk=613)
+    frames = _restamped(sim_frames("healthy"), 3.0, 4.5, 20.0)
+    path = write_log(tmp_path / "slow.log", frames)
+    res, _, seen = compare_engines(path, load_database(), load_database(), MonitorConfig(),
+                                   chunk=613)
     assert res.counters[OFF_RATE] == 1
     said = [(b.level, b.t - frames[0].timestamp) for b in seen.bus if "nominal" in b.text]
     assert [level for level, _ in said] == ["WARN", "INFO"]

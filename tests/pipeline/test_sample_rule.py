@@ -14,7 +14,8 @@ from monitor.bus.codec import load_database
 from monitor.pipeline import MonitorConfig
 from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, fit_rows, no_past
 from monitor.rig import RigError, load_rig
-from tests.columnar.test_columnar import _compare, _sim_frames, _write
+from tests.support.engines import compare_engines, sim_frames
+from tests.support.log_readers import write_log
 from tests.support.paths import ROOT, TEST_RIGS
 
 
@@ -64,10 +65,10 @@ def test_fit_rows_pair_the_state_input_with_the_filters_step(d: int) -> None:
 @pytest.mark.parametrize("d", [1, 3])
 def test_both_engines_give_the_same_numbers_with_a_delay(tmp_path: Path, d: int) -> None:
     """Lost frames, repeats and a gap that restarts the estimator, with a delay."""
-    frames = _sim_frames("fault-outage-recovery", bad=True, drop=97, repeat=211)
-    path = _write(frames, tmp_path / "run.log")
-    res, _, a = _compare(path, load_database(), load_database(),
-                         MonitorConfig(nodes=(0,), input_delay=d))
+    frames = sim_frames("fault-outage-recovery", bad=True, drop=97, repeat=211)
+    path = write_log(tmp_path / "run.log", frames)
+    res, _, a = compare_engines(path, load_database(), load_database(),
+                                MonitorConfig(nodes=(0,), input_delay=d))
     assert res.columnar and a.samples
     assert res.counters.get("estimator/restarts", 0) > 0
 
@@ -87,11 +88,11 @@ def test_both_engines_on_a_rig_whose_input_varies(tmp_path: Path) -> None:
     ecu = RigECU(None, codec, r, 1,
                  load_scenario(TEST_RIGS / "press_excite.toml"), seed=5)
     frames = [m for i, m in enumerate(ecu.frames(start_time=1000.0)) if i % 50 != 7]
-    path = _write(frames, tmp_path / "rig.log")
+    path = write_log(tmp_path / "rig.log", frames)
     cfg = monitor_config(argparse.Namespace(nodes=None, rate=None, thresholds=None), r)
-    _, _, a = _compare(path, build_decoder(r), build_decoder(r), replace(cfg, input_delay=2),
-                       chunk=1500)
-    _, _, b = _compare(path, build_decoder(r), build_decoder(r), cfg, chunk=1500)
+    _, _, a = compare_engines(path, build_decoder(r), build_decoder(r),
+                              replace(cfg, input_delay=2), chunk=1500)
+    _, _, b = compare_engines(path, build_decoder(r), build_decoder(r), cfg, chunk=1500)
     assert [s.inputs for s in a.samples] != [s.inputs for s in b.samples]
 
 

@@ -8,6 +8,8 @@
   shell scripts (``scripts/*.sh``) and what the host reads back from them.
 * `ukf_filter`: a stateful wrapper of the compiled UKF kernels.
 * `pipeline`: a `MonitorPipeline` driven in tests, and `Recorder`, a sink that keeps all.
+* `engines`: both engines on one log, which must agree (`compare_engines`), and the
+  virtual ECU's logs they are tried on.
 * `dbc`: the repository's DBC, and copies of it with one edit (`edited_dbc`).
 * `rig_files`: the one-line refusal every bad rig file gets (`rig_refusal`).
 * `paths`: the repository (`ROOT`) and the tests' data (`TEST_RIGS`, `TEST_DATA`, `SCRIPTS`).

@@ -1,10 +1,12 @@
-"""Shared by the log reader tests: a frame's fields as python-can's reader (the per-frame
-path) and the columnar reader give them, random frames of every kind, and MF4 files written
-by asammdf itself (column by column, as a logger's software would)."""
+"""Shared by the log reader tests: logs written by python-can's writers (`write_log`), a
+frame's fields as python-can's reader (the per-frame path) and the columnar reader give them,
+random frames of every kind, and MF4 files written by asammdf itself (column by column, as a
+logger's software would)."""
 
 from __future__ import annotations
 
 import random
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
@@ -17,6 +19,21 @@ from monitor.bus.logfile import LogError, read_log
 from monitor.columnar import read_chunks
 
 Frame = tuple[float, int, bool, bool, bool, bool, bool, bool, bytes, int]
+
+WRITERS: dict[str, Callable[[Path], Any]] = {
+    ".log": lambda p: can.CanutilsLogWriter(p, channel="vcan0"),
+    ".asc": lambda p: can.ASCWriter(p),
+    ".blf": lambda p: can.BLFWriter(p),
+}
+
+
+def write_log(path: Path, frames: Sequence[can.Message]) -> Path:
+    """`frames` to `path` with the writer of its suffix."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with WRITERS[path.suffix](path) as writer:
+        for m in frames:
+            writer.on_message_received(m)
+    return path
 
 
 def row(m: can.Message, length: int | None = None) -> Frame:
