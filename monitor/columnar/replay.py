@@ -375,7 +375,7 @@ class _Replay:
                 cnt.inc(C.E2E_LOST_FRAMES, admission.WRAP_LOST * n_wrap)
         for code, name in admission.REFUSED.items():
             k_refused = int((status == code).sum())
-            if k_refused and code != admission.REPEATED:
+            if k_refused:
                 cnt.inc(name, k_refused)
         if jitter.any():
             cnt.inc(C.TIME_JITTER, int(jitter.sum()))

@@ -55,9 +55,9 @@ DROP = -2
 WRAP_LOST = 15  # a repeated counter 16 m periods on: 16 m - 1 lost, 15 by the counter
 
 ADMITTED, NO_INPUT, NON_MONOTONIC, REPEATED = 0, 1, 2, 3
-REFUSED = {NO_INPUT: C.SAMPLES_NO_INPUT, NON_MONOTONIC: C.TIME_NON_MONOTONIC,
-           REPEATED: C.E2E_REPEATED}
-"""The counter of each status that keeps a sample from the estimator."""
+REFUSED = {NO_INPUT: C.SAMPLES_NO_INPUT, NON_MONOTONIC: C.TIME_NON_MONOTONIC}
+"""The counter of each status that keeps a sample from the estimator; `REPEATED` (only ever
+a `wrap`) is counted where the wrap is judged, as `e2e/repeated`, with its warning."""
 
 LAST, RESUME, DT_SUM, DT_N, OFF_RATE = range(5)
 """The admission state vector: the last admitted time, the resumption pending, the sum and
