@@ -29,8 +29,8 @@ PYTHONWARNINGS="ignore:Editable installation" \
     .venv/bin/python -m pip install -q -c constraints.txt -e "$spec"
 # The estimator's kernels, made now so that nothing is compiled when the daemon starts: the
 # ahead-of-time module (for the hardened unit: monitor/estimation/kernels_aot.py) and numba's
-# cache of the JIT kernels, warmed in the directory the daemon reads (monitor/pipeline/warm.py).
+# cache of the JIT kernels, warmed in the directory the daemon reads (monitor/runtime/warm.py).
 # A failure is one line (its own) and not the install's: the daemon then compiles at its
 # first start.
 .venv/bin/python -m monitor.estimation.kernels_aot --quiet || true
-.venv/bin/python -m monitor.pipeline.warm --quiet || true
+.venv/bin/python -m monitor.runtime.warm --quiet || true

@@ -9,6 +9,7 @@ of its stream as `CounterOutcome.OK`, ``REPEATED`` (a duplicate or replay) or ``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import TYPE_CHECKING
@@ -76,6 +77,17 @@ class CounterTracker:
         lost = frames_lost(self._last.get(key, -1), counter)
         self._last[key] = counter
         return lost
+
+    def last(self, streams: Sequence[tuple[str, int]]) -> list[int]:
+        """The previous counter of each (kind, node) stream (-1: none yet): where a chunk of
+        frames judged in one loop (the columnar engine's) starts from."""
+        return [self._last.get(key, -1) for key in streams]
+
+    def remember(self, streams: Sequence[tuple[str, int]], counters: Sequence[int]) -> None:
+        """Each stream's latest counter (-1: none yet), where such a loop ended."""
+        for key, counter in zip(streams, counters, strict=True):
+            if counter >= 0:
+                self._last[key] = counter
 
     def observe(self, sample: Decoded) -> CounterCheck | None:
         """`update` for a decoded frame; None for frames without a counter (truth)."""

@@ -22,7 +22,7 @@ from monitor.jit import njit
 from monitor.pipeline import admission
 from monitor.pipeline.feed import TICK_S
 
-__all__ = ["TICK_S", "admit", "alive", "classify", "ticks"]
+__all__ = ["TICK_S", "admit", "alive", "classify", "ticks", "warm_up"]
 
 F8 = NDArray[np.float64]
 I8 = NDArray[np.int64]
@@ -54,3 +54,9 @@ def ticks(t: F8, last: F8, out_idx: I8, period: float) -> int:
 
 alive = admission.alive_columns
 admit = admission.admit_columns
+
+
+def warm_up() -> None:
+    """Load (or compile) `ticks` (the column forms of the admission and the diagnosis
+    rules are warmed by their own modules' `warm_up`)."""
+    ticks(np.zeros(1), np.full(1, -np.inf), np.zeros(1, np.int64), TICK_S)

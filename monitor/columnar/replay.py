@@ -1,8 +1,9 @@
-"""`replay_file`: one bus log through decode, estimation and diagnosis a chunk at a time.
+"""`ColumnarEngine`: the monitor's rules over a chunk of frames at a time, on a
+`MonitorPipeline`'s state; `replay_file`: one bus log through it a chunk at a time.
 
-The columnar counterpart of ``feed_log(MonitorPipeline(db, cfg, sink=sink), read_log(path))``
-with the same diagnosis events, the same counters and the same samples (see the package
-docstring for what differs: only when counter snapshots reach the sink).
+A replay gives what ``feed_log(MonitorPipeline(db, cfg, sink=sink), read_log(path))`` gives:
+the same diagnosis events, counters and samples (see the package docstring for what differs:
+only when counter snapshots reach the sink).
 """
 
 from __future__ import annotations
@@ -20,24 +21,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.bus.cia402 import (
-    IGNORED_NOT_OPERATIONAL,
-    IGNORED_PROTOCOL,
-    drive_watch,
-    report_counter,
-)
+from monitor.bus.cia402 import IGNORED_NOT_OPERATIONAL, IGNORED_PROTOCOL, report_counter
 from monitor.columnar import kernels as K
 from monitor.columnar.decode import REASONS, DecodedChunk, NotColumnar, RouteTable
 from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, read_chunks
 from monitor.columnar.sinks import SinkRouter
 from monitor.diagnosis import HealthState
-from monitor.diagnosis.rules import FLAG_CAUSES, FLAGGED, HEALTH_CAUSES, REPORTED, new_state
+from monitor.diagnosis.rules import FLAG_CAUSES, HEALTH_CAUSES
 from monitor.estimation.fuzzy_ukf import FuzzyUKF
-from monitor.estimation.model import DiscreteModel
-from monitor.pipeline import MonitorConfig, admission
+from monitor.pipeline import MonitorConfig, MonitorPipeline, NodeMonitor, admission
 from monitor.pipeline import counters as C
 from monitor.pipeline.admission import DROP, NO_COUNTER
-from monitor.pipeline.counters import Counters
 from monitor.pipeline.events import (
     HEALTH,
     MODEL_MISMATCH,
@@ -48,10 +42,10 @@ from monitor.pipeline.events import (
     error_frame_event,
 )
 from monitor.pipeline.feed import replay_frames
-from monitor.pipeline.samples import delayed, held_column, no_past
-from monitor.sinks.base import Sink
+from monitor.pipeline.samples import delayed, held_column
+from monitor.sinks.base import FanOut, Sink
 
-__all__ = ["ReplayResult", "columnar_obstacle", "replay_chunks", "replay_file"]
+__all__ = ["ColumnarEngine", "ReplayResult", "columnar_obstacle", "replay_chunks", "replay_file"]
 
 log = logging.getLogger("motor_monitor")
 
@@ -79,76 +73,51 @@ class ReplayResult:
     fallback: str | None = None
 
 
-class _Node:
-    """One node's estimator, held inputs and diagnosis state between chunks."""
+class ColumnarEngine:
+    """The monitor's rules over a chunk of frames at a time, on the state of a
+    `MonitorPipeline`: its nodes (`NodeMonitor`: estimator, held inputs, admission and
+    diagnosis state), counters, alive-counter tracker, CANopen drives, warnings and sink.
 
-    def __init__(self, node: int, model: DiscreteModel, cfg: MonitorConfig,
-                 cls_prm: NDArray[np.float64]) -> None:
-        self.node = node
-        self.model = model
-        self.cfg = cfg
-        self.T = 1.0 / cfg.rate
-        self.est = FuzzyUKF(model, cfg.estimator)
-        self.u = np.zeros(model.m)  # the held inputs (`monitor.pipeline.samples`)
-        self.u_seen = np.zeros(model.m, np.bool_)
-        self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
-        self.truth = math.nan
-        self.has_truth = False
-        self.admission = admission.new_state()  # last admitted sample, resumption pending
-        self.diag = new_state(cls_prm)  # the diagnosis rules' state (`monitor.diagnosis.rules`)
-        self.gamma = np.zeros(model.m)  # the estimator's latest gamma^ (fresh: zeros)
-        self.rules = self.est.out.rules
-        self.samples = 0
+    Feeding a chunk here or its frames one by one to `pipe.feed` (with `feed_log`'s ticks)
+    gives the same events, samples and counters, so the two can be mixed on one pipeline:
+    the live daemon hands a socket's backlog to `chunk` and single frames to `feed`.
+    `ticks`: check the timeouts every `TICK_S` of the frames' time stamps inside a chunk,
+    as `feed_log` does (a replay); False where the caller ticks (the live loop).
+    Raises `NotColumnar` for a codec whose frames must go one by one (SecOC).
+    """
 
-    def restart(self) -> None:
-        self.est = FuzzyUKF(self.model, self.cfg.estimator)
-        self.gamma = np.zeros(self.model.m)
-        self.rules = self.est.out.rules
-
-
-class _Replay:
-    def __init__(self, db: Any, cfg: MonitorConfig, sink: Sink) -> None:
-        self.cfg = cfg
-        self.sink = sink
-        self.model = cfg.plant().discretize(1.0 / cfg.rate)
-        self.table = RouteTable.of(db, self.model.m, self.model.p)
-        self.secoc = bool(getattr(db, "secoc_enabled", False))
-        self.router = SinkRouter(sink)
-        self.counters = Counters()
-        self.nodes: dict[int, _Node] = {}
-        self.cls_prm = cfg.diagnosis_params(self.model.p)
+    def __init__(self, pipe: MonitorPipeline, *, ticks: bool = True) -> None:
+        self.pipe = pipe
+        self.ticks = ticks
+        cfg = self.cfg = pipe.cfg
+        self.model = pipe.model
+        self.table = RouteTable.of(pipe.db, self.model.m, self.model.p)
+        self.secoc = bool(getattr(pipe.db, "secoc_enabled", False))
+        self.router = SinkRouter(pipe.sink)
+        self.counters = pipe.counters
+        self.nodes = pipe.nodes
+        self.cls_prm = pipe.diag_prm
         routes = self.table.routes
         self.stream_of = np.array([r.stream for r in routes] or [0], np.int64)
         self.output_only = np.array([bool(r.outputs) and not r.inputs and r.truth is None
                                      for r in routes] or [False])
-        self.alive_last = np.full(max(1, len(self.table.streams)), -1, np.int64)
+        self.n_out = np.array([len(r.outputs) for r in routes] or [0], np.int64)
         self.route_node = np.array([r.node for r in routes] or [0], np.int64)
         not_read = [admission.not_read(r.kind, r.node, cfg.nodes, self.secoc) for r in routes]
         self.skip_names = sorted({x for x in not_read if x is not None})
         self.route_skip = np.array([0 if x is None else 1 + self.skip_names.index(x)
                                     for x in not_read] or [0], np.int64)
-        self.drives = drive_watch(db)  # a CANopen rig's drives, as the per-frame engine
-        self.held: set[int] = set()  # nodes whose drive said it was not operational
+        self.drives = pipe.drives  # a CANopen rig's drives, as the per-frame engine
+        self.held = pipe.held  # nodes whose drive said it was not operational
         self.resume_rows: dict[int, NDArray[np.int64]] = {}  # this chunk's resumptions
         self.last_tick = np.array([-math.inf])
         self.offset = 0
-        self.events: list[DiagnosisEvent] = []
-        self.warned: set[str] = set()
-        FuzzyUKF(self.model, cfg.estimator)  # compiled kernels loaded before the first chunk
-        for n in cfg.nodes or ():
-            self._node(n)
 
-    def _node(self, n: int) -> _Node:
-        nm = self.nodes.get(n)
-        if nm is None:
-            nm = _Node(n, self.model, self.cfg, self.cls_prm)
-            self.nodes[n] = nm
-        return nm
+    def _node(self, n: int) -> NodeMonitor:
+        return self.pipe.node(n)
 
     def _warn(self, key: str, text: str) -> None:
-        if key not in self.warned:  # the first of each kind per file (per-frame: rate-limited)
-            self.warned.add(key)
-            log.warning("%s", text)
+        self.pipe.warn.warn(key, text)
 
     # ------------------------------------------------------------------------------ chunk
 
@@ -163,7 +132,7 @@ class _Replay:
             self._error_frame(c, i, events)
         dec = self.table.decode(c)
         tick_idx = np.zeros(n, np.int64)  # the frames after which `feed_log` ticks
-        nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S)
+        nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S) if self.ticks else 0
         tick_idx = tick_idx[:nt]
         rejected = (dec.code > 0) & ~c.error
         # a CANopen rig's drives: their frames are no rig message (unknown_id), read in
@@ -254,8 +223,11 @@ class _Replay:
             rc = ra[has_c]
             lz = np.zeros(len(ci), np.int64)
             wz = np.zeros(len(ci), np.bool_)
-            K.alive(self.stream_of[rc], dec.counter[ci], self.output_only[rc], self.alive_last,
+            tracker = self.pipe.tracker  # the per-frame engine's, so either may go next
+            alive_last = np.array(tracker.last(self.table.streams) or [-1], np.int64)
+            K.alive(self.stream_of[rc], dec.counter[ci], self.output_only[rc], alive_last,
                     lz, wz)
+            tracker.remember(self.table.streams, alive_last[:len(self.table.streams)].tolist())
             lost[ci] = lz
             wrap[ci] = wz
             rep = lz == DROP
@@ -281,13 +253,12 @@ class _Replay:
             if isinstance(ev, DiagnosisEvent):
                 if ev.kind == HEALTH:
                     cnt.inc(C.transition(ev.state))
-                self.events.append(ev)
-                self.sink.on_transition(ev)
+                self.pipe.sink.on_transition(ev)
             elif isinstance(ev, Diagnosis):
-                self.sink.on_diagnosis(ev)
+                self.pipe.sink.on_diagnosis(ev)
             else:
-                self.sink.on_bus_event(ev)
-        self.sink.on_counters(float(c.t[-1]), cnt)
+                self.pipe.sink.on_bus_event(ev)
+        self.pipe.emit_counters(float(c.t[-1]))
 
     def _error_frame(self, c: FrameChunk, i: int, events: list[tuple[int, int, int, Any]]
                      ) -> None:
@@ -298,7 +269,7 @@ class _Replay:
         self._warn("errframe-" + ",".join(names), event.text)
         events.append((2 * i, -1, len(events), event))  # keys: rows of this chunk
 
-    def _node_chunk(self, nm: _Node, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
+    def _node_chunk(self, nm: NodeMonitor, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
                     ra: NDArray[np.int64], lost_all: NDArray[np.int64],
                     wrap_all: NDArray[np.bool_], tick_idx: NDArray[np.int64], created: int,
                     order: int,
@@ -325,18 +296,18 @@ class _Replay:
         has_t = ~np.isnan(tr)
         if has_t.any():
             cnt.inc(C.SAMPLES_TRUTH, int(has_t.sum()))
-        held_t, got_t = held_column(has_t, tr, nm.truth, nm.has_truth)
-        n_out = np.array([len(r.outputs) for r in self.table.routes], np.int64)
-        is_out = n_out[ra] > 0
+        truth = nm.truth_gamma
+        held_t, got_t = held_column(has_t, tr, math.nan if truth is None else truth,
+                                    truth is not None)
+        is_out = self.n_out[ra] > 0
         oi = np.flatnonzero(is_out)
         # everything held at this chunk's end, and at every frame (for ticks)
         prev_u = nm.u.copy()
-        g0, r0 = nm.gamma.copy(), nm.rules
+        g0, r0 = nm.estimator.out.gamma.copy(), nm.estimator.out.rules
         if len(fr):
             nm.u[:] = held_u[-1]
             nm.u_seen |= has_u.any(axis=0)
-            nm.truth = float(held_t[-1])
-            nm.has_truth = bool(got_t[-1])
+            nm.truth_gamma = float(held_t[-1]) if got_t[-1] else None
         t_o = t_fr[oi]
         status = np.zeros(len(oi), np.int64)
         kk = np.ones(len(oi), np.int64)
@@ -405,15 +376,13 @@ class _Replay:
                 nm.restart()
             nxt = np.flatnonzero(rA[i + 1:])
             end = i + 1 + int(nxt[0]) if len(nxt) else nA
-            res = nm.est.step_many(U[i:end], Y[i:end], dts[i:end])
+            res = nm.estimator.step_many(U[i:end], Y[i:end], dts[i:end])
             j = i + res.count
             gam[i:j] = res.gamma[:res.count]
             yest[i:j] = res.y_est[:res.count]
             nis[i:j] = res.nis[:res.count]
             rules[i:j] = res.rules[:res.count]
             n_events += int(res.structure_event[:res.count].sum())
-            nm.gamma = gam[j - 1].copy()
-            nm.rules = int(rules[j - 1])
             if res.stopped_on_nan:
                 isnan[j - 1] = True
                 nm.restart()
@@ -445,8 +414,13 @@ class _Replay:
         fev = np.zeros(L, np.int64)
         flag = np.zeros(L, np.bool_)
         counts = np.zeros(2, np.int64)
-        K.classify(is_tick, tt, gg, ni, rb, nn, nm.diag, self.cls_prm, st_out, ev, prev,
+        diag = nm.diag  # an array, or a list where the JIT is off (`rules.step_vectors`)
+        diag_a = diag if isinstance(diag, np.ndarray) else np.array(diag, np.float64)
+        K.classify(is_tick, tt, gg, ni, rb, nn, diag_a, self.cls_prm, st_out, ev, prev,
                    cause, fev, flag, counts)
+        if diag_a is not diag:
+            for k_s, v_s in enumerate(diag_a.tolist()):
+                diag[k_s] = v_s
         if counts[0]:
             cnt.inc(C.NODES_MODEL_MISMATCH, int(counts[0]))
         if counts[1]:
@@ -518,15 +492,6 @@ class _Replay:
     def _fresh_rules(self) -> int:
         return FuzzyUKF(self.model, self.cfg.estimator).out.rules
 
-    def result(self, path: Path | None) -> ReplayResult:
-        nodes = {n: {"state": _STATES[int(nm.diag[REPORTED])].label,
-                     "model_mismatch": bool(nm.diag[FLAGGED] != 0.0),
-                     "gamma": float(nm.gamma.max()),
-                     "rules": nm.rules, "samples": nm.samples}
-                 for n, nm in sorted(self.nodes.items())}
-        return ReplayResult(path, self.offset, dict(sorted(self.counters.items())),
-                            list(self.events), nodes)
-
 
 def columnar_obstacle(db: Any, cfg: MonitorConfig | None = None) -> str | None:
     """Why logs of this decoder cannot be replayed in columns (SecOC, a codec or frames
@@ -540,13 +505,38 @@ def columnar_obstacle(db: Any, cfg: MonitorConfig | None = None) -> str | None:
     return None
 
 
+class _Transitions(Sink):
+    """Keeps every `DiagnosisEvent` for the `ReplayResult`."""
+
+    def __init__(self) -> None:
+        self.events: list[DiagnosisEvent] = []
+
+    def on_transition(self, event: DiagnosisEvent) -> None:
+        self.events.append(event)
+
+
+def _pipeline(db: Any, cfg: MonitorConfig | None, sink: Sink | None
+              ) -> tuple[MonitorPipeline, _Transitions]:
+    keep = _Transitions()
+    sinks = [keep] if sink is None else [sink, keep]
+    return MonitorPipeline(db, cfg or MonitorConfig(), sink=FanOut(sinks)), keep
+
+
+def _result(path: Path | None, frames: int, pipe: MonitorPipeline, keep: _Transitions,
+            fallback: str | None = None) -> ReplayResult:
+    s = pipe.summary()
+    return ReplayResult(path, frames, s["counters"], keep.events, s["nodes"],
+                        columnar=fallback is None, fallback=fallback)
+
+
 def replay_chunks(chunks: Iterable[FrameChunk], db: Any, cfg: MonitorConfig | None = None,
                   sink: Sink | None = None) -> ReplayResult:
     """`replay_file` on chunks already in memory (no fallback: `NotColumnar` is raised)."""
-    rp = _Replay(db, cfg or MonitorConfig(), sink if sink is not None else Sink())
+    pipe, keep = _pipeline(db, cfg, sink)
+    engine = ColumnarEngine(pipe)
     for c in chunks:
-        rp.chunk(c)
-    return rp.result(None)
+        engine.chunk(c)
+    return _result(None, engine.offset, pipe, keep)
 
 
 def replay_file(path: str | Path, db: Any, cfg: MonitorConfig | None = None,
@@ -563,18 +553,17 @@ def replay_file(path: str | Path, db: Any, cfg: MonitorConfig | None = None,
     `MonitorError`) for a file that cannot be read. Does not close `sink`.
     """
     p = Path(path)
-    cfg = cfg or MonitorConfig()
-    the_sink = sink if sink is not None else Sink()
+    pipe, keep = _pipeline(db, cfg, sink)
     try:
-        rp = _Replay(db, cfg, the_sink)
+        engine = ColumnarEngine(pipe)
     except NotColumnar as exc:
         log.warning("columnar replay: %s: %s; replaying it frame by frame", p, exc)
-        return _per_frame(p, db, cfg, the_sink, str(exc))
+        return _result(p, replay_frames(pipe, p), pipe, keep, str(exc))
     for c in read_chunks(p, chunk_frames):
-        rp.chunk(c)
+        engine.chunk(c)
         del c
         release_free_heap()
-    return rp.result(p)
+    return _result(p, engine.offset, pipe, keep)
 
 
 _LIBC_TRIM: Callable[[int], int] | None = None
@@ -592,27 +581,3 @@ def release_free_heap() -> None:
     chunk it stays flat). A trim costs about a millisecond against ~0.5 s of a chunk."""
     if _LIBC_TRIM is not None:
         _LIBC_TRIM(0)
-
-
-def _per_frame(path: Path, db: Any, cfg: MonitorConfig, sink: Sink, why: str) -> ReplayResult:
-    from monitor.pipeline import MonitorPipeline
-
-    events: list[DiagnosisEvent] = []
-
-    class _Keep(Sink):
-        def on_transition(self, event: DiagnosisEvent) -> None:
-            events.append(event)
-
-    from monitor.sinks.base import FanOut
-
-    pipe = MonitorPipeline(db, cfg, sink=FanOut([sink, _Keep()]))
-    n = _feed(pipe, path)
-    s = pipe.summary()
-    return ReplayResult(path, n, dict(pipe.counters), events, s["nodes"], columnar=False,
-                        fallback=why)
-
-
-def _feed(pipe: Any, path: Path) -> int:
-    """`monitor.pipeline.feed.replay_frames`: `feed_log` of `read_log(path)`, python-can's
-    reader, exactly the per-frame path."""
-    return int(replay_frames(pipe, path))

@@ -168,12 +168,18 @@ def step_vectors(prm: F8) -> tuple[FloatVector, FloatVector, IntVector]:
 
 
 def warm_up(prm: F8) -> None:
-    """Load (or compile) the steps the per-frame engine calls, on scratch vectors: a JIT
-    compile on the first sample of a live bus would stall the daemon for seconds."""
+    """Load (or compile) the steps both engines call (one at a time, and `run` over the
+    columns of a backlog), on scratch vectors: a JIT compile on the first sample of a live
+    bus would stall the daemon for seconds."""
     s, p, out = step_vectors(prm)
     on_sample(s, p, 0.0, 0.0, 1.0, False, False, out)
     on_sample(s, p, 0.01, math.nan, math.nan, True, True, out)
     on_tick(s, p, 10.0, out)
+    one_b, one_f = np.zeros(1, np.bool_), np.zeros(1)
+    run(one_b, one_f, one_f, one_f, one_b, one_b, new_state(prm), prm.copy(),
+        np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
+        np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.bool_),
+        np.zeros(2, np.int64))
 
 
 def region(value: float, f1: float, f2: float) -> int:

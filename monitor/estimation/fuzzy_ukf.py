@@ -401,16 +401,17 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         return out
 
     def warm_up(self) -> None:
-        """Load (or compile) every compiled function a structure event uses -- the onset
-        search and the re-processing -- on this scratch estimator, so that the first event
-        on a live bus does not stall the caller for the JIT. Leaves the estimator dirty:
-        use a throw-away instance."""
+        """Load (or compile) every compiled function of a step, a structure event (the onset
+        search and the re-processing) and `step_many`'s loop, on this scratch estimator, so
+        that the first event on a live bus does not stall the caller for the JIT. Leaves the
+        estimator dirty: use a throw-away instance."""
         _, m, p = self._dims
         for _ in range(2):
             self.step(np.zeros(m), np.zeros(p), self.model.T)
         k = self.steps - 1
         j, _, models = self._onset(k)
         self._reprocess(j, k, k - len(models[2]) + 1, models)
+        self.step_many(np.zeros((2, m)), np.zeros((2, p)), np.full(2, self.model.T))
 
     def _init_from_sample(self, u: Array, y: Array) -> bool:
         """The start without a given x0 (`start_state`); True when the first sample has

@@ -1,7 +1,7 @@
 """The estimator's kernels made at install: `python -m monitor.estimation.kernels_aot`.
 
 Nothing is compiled when the daemon starts (scripts/setup-venv.sh runs this after
-`pip install`, and `monitor.pipeline.warm`, which fills numba's cache of the JIT kernels).
+`pip install`, and `monitor.runtime.warm`, which fills numba's cache of the JIT kernels).
 The ahead-of-time build of the step kernel (`build`): numba's `pycc` compiles
 `fuzzy_ukf_step`, with the kernels it calls, into an ordinary extension module
 (`monitor/estimation/_fuzzy_ukf_aot.*.so`) that the dynamic linker loads like any other,

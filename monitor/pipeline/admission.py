@@ -214,6 +214,14 @@ def admit_columns(t: F8, lost: I8, wrap: B1, seen: B1, resume: B1, state: F8, ra
 
 
 def warm_up() -> None:
-    """Load (or compile) what the per-frame engine calls, on a scratch state: a JIT compile
-    on the first frame of a live bus would stall the daemon."""
+    """Load (or compile) what both engines call (`admit`, and its column forms the live
+    daemon runs on a backlog), on a scratch state: a JIT compile on the first frame of a
+    live bus would stall the daemon."""
     admit(new_state(), 0.0, NO_COUNTER, False, True, False, 100.0, 5.0, 0.5, 0.25)
+    one_i, one_b, one_f = np.zeros(1, np.int64), np.zeros(1, np.bool_), np.zeros(1)
+    alive_columns(one_i, one_i, one_b, np.full(1, -1, np.int64), np.zeros(1, np.int64),
+                  np.zeros(1, np.bool_))
+    admit_columns(one_f, np.full(1, NO_COUNTER, np.int64), one_b, np.ones(1, np.bool_), one_b,
+                  new_state(), 100.0, 5.0, 0.5, 0.25, np.zeros(1, np.int64),
+                  np.zeros(1, np.int64), np.zeros(1, np.bool_), np.zeros(1, np.bool_),
+                  np.zeros(1, np.int64))

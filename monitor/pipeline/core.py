@@ -272,28 +272,30 @@ class MonitorPipeline:
         self.sink: Sink = sink if sink is not None else Sink()
         self.counters = counters if counters is not None else Counters()
         self.nodes: dict[int, NodeMonitor] = {}
-        self._warn = _RateLimitedLog()
+        self.warn = _RateLimitedLog()
+        """Warnings of kinds of problem: the first of each, then at most one per period."""
         self._last_counters_t = -math.inf
-        self._model = self.cfg.plant().discretize(1.0 / self.cfg.rate)
-        self._diag_prm = self.cfg.diagnosis_params(self._model.p)
+        self.model = self.cfg.plant().discretize(1.0 / self.cfg.rate)
+        self.diag_prm = self.cfg.diagnosis_params(self.model.p)
         self.tracker = CounterTracker()
-        self._drives = drive_watch(db)  # a CANopen rig's drives: EMCY, heartbeat, statusword
-        self._held: set[int] = set()  # nodes whose drive said it was not operational
+        self.drives = drive_watch(db)  # a CANopen rig's drives: EMCY, heartbeat, statusword
+        self.held: set[int] = set()  # nodes whose drive said it was not operational
         # Load the compiled kernels now, not on the first frame of a live bus.
         # (the structure event's onset search and re-processing too: a JIT compile in the
         # middle of a flood would stall the daemon for seconds)
-        FuzzyUKF(self._model, self.cfg.estimator).warm_up()
-        rules.warm_up(self._diag_prm)
+        FuzzyUKF(self.model, self.cfg.estimator).warm_up()
+        rules.warm_up(self.diag_prm)
         warm_up()
         for n in self.cfg.nodes or ():
-            self._node(n)
+            self.node(n)
 
     # ------------------------------------------------------------------ frames in
 
-    def _node(self, n: int) -> NodeMonitor:
+    def node(self, n: int) -> NodeMonitor:
+        """Node n's state, made on its first frame."""
         nm = self.nodes.get(n)
         if nm is None:
-            nm = NodeMonitor(n, self._model, self.cfg, self._diag_prm)
+            nm = NodeMonitor(n, self.model, self.cfg, self.diag_prm)
             self.nodes[n] = nm
         return nm
 
@@ -306,7 +308,7 @@ class MonitorPipeline:
             return
         res = self.db.decode_can(msg)
         if isinstance(res, Rejected):
-            drives = self._drives
+            drives = self.drives
             if drives is not None and res.reason == RejectReason.UNKNOWN_ID:
                 protocol, reports = drives.unread(msg.arbitration_id, msg.is_extended_id,
                                                   bytes(msg.data), float(msg.timestamp))
@@ -326,13 +328,13 @@ class MonitorPipeline:
         names, event = error_frame_event(msg)
         for name in names:
             self.counters.inc(C.bus_error(name))
-        self._warn.warn("errframe-" + ",".join(names), event.text)
+        self.warn.warn("errframe-" + ",".join(names), event.text)
         self.sink.on_bus_event(event)
 
     def _rejected(self, res: Rejected) -> None:
         reason = str(res.reason)
         self.counters.inc(C.rejected(reason))
-        self._warn.warn(reason, f"frame rejected ({reason}, id 0x{res.arbitration_id:X}): "
+        self.warn.warn(reason, f"frame rejected ({reason}, id 0x{res.arbitration_id:X}): "
                                 f"{res.detail}")
 
     def _dispatch(self, d: Decoded) -> None:
@@ -340,15 +342,15 @@ class MonitorPipeline:
         if skip is not None:
             self.counters.inc(skip)
             return
-        if self._drives is not None:
-            if not self._drives.operational(d.node):
+        if self.drives is not None:
+            if not self.drives.operational(d.node):
                 self.counters.inc(IGNORED_NOT_OPERATIONAL)  # the drive says it is not driving
-                self._held.add(d.node)
+                self.held.add(d.node)
                 return
-            if d.node in self._held:  # the estimate from before is not the plant's now
-                self._held.discard(d.node)
-                self._node(d.node).admission[RESUME] = 1.0
-        nm = self._node(d.node)
+            if d.node in self.held:  # the estimate from before is not the plant's now
+                self.held.discard(d.node)
+                self.node(d.node).admission[RESUME] = 1.0
+        nm = self.node(d.node)
         lost, wrap = NO_COUNTER, False
         if d.counter is not None:
             lost, wrap = alive_verdict(
@@ -373,7 +375,7 @@ class MonitorPipeline:
 
     def _repeated(self, kind: str, node: int, counter: int | None) -> None:
         self.counters.inc(C.E2E_REPEATED)
-        self._warn.warn(f"repeat-{kind}-{node}", f"node {node}: repeated {kind} alive "
+        self.warn.warn(f"repeat-{kind}-{node}", f"node {node}: repeated {kind} alive "
                                                  f"counter {counter} (replay or duplicate)")
 
     def _on_output(self, nm: NodeMonitor, d: Decoded, lost: int, wrap: bool) -> None:
@@ -485,8 +487,8 @@ class MonitorPipeline:
 
     def tick(self, now: float) -> None:
         """Timeouts and steady publication, at bus time `now` (no frame needed)."""
-        if self._drives is not None:  # a heartbeat lost on a bus gone silent
-            self._drive_reports(self._drives.tick(now))
+        if self.drives is not None:  # a heartbeat lost on a bus gone silent
+            self._drive_reports(self.drives.tick(now))
         for nm in self.nodes.values():  # silence, and steady publication while silent
             if rules.on_tick(nm.diag, nm.prm, now, nm.out):
                 self._report(nm, now)

@@ -13,7 +13,7 @@ Side by side in one run, interleaved (the same machine load for each):
 * ``cold``: an empty numba cache (NUMBA_CACHE_DIR): every kernel compiled at start, as on
   a fresh install whose kernels were not made at install, or on another CPU;
 * ``install``: the cache warmed as scripts/setup-venv.sh warms it
-  (`python -m monitor.pipeline.warm`, whose time is printed too);
+  (`python -m monitor.runtime.warm`, whose time is printed too);
 * ``aot``: NUMBA_DISABLE_JIT=1, the hardened unit's mode (the ahead-of-time step kernel,
   no numba; "interpreted" is printed when that module is missing or stale).
 
@@ -143,7 +143,7 @@ def _warm(cache: Path) -> float:
     `-m` imports the package the daemon imports (a PYTHONPATH, or else the install)."""
     t0 = time.monotonic()
     proc = subprocess.run(
-        [sys.executable, "-m", "monitor.pipeline.warm", "--quiet"],
+        [sys.executable, "-m", "monitor.runtime.warm", "--quiet"],
         env=dict(os.environ, NUMBA_CACHE_DIR=str(cache), NUMBA_DISABLE_JIT="0"),
         cwd=cache, capture_output=True, text=True, check=False)
     if proc.returncode != 0:

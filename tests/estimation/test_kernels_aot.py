@@ -101,7 +101,7 @@ def test_the_warmed_cache_leaves_the_daemon_nothing_to_compile(tmp_path: Path) -
     # says "data saved" for every kernel it compiles and caches.
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), NUMBA_DISABLE_JIT="0")
     env.pop("MOTOR_MONITOR_KERNEL", None)
-    warm = subprocess.run([sys.executable, "-m", "monitor.pipeline.warm", "--quiet"], env=env,
+    warm = subprocess.run([sys.executable, "-m", "monitor.runtime.warm", "--quiet"], env=env,
                           capture_output=True, text=True, timeout=900, check=False)
     assert warm.returncode == 0 and not warm.stdout and not warm.stderr, warm
     saved = list((tmp_path / "cache").rglob("*.nbi"))

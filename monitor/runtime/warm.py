@@ -1,12 +1,13 @@
-"""numba's cache of every kernel the daemon loads, warmed at install:
-`python -m monitor.pipeline.warm`.
+"""numba's cache of every kernel the daemon and a replay load, warmed at install:
+`python -m monitor.runtime.warm`.
 
 Nothing is compiled when the daemon starts (scripts/setup-venv.sh runs this after
 `pip install`, beside the estimator's ahead-of-time build, `monitor.estimation.kernels_aot`):
-the warm-up is the pipeline's own, on scratch state -- the estimator's step kernel and what
-it calls (the UKF, the fuzzy system), the structure event's onset search and re-processing
-(`FuzzyUKF.warm_up`), the diagnosis rules' steps (`monitor.diagnosis.rules.warm_up`) and the
-admission of samples (`monitor.pipeline.admission.warm_up`) -- compiled into the cache
+the warm-up is the engines' own, on scratch state -- the estimator's step kernel and what
+it calls (the UKF, the fuzzy system), its loop over many samples, the structure event's
+onset search and re-processing (`FuzzyUKF.warm_up`), the diagnosis rules' steps and their
+loop (`monitor.diagnosis.rules.warm_up`), the admission of samples and its column forms
+(`monitor.pipeline.admission.warm_up`) and the columnar engine's ticks -- compiled into the cache
 directory the daemon reads (`monitor.jit`). The kernels' argument types do not depend on the
 plant's size, so the packaged DC motor warms them for every rig. numba keys the cache by
 the kernels' source (a content hash), their directory and the CPU: an edited source, a
@@ -35,6 +36,7 @@ def warm_jit_cache() -> Path | None:
     if directory is None:
         raise RuntimeError("no writable directory for numba's kernel cache (NUMBA_CACHE_DIR, "
                            "XDG_CACHE_HOME, ~/.cache)")
+    from monitor.columnar import kernels as columnar_kernels
     from monitor.diagnosis import rules
     from monitor.diagnosis.thresholds import DEFAULT_THRESHOLDS
     from monitor.estimation.fuzzy_ukf import FuzzyUKF
@@ -44,6 +46,7 @@ def warm_jit_cache() -> Path | None:
     FuzzyUKF(dc_motor().discretize(0.01)).warm_up()
     rules.warm_up(rules.params(DEFAULT_THRESHOLDS))
     admission.warm_up()
+    columnar_kernels.warm_up()
     return directory
 
 
