@@ -1,11 +1,18 @@
 """Pipeline throughput benchmark: `python -m tests.bench.pipeline [--frames N] [--stages ...]`.
 
-`--stages` picks stages (default: all): decode, pipeline, pipeline+rerun, columnar+rerun,
+`--stages` picks stages (default: all): decode, pipeline, pipeline+rerun, live,
+live+rerun, columnar+rerun,
 mf4+rerun, and the log readers alone, read-log, read-asc, read-blf, read-mf4
 (`monitor.columnar.read_chunks` on the same frames as candump .log, Vector .asc and .blf,
 the latter two written and read by python-can, and an ASAM MDF4 .mf4 written by asammdf),
 read-mf4-python-can (python-can's `MF4Reader` alone on that .mf4, message by message),
 e.g. ``--frames 10000000 --stages decode,columnar+rerun`` for the memory over 10^7 frames.
+
+live and live+rerun are the daemon's receive loop with a backlog in its socket (what it
+can sustain): receives of `RECEIVE_BATCH` frames, each handed to `BacklogFeed` as
+`motor-monitor run` hands it (a backlog to the columnar engine on the pipeline's state),
+the timeouts checked between receives; pipeline and pipeline+rerun feed every frame one by
+one (the path of a frame at low load, whose latency `tests.bench.latency` measures).
 
 The columnar replay (`monitor.columnar.replay_file`, with Rerun on) runs in the same run on
 the same frames written to a candump .log (the file read is part of its time), beside the
@@ -39,9 +46,12 @@ from pathlib import Path
 import can
 import numpy as np
 
+from monitor.app.run import RECEIVE_BATCH
 from monitor.bus.codec import MotorDatabase, load_database
 from monitor.columnar import read_chunks, replay_file
+from monitor.columnar.live import BacklogFeed
 from monitor.pipeline import MonitorConfig, MonitorPipeline
+from monitor.pipeline.feed import TICK_S
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.rerun import REPLAY_BATCH_SIZE, REPLAY_PART_BYTES, RerunSink, recording_parts
 from sim_ecu.ecu import VirtualECU
@@ -49,8 +59,8 @@ from sim_ecu.scenario import load_scenario
 from tests.support.log_readers import write_mf4
 
 BUS_LIMIT_FPS = 1_000_000 / 111  # 8-byte standard frames, no stuff bits: the upper bound
-STAGES = ("decode", "pipeline", "pipeline+rerun", "columnar+rerun", "mf4+rerun", "read-log",
-          "read-asc", "read-blf", "read-mf4", "read-mf4-python-can")
+STAGES = ("decode", "pipeline", "pipeline+rerun", "live", "live+rerun", "columnar+rerun",
+          "mf4+rerun", "read-log", "read-asc", "read-blf", "read-mf4", "read-mf4-python-can")
 MF4_TARGET_FPS = 200_000
 
 
@@ -189,19 +199,38 @@ def _run(kind: str, db: MotorDatabase, base: list[can.Message], period: float, n
         el = time.perf_counter() - t0
         return {"fps": n / el, "rss_mb": rss}
     sink = None
-    if kind == "pipeline+rerun":
+    if kind.endswith("+rerun"):
         sink = RerunSink(rrd_path=tmp / "bench.rrd", nodes=(0,), batch_size=REPLAY_BATCH_SIZE)
     pipe = MonitorPipeline(db, MonitorConfig(nodes=(0,)), sink=sink)
     last = 0.0
     t0 = time.perf_counter()
-    for i, m in enumerate(_stream(base, period, n)):
-        pipe.feed(m)
-        ts = m.timestamp
-        if ts - last >= 0.05:  # what replay does: timeouts every 50 ms of bus time
-            last = ts
-            pipe.tick(ts)
-        if i % step == 0:
-            rss.append(_rss_mb())
+    if kind.startswith("live"):
+        # the live loop with a backlog in the socket: receives of RECEIVE_BATCH frames, each
+        # handed to BacklogFeed (the columnar engine on the pipeline's state), the timeouts
+        # checked between receives
+        feed = BacklogFeed(pipe)
+        batch: list[can.Message] = []
+        for i, m in enumerate(_stream(base, period, n)):
+            batch.append(m)
+            if len(batch) == RECEIVE_BATCH:
+                feed.feed(batch)
+                batch = []
+                ts = m.timestamp
+                if ts - last >= TICK_S:
+                    last = ts
+                    pipe.tick(ts)
+            if i % step == 0:
+                rss.append(_rss_mb())
+        feed.feed(batch)
+    else:
+        for i, m in enumerate(_stream(base, period, n)):
+            pipe.feed(m)
+            ts = m.timestamp
+            if ts - last >= TICK_S:  # what replay does: timeouts every 50 ms of bus time
+                last = ts
+                pipe.tick(ts)
+            if i % step == 0:
+                rss.append(_rss_mb())
     if sink is not None:
         sink.close()
     el = time.perf_counter() - t0
@@ -238,7 +267,7 @@ def main() -> None:
         _write_log(base, period, 5000, head)
         replay_file(head, db, MonitorConfig(nodes=(0,)))
         for kind in stages:
-            if kind in ("decode", "pipeline", "pipeline+rerun"):
+            if kind in ("decode", "pipeline", "pipeline+rerun", "live", "live+rerun"):
                 results[kind] = _run(kind, db, base, period, args.frames, Path(td))
             elif kind == "columnar+rerun":
                 results[kind] = _columnar(db, log, args.frames, Path(td))
@@ -281,6 +310,10 @@ def main() -> None:
             per = float(results["pipeline+rerun"]["fps"])  # type: ignore[arg-type]
             ratios["columnar_over_per_frame"] = col / per
             print(f"columnar/per-frame {col / per:.2f}x")
+    if "live+rerun" in results:
+        live = float(results["live+rerun"]["fps"])  # type: ignore[arg-type]
+        ratios.update(live_over_decode=live / dec, live_meets_target=live >= dec)
+        print(f"live (backlog) with Rerun/cantools decode {live / dec:.2f}x (target >= 1.0)")
     if "mf4+rerun" in results:
         mf4_fps = float(results["mf4+rerun"]["fps"])  # type: ignore[arg-type]
         ratios.update(mf4_target_fps=MF4_TARGET_FPS, mf4_meets_target=mf4_fps >= MF4_TARGET_FPS)
