@@ -344,9 +344,9 @@ def test_identify_replaces_its_own_files_and_no_other(
     """A rig, report and plot identify wrote are replaced without --force (each atomically,
     the new rig loading); the same names written by someone else are refused before the
     captures are read."""
-    from tests.identify.test_identify_cli import PRESS, _capture
+    from tests.support.identify import PRESS, press_capture
 
-    cap = _capture(tmp_path / "press.log")
+    cap = press_capture(tmp_path / "press.log")
     out = tmp_path / "learned.toml"
     report, png = out.with_suffix(".identify.json"), out.with_suffix(".identify.png")
     argv = ["identify", str(cap), "--rig", str(PRESS), "--node", "1", "--out", str(out)]

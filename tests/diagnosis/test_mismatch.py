@@ -5,43 +5,14 @@ fault_free: no fault alarm); a fitting model over healthy and faulty runs never 
 
 from __future__ import annotations
 
-import can
-
-from monitor.bus.codec import Decoded, MotorDatabase, load_database
+from monitor.bus.codec import load_database
 from monitor.diagnosis import HealthState
-from monitor.estimation.fuzzy_ukf import FuzzyUKFConfig
-from monitor.pipeline import DiagnosisEvent, MonitorConfig
 from monitor.pipeline.events import HEALTH, MODEL_MISMATCH
-from monitor.pipeline.feed import feed_log
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario, scenario_from_dict
-from tests.support.pipeline import pipeline
+from tests.support.pipeline import diagnose, with_offset
 
 T0 = 1_700_000_000.0
-
-
-def _offset(db: MotorDatabase, frames: list[can.Message], amps: float, after: float
-            ) -> list[can.Message]:
-    """The current frames after `after` seconds read `amps` more than the motor draws (a
-    10 A offset on 67.7 A: the windowed NIS settles near 2.5, twice its band)."""
-    out = []
-    for m in frames:
-        d = db.decode_can(m)
-        if isinstance(d, Decoded) and d.kind == "current" and m.timestamp - T0 >= after:
-            data = db.encode_current(d.node, d.value + amps, int(d.counter or 0))
-            m = can.Message(arbitration_id=m.arbitration_id, data=data, timestamp=m.timestamp,
-                            is_extended_id=False)
-        out.append(m)
-    return out
-
-
-def _diagnose(db: MotorDatabase, frames: list[can.Message], bias: str = "auto") -> tuple[
-        list[DiagnosisEvent], list[can.Message]]:
-    events: list[DiagnosisEvent] = []
-    sent: list[can.Message] = []
-    cfg = MonitorConfig(nodes=(0,), estimator=FuzzyUKFConfig(bias=bias))
-    feed_log(pipeline(db, cfg, events=events, sent=sent), frames)
-    return events, sent
 
 
 def test_unmodelled_offset_raises_the_flag_not_a_fault() -> None:
@@ -50,7 +21,7 @@ def test_unmodelled_offset_raises_the_flag_not_a_fault() -> None:
     frames = list(VirtualECU(None, db, 0, healthy, seed=4).frames(start_time=T0))
     # without the estimator's bias states, which would learn the offset (tests/estimation/
     # test_bias.py): the flag is what tells of a model that does not fit
-    events, sent = _diagnose(db, _offset(db, frames, 10.0, after=5.0), bias="none")
+    events, sent = diagnose(db, with_offset(db, frames, 10.0, after=T0 + 5.0), bias="none")
     health = [e.state for e in events if e.kind == HEALTH]
     assert health == ["fault_free"], events  # the diagnosis stays: no fault alarm
     flags = [(e.model_mismatch, e.cause, e.state, round(e.t - T0, 1)) for e in events
@@ -71,10 +42,10 @@ def test_a_fitting_model_is_never_flagged() -> None:
     for name, seed in (("fault-outage-recovery", 1), ("incipient", 2), ("intermittent", 3)):
         frames = list(VirtualECU(None, db, 0, load_scenario(name), seed=seed)
                       .frames(start_time=T0))
-        events, _ = _diagnose(db, frames)
+        events, _ = diagnose(db, frames)
         assert not any(e.model_mismatch or e.kind == MODEL_MISMATCH for e in events), (
             name, events)
     long_run = scenario_from_dict({"name": "long", "duration": 300.0})
-    events, _ = _diagnose(db, list(VirtualECU(None, db, 0, long_run, seed=9)
+    events, _ = diagnose(db, list(VirtualECU(None, db, 0, long_run, seed=9)
                                    .frames(start_time=T0)))
     assert [e.state for e in events] == ["fault_free"]

@@ -31,11 +31,11 @@ from monitor.sinks.publisher import BusPublisher
 from monitor.sinks.rerun import RerunSink
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import scenario_from_dict
-from tests.sinks.test_rerun_sink import _read, _series
 from tests.support.dbc import REPO_DBC
 from tests.support.engines import compare_engines
 from tests.support.log_readers import write_log
 from tests.support.paths import ROOT
+from tests.support.rrd import chunk_series, entity_chunks
 
 T0 = 1_700_000_000.0
 LOSS_AT = 10.0
@@ -184,7 +184,7 @@ def test_outlets_carry_the_flag(tmp_path: Path) -> None:
     flags = [p[key] for p in proms if key in p]
     assert flags[0] == 0.0 and 1.0 in flags and flags[-1] == 0.0, proms
     # the recording: /node/0/model_mismatch steps 0 -> 1 -> 0 at the events' times
-    t, v = _series(_read(rrd)["/node/0/model_mismatch"])
+    t, v = chunk_series(entity_chunks(rrd)["/node/0/model_mismatch"])
     ups = [x["t"] for x in lines if x["kind"] == "model_mismatch"]
     assert set(v.tolist()) == {0.0, 1.0}
     changes = t[1:][np.diff(v) != 0]

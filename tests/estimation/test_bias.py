@@ -32,8 +32,10 @@ from monitor.setup import monitor_config
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import scenario_from_dict
-from tests.diagnosis.test_mismatch import T0, _diagnose, _offset
 from tests.support.paths import TEST_RIGS
+from tests.support.pipeline import diagnose, with_offset
+
+T0 = 1_700_000_000.0
 
 SERVO = TEST_RIGS / "servo.toml"
 T = 0.01
@@ -208,7 +210,7 @@ def test_the_monitor_learns_a_sensor_offset_and_lowers_its_flag() -> None:
     db = load_database()
     healthy = scenario_from_dict({"name": "h", "duration": 20.0})
     frames = list(VirtualECU(None, db, 0, healthy, seed=4).frames(start_time=T0))
-    events, sent = _diagnose(db, _offset(db, frames, 10.0, after=5.0))
+    events, sent = diagnose(db, with_offset(db, frames, 10.0, after=T0 + 5.0))
     assert [e.state for e in events if e.kind == HEALTH] == ["fault_free"], events
     raw = [db.decode_can(m).raw for m in sent]  # type: ignore[union-attr]
     assert int(raw[-1]["ModelMismatch"]) == 0

@@ -13,35 +13,15 @@ import pytest
 from monitor.bus.rigcodec import RigCodec
 from monitor.rig import build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
-from sim_ecu.scenario import load_scenario, scenario_from_dict
+from sim_ecu.scenario import load_scenario
 from tests.support import BIN
-from tests.support.paths import TEST_RIGS
-
-PRESS = TEST_RIGS / "press.toml"
-
-
-def _capture(path: Path, scenario_toml: Path | None = None, *, steady: bool = False) -> Path:
-    rig = load_rig(PRESS)
-    scenario = (scenario_from_dict({"name": "steady", "duration": 60.0}) if steady
-                else load_scenario(scenario_toml or PRESS.parent / "press_excite.toml"))
-    codec = build_decoder(rig)
-    assert isinstance(codec, RigCodec)  # a rig of its own DBC
-    ecu = RigECU(None, codec, rig, 1, scenario, seed=4)
-    with can.Logger(str(path)) as log:
-        for msg in ecu.frames(start_time=1.7e9):
-            log(msg)
-    return path
-
-
-def _identify(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(BIN / "motor-monitor"), "identify", *args], cwd=cwd,
-                          capture_output=True, text=True, timeout=300)
+from tests.support.identify import PRESS, press_capture, run_identify
 
 
 def test_identify_writes_a_rig_that_runs(tmp_path: Path) -> None:
-    cap = _capture(tmp_path / "healthy.log")
+    cap = press_capture(tmp_path / "healthy.log")
     out = tmp_path / "learned.toml"
-    res = _identify(str(cap), "--rig", str(PRESS), "--node", "1", "--out", str(out),
+    res = run_identify(str(cap), "--rig", str(PRESS), "--node", "1", "--out", str(out),
                     cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert "hold-out fit" in res.stdout
@@ -57,8 +37,8 @@ def test_identify_writes_a_rig_that_runs(tmp_path: Path) -> None:
 
 
 def test_identify_refuses_a_capture_without_excitation(tmp_path: Path) -> None:
-    cap = _capture(tmp_path / "steady.log", steady=True)
-    res = _identify(str(cap), "--rig", str(PRESS), "--node", "1", "--out",
+    cap = press_capture(tmp_path / "steady.log", steady=True)
+    res = run_identify(str(cap), "--rig", str(PRESS), "--node", "1", "--out",
                     str(tmp_path / "x.toml"), cwd=tmp_path)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
@@ -77,6 +57,6 @@ def test_identify_wants_a_node_when_the_capture_has_several(tmp_path: Path) -> N
         for node in (1, 2):
             for msg in RigECU(None, codec, rig, node, scenario, seed=node).frames(10.0, 1.7e9):
                 log(msg)
-    res = _identify(str(cap), "--rig", str(PRESS), "--out", str(tmp_path / "x.toml"),
+    res = run_identify(str(cap), "--rig", str(PRESS), "--out", str(tmp_path / "x.toml"),
                     cwd=tmp_path)
     assert res.returncode == 2 and "--node" in res.stderr, res.stderr

@@ -13,8 +13,7 @@ import pytest
 
 from monitor.app.identify_check import DETECT_S, FaultFigures, ReplayFigures, report_checks
 from tests.bench.zoo.gen import identify_files
-from tests.identify.test_identify_cli import _identify
-from tests.identify.test_identify_replay_check import _ours
+from tests.support.identify import our_capture, run_identify
 
 
 def test_a_rig_whose_loss_the_noise_hides_is_refused(tmp_path: Path) -> None:
@@ -24,7 +23,7 @@ def test_a_rig_whose_loss_the_noise_hides_is_refused(tmp_path: Path) -> None:
     # loss for up to 1.3 s and raised a false alarm in a healthy run.
     identify_files(1, tmp_path)
     out = tmp_path / "learned.toml"
-    res = _identify("identify.log", "--rig", "rig.toml", "--out", out.name, cwd=tmp_path)
+    res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, cwd=tmp_path)
     assert res.returncode == 1, res.stdout + res.stderr
     lines = [x for x in res.stderr.strip().splitlines() if "WARNING" not in x]
     assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
@@ -49,7 +48,7 @@ def test_a_rig_whose_healthy_gamma_comes_near_the_threshold_is_refused(tmp_path:
     # reported a loss of 0.3 as 0.17, on and off.
     identify_files(103, tmp_path)
     out = tmp_path / "learned.toml"
-    res = _identify("identify.log", "--rig", "rig.toml", "--node", "1", "--out", out.name,
+    res = run_identify("identify.log", "--rig", "rig.toml", "--node", "1", "--out", out.name,
                     cwd=tmp_path)
     assert res.returncode == 1, res.stdout + res.stderr
     lines = [x for x in res.stderr.strip().splitlines() if "WARNING" not in x]
@@ -64,9 +63,9 @@ def test_a_rig_whose_healthy_gamma_comes_near_the_threshold_is_refused(tmp_path:
 
 def test_an_added_loss_is_reported_in_time_where_it_shows(tmp_path: Path) -> None:
     # our bus's motor at 220 +- 20 V: a loss of 0.3 takes 66 V, far above the noise
-    cap = _ours(tmp_path / "healthy.log")
+    cap = our_capture(tmp_path / "healthy.log")
     out = tmp_path / "learned.toml"
-    res = _identify(str(cap), "--out", str(out), cwd=tmp_path)
+    res = run_identify(str(cap), "--out", str(out), cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     fd = json.loads(out.with_suffix(".identify.json").read_text())["fault_detection"]
     assert fd["in_time"] == len(fd["delays_s"]) >= 2

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -19,7 +21,7 @@ from monitor.identify import quantisation_floor
 from monitor.rig import build_decoder, build_model, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import scenario_from_dict
-from tests.identify.test_identify_cli import PRESS, _identify
+from tests.support.identify import PRESS, run_identify
 from tests.support.paths import ROOT, TEST_RIGS
 
 SERVO = TEST_RIGS / "servo.toml"
@@ -46,22 +48,29 @@ def _quiet_capture(rig_path: Path, path: Path, *, level: float, amplitude: float
     return path
 
 
+def _identify_quiet(rig_path: Path, tmp_path: Path, **capture: float
+                    ) -> tuple[subprocess.CompletedProcess[str], Path, dict[str, Any]]:
+    """`identify` of node 1 on a `_quiet_capture` of the rig (`capture`: its keywords), which
+    must succeed: its result, the rig file written and the JSON report beside it."""
+    cap = _quiet_capture(rig_path, tmp_path / "quiet.log", **capture)
+    out = tmp_path / "learned.toml"
+    res = run_identify(str(cap), "--rig", str(rig_path), "--node", "1", "--out", str(out),
+                       cwd=tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    return res, out, json.loads(out.with_suffix(".identify.json").read_text())
+
+
 def _written_r(out: Path) -> float:
     """The R the monitor reads from the written rig file (either model kind)."""
     return float(build_model(load_rig(out)).R[0, 0])
 
 
 def test_a_quantised_output_is_floored_at_its_steps_variance(tmp_path: Path) -> None:
-    cap = _quiet_capture(PRESS, tmp_path / "quiet.log", level=220.0, amplitude=20.0,
-                         clock=0.5, duration=60.0, quiet=2e-6)
-    out = tmp_path / "learned.toml"
-    res = _identify(str(cap), "--rig", str(PRESS), "--node", "1", "--out", str(out),
-                    cwd=tmp_path)
-    assert res.returncode == 0, res.stdout + res.stderr
+    res, out, report = _identify_quiet(PRESS, tmp_path, level=220.0, amplitude=20.0,
+                                       clock=0.5, duration=60.0, quiet=2e-6)
     floor = PRESS_STEP ** 2 / 12.0
     # the rig written, which the replay checks judged, holds the floored R
     assert _written_r(out) == pytest.approx(floor, rel=1e-9, abs=0.0)
-    report = json.loads(out.with_suffix(".identify.json").read_text())
     noise = report["noise"]
     (row,) = noise["quantisation_floor"]
     assert row["applied"] and row["learned"] < floor  # the fit alone went below it
@@ -79,13 +88,8 @@ def test_a_float_coded_output_keeps_its_learned_r(tmp_path: Path) -> None:
     # servo.dbc's CurrentFb is float32 in mA: no fixed step, so no floor. Were it taken for an
     # integer signal, its step (1 mA) would floor R at 8.3e-8 A^2, above what the fit learns
     # from this quiet sensor.
-    cap = _quiet_capture(SERVO, tmp_path / "quiet.log", level=12.0, amplitude=2.0,
-                         clock=0.05, duration=20.0, quiet=2e-3)
-    out = tmp_path / "learned.toml"
-    res = _identify(str(cap), "--rig", str(SERVO), "--node", "1", "--out", str(out),
-                    cwd=tmp_path)
-    assert res.returncode == 0, res.stdout + res.stderr
-    report = json.loads(out.with_suffix(".identify.json").read_text())
+    res, out, report = _identify_quiet(SERVO, tmp_path, level=12.0, amplitude=2.0,
+                                       clock=0.05, duration=20.0, quiet=2e-3)
     noise = report["noise"]
     assert {"quantisation_floor", "R_learned"}.isdisjoint(noise)
     learned = noise["R"][0][0]

@@ -36,9 +36,8 @@ from monitor.sinks.base import Sink
 from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
 from monitor.sinks.rotation import RotatingRerunSink
 from monitor.sinks.salvage import salvage_rrd
-from tests.sinks.test_rerun_sink import rows
 from tests.support.paths import ROOT
-from tests.support.rrd import blueprint_names
+from tests.support.rrd import blueprint_names, recording_rows
 
 RERUN_EXE = Path(sys.executable).with_name("rerun")
 MAX_LOSS_S = 0.25  # the goal: after SIGKILL, readable up to at most 0.25 s before the kill
@@ -515,7 +514,7 @@ def test_rotated_files_are_compacted_with_the_same_rows(
     assert result.returncode == 0, result.stderr
     for p in files:
         before = written / p.name
-        assert rows(p) == rows(before), p
+        assert recording_rows(p) == recording_rows(before), p
         n_before = sum(1 for _ in RrdReader(before).stream())
         n_after = sum(1 for _ in RrdReader(p).stream())
         assert n_after < n_before / 3, (p, n_before, n_after)

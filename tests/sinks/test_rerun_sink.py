@@ -16,7 +16,6 @@ import time
 import tracemalloc
 import uuid
 import warnings
-from collections import defaultdict
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -24,7 +23,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 from numpy.typing import NDArray
-from rerun.chunk import Chunk, RrdReader
+from rerun.chunk import RrdReader
 
 from monitor.diagnosis import HealthState
 from monitor.pipeline.events import (
@@ -45,7 +44,7 @@ from monitor.sinks.rerun import (
 )
 from monitor.sinks.rotation import RotatingRerunSink
 from tests.conftest import _ci_enabled
-from tests.support.rrd import blueprint_names
+from tests.support.rrd import blueprint_names, chunk_series, entity_chunks, recording_rows
 
 T0 = 1_700_000_000.0  # epoch seconds, like CAN kernel time stamps
 DT = 1e-3
@@ -63,39 +62,8 @@ def _values(k: int, node: int) -> tuple[float, float, float, int, int, float]:
     return measured, estimated, gamma, rules, health, nis
 
 
-def _read(path: Path) -> dict[str, list[Chunk]]:
-    """Chunks of the recording in file order, grouped by entity path (temporal only)."""
-    out: dict[str, list[Chunk]] = defaultdict(list)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a file without footer warns (live test)
-        reader = RrdReader(path)
-        for chunk in reader.stream():
-            if not chunk.is_static:
-                out[chunk.entity_path].append(chunk)
-    return out
-
-
 def _static_entities(path: Path) -> set[str]:
     return {c.entity_path for c in RrdReader(path).stream() if c.is_static}
-
-
-def _series(chunks: list[Chunk]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(time [s], value) of a Scalars entity, sorted by time."""
-    ts: list[NDArray[np.int64]] = []
-    vs: list[NDArray[np.float64]] = []
-    for chunk in chunks:
-        rb = chunk.to_record_batch()
-        t = rb.column("time").cast(pa.int64()).to_numpy()
-        v = rb.column("Scalars:scalars").flatten().to_numpy()
-        assert len(t) == len(v) == chunk.num_rows  # one scalar per row
-        ts.append(t)
-        vs.append(v)
-    if not ts:
-        return np.zeros(0), np.zeros(0)
-    t_all = np.concatenate(ts)
-    v_all = np.concatenate(vs)
-    order = np.argsort(t_all, kind="stable")
-    return t_all[order] / 1e9, v_all[order]
 
 
 def _write_run(sink: RerunSink) -> None:
@@ -166,17 +134,17 @@ def _latest_at(t: NDArray[np.float64], v: NDArray[np.float64],
 
 
 def test_samples_read_back_exactly(recorded: Path) -> None:
-    ents = _read(recorded)
+    ents = entity_chunks(recorded)
     k = np.arange(N)
     expected_t = T0 + k * DT
     for node in (0, 1):
         vals = np.array([_values(i, node) for i in range(N)], dtype=np.float64)
-        t_samples, _ = _series(ents[f"/node/{node}/gamma/estimate"])
+        t_samples, _ = chunk_series(ents[f"/node/{node}/gamma/estimate"])
         for col, suffix in enumerate(
             ["ArmatureCurrent/measured", "ArmatureCurrent/estimated", "gamma/estimate", "rules",
              "health", "nis"]
         ):
-            t, v = _series(ents[f"/node/{node}/{suffix}"])
+            t, v = chunk_series(ents[f"/node/{node}/{suffix}"])
             if suffix in RUNS:
                 # piecewise constant: recorded as its runs; the same latest value at every
                 # sample, the same line (straight or stepped), first and last sample included
@@ -188,10 +156,10 @@ def test_samples_read_back_exactly(recorded: Path) -> None:
             assert len(v) == N, suffix
             np.testing.assert_array_equal(v, vals[:, col], err_msg=suffix)
             np.testing.assert_allclose(t, expected_t, rtol=0, atol=1e-6)
-    t, v = _series(ents["/node/0/gamma/estimate"])
+    t, v = chunk_series(ents["/node/0/gamma/estimate"])
     assert v[-1] == _values(N - 1, 0)[2] == (N - 1) / N
     # the true gamma exists only where it was given; constant, so a few rows span it
-    t, v = _series(ents["/node/0/gamma/true"])
+    t, v = chunk_series(ents["/node/0/gamma/true"])
     assert np.all(v == 0.5) and len(v) < N // 10
     np.testing.assert_allclose(t[[0, -1]], expected_t[[0, -1]], rtol=0, atol=1e-6)
     assert "/node/1/gamma/true" not in ents
@@ -231,11 +199,11 @@ def test_run_ends_keep_the_line() -> None:
 
 
 def test_thresholds_span_the_data_and_step(recorded: Path) -> None:
-    ents = _read(recorded)
-    t_est, _ = _series(ents["/node/0/gamma/estimate"])
+    ents = entity_chunks(recorded)
+    t_est, _ = chunk_series(ents["/node/0/gamma/estimate"])
     t_change = T0 + 1000 * DT
     for suffix, old, new in (("F1", 0.15, 0.2), ("F2", 0.85, 0.9)):
-        t, v = _series(ents[f"/node/0/gamma/{suffix}"])
+        t, v = chunk_series(ents[f"/node/0/gamma/{suffix}"])
         assert t[0] == t_est[0] and t[-1] == t_est[-1]
         np.testing.assert_array_equal(v[t < t_change - 1e-7], old)
         np.testing.assert_array_equal(v[t > t_change - 1e-7], new)
@@ -243,14 +211,14 @@ def test_thresholds_span_the_data_and_step(recorded: Path) -> None:
 
 
 def test_inputs_counters_and_event(recorded: Path) -> None:
-    ents = _read(recorded)
-    _, v = _series(ents["/node/0/VoltageCommand"])
+    ents = entity_chunks(recorded)
+    _, v = chunk_series(ents["/node/0/VoltageCommand"])
     assert len(v) == N // 20 and v[-1] == 24.0 + (N - 20) / N
     assert "/node/1/VoltageCommand" not in ents
 
-    _, v = _series(ents["/monitor/counters/frames_ok"])
+    _, v = chunk_series(ents["/monitor/counters/frames_ok"])
     np.testing.assert_array_equal(v, [500, 1000, 1500, 2000])
-    _, v = _series(ents["/monitor/counters/rejected/crc"])
+    _, v = chunk_series(ents["/monitor/counters/rejected/crc"])
     np.testing.assert_array_equal(v, [0, 1, 2, 3])
 
     (event,) = ents["/node/1/events"]
@@ -268,7 +236,8 @@ def test_event_comes_after_the_samples_before_it(recorded: Path) -> None:
     chunks = [c for c in RrdReader(recorded).stream() if not c.is_static]
     i_event = next(i for i, c in enumerate(chunks) if c.entity_path == "/node/1/events")
     t_event = T0 + 1200 * DT
-    before, _ = _series([c for c in chunks[:i_event] if c.entity_path == "/node/1/gamma/estimate"])
+    before, _ = chunk_series([c for c in chunks[:i_event]
+                              if c.entity_path == "/node/1/gamma/estimate"])
     assert len(before) >= 1201
     np.testing.assert_allclose(before[:1201], T0 + DT * np.arange(1201), atol=1e-6)
     assert (before <= t_event + 1e-6).sum() == 1201
@@ -304,10 +273,10 @@ def test_maybe_flush_makes_data_visible_while_open(tmp_path: Path) -> None:
     now = time.monotonic()
     sink.maybe_flush(now)  # < flush_interval since construction: keeps buffering
     sink.recording.flush(timeout_sec=10)
-    assert "/node/0/gamma/estimate" not in _read(path)
+    assert "/node/0/gamma/estimate" not in entity_chunks(path)
     sink.maybe_flush(now + 0.25)
     sink.recording.flush(timeout_sec=10)
-    _, v = _series(_read(path)["/node/0/gamma/estimate"])
+    _, v = chunk_series(entity_chunks(path)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(v, 0.1 * np.arange(10))
     sink.close()
 
@@ -321,7 +290,7 @@ def test_close_twice_and_use_after_close(tmp_path: Path) -> None:
     sink.add_sample(3, T0 + 1, 1.0, 1.0, 0.5, 1, 0, 1.0)  # ignored, no error
     sink.log_event(3, T0 + 1, "late")
     sink.flush()
-    _, v = _series(_read(path)["/node/3/gamma/estimate"])
+    _, v = chunk_series(entity_chunks(path)["/node/3/gamma/estimate"])
     assert list(v) == [0.5]
 
 
@@ -329,7 +298,7 @@ def test_unannounced_node_is_added(tmp_path: Path) -> None:
     path = tmp_path / "n.rrd"
     with RerunSink(rrd_path=path, nodes=(0,)) as sink:
         sink.add_sample(7, T0, 1.0, 1.0, 0.25, 1, 0, 1.0)
-    _, v = _series(_read(path)["/node/7/gamma/estimate"])
+    _, v = chunk_series(entity_chunks(path)["/node/7/gamma/estimate"])
     assert list(v) == [0.25]
 
 
@@ -406,12 +375,12 @@ def test_runs_in_small_batches_cost_about_a_row_a_second(tmp_path: Path) -> None
         sink.maybe_flush(start + (k + 1) * 0.01)
     sink.close()
     for path, part in ((first, slice(0, n)), (second, slice(n, 2 * n))):
-        ents = _read(path)
-        t_samples, _ = _series(ents["/node/0/gamma/estimate"])
+        ents = entity_chunks(path)
+        t_samples, _ = chunk_series(ents["/node/0/gamma/estimate"])
         assert len(t_samples) == n
         for suffix, full in (("health", health[part]), ("gamma/true", truth[part]),
                              ("rules", np.full(n, 2.0)), ("gamma/F1", np.full(n, 0.15))):
-            t, v = _series(ents[f"/node/0/{suffix}"])
+            t, v = chunk_series(ents[f"/node/0/{suffix}"])
             assert len(v) <= 10 + 2 + 2 * len(changes), (suffix, len(v))
             np.testing.assert_array_equal(t[[0, -1]], t_samples[[0, -1]])
             np.testing.assert_array_equal(_latest_at(t, v, t_samples), full, err_msg=suffix)
@@ -483,14 +452,14 @@ def test_live_stream_to_headless_server_and_file_at_once(tmp_path: Path) -> None
         while time.monotonic() < deadline:
             with contextlib.suppress(Exception):  # the file may end in a partial message
                 if received.exists():
-                    ents = _read(received)
-                    _, got = _series(ents.get("/node/0/gamma/estimate", []))
+                    ents = entity_chunks(received)
+                    _, got = chunk_series(ents.get("/node/0/gamma/estimate", []))
                     if len(got) == n and "/node/0/events" in ents:
                         break
             time.sleep(0.1)
     assert len(got) == n
     np.testing.assert_array_equal(got, np.arange(n) / n)
-    _, v_local = _series(_read(local)["/node/0/gamma/estimate"])
+    _, v_local = chunk_series(entity_chunks(local)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(v_local, got)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -514,7 +483,7 @@ def test_maybe_flush_reaches_the_disk_without_waiting(tmp_path: Path) -> None:
     got: NDArray[np.float64] = np.zeros(0)
     while time.monotonic() - sent < 0.1 and len(got) < 5:
         with contextlib.suppress(Exception):  # maybe in the middle of a write
-            _, got = _series(_read(path).get("/node/0/gamma/estimate", []))
+            _, got = chunk_series(entity_chunks(path).get("/node/0/gamma/estimate", []))
         time.sleep(0.002)
     latency = time.monotonic() - sent
     sink.close()
@@ -558,8 +527,8 @@ def test_a_recording_split_into_parts_holds_every_row_once(tmp_path: Path) -> No
     for p in parts:
         (rec,) = RrdReader(p).recordings()
         assert rec.recording_id == "parts"
-        assert "/node/0/gamma/estimate" in _read(p)
-        gammas.append(_series(_read(p)["/node/0/gamma/estimate"])[1])
+        assert "/node/0/gamma/estimate" in entity_chunks(p)
+        gammas.append(chunk_series(entity_chunks(p)["/node/0/gamma/estimate"])[1])
     np.testing.assert_array_equal(np.concatenate(gammas), k)
     with pytest.raises(ValueError, match="part_bytes"):
         RerunSink(connect_url="rerun+http://127.0.0.1:1/proxy", part_bytes=1)
@@ -582,8 +551,8 @@ def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: P
         sink.add_sample(0, T0 + k * DT, 1.0, 1.0, float(k), 1, 0, 1.0, true_gamma=0.5)
     sink.log_counters(T0 + 1, {"frames_ok": 2})
     sink.close()
-    _, a = _series(_read(first)["/node/0/gamma/estimate"])
-    _, b = _series(_read(second)["/node/0/gamma/estimate"])
+    _, a = chunk_series(entity_chunks(first)["/node/0/gamma/estimate"])
+    _, b = chunk_series(entity_chunks(second)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(a, np.arange(300))  # everything before the switch
     np.testing.assert_array_equal(b, np.arange(301, 400))  # everything after
     # self-contained: recording, start time, styles, blueprint with every node, thresholds
@@ -608,7 +577,7 @@ def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: P
         for x in row
     }
     assert {"node 0", "node 5"} <= names
-    _, f1 = _series(_read(second)["/node/0/gamma/F1"])
+    _, f1 = chunk_series(entity_chunks(second)["/node/0/gamma/F1"])
     assert np.all(f1 == 0.2)
 
 
@@ -664,14 +633,14 @@ def test_rotating_sink_streams_live_across_rotations(tmp_path: Path) -> None:
         while time.monotonic() < deadline and len(got) < n:
             with contextlib.suppress(Exception):  # the file may end in a partial message
                 if received.exists():
-                    _, got = _series(_read(received).get("/node/0/gamma/estimate", []))
+                    _, got = chunk_series(entity_chunks(received).get("/node/0/gamma/estimate", []))
             time.sleep(0.1)
     np.testing.assert_array_equal(got, np.arange(n))  # one connection, nothing lost
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         assert {r.recording_id for r in RrdReader(received).recordings()} == {sink.recording_id}
     files = sink.files()
-    parts = [_series(_read(p)["/node/0/gamma/estimate"])[1] for p in files]
+    parts = [chunk_series(entity_chunks(p)["/node/0/gamma/estimate"])[1] for p in files]
     np.testing.assert_array_equal(np.concatenate(parts), np.arange(n))
     assert {RrdReader(p).recordings()[0].recording_id for p in files} == {sink.recording_id}
 
@@ -681,7 +650,7 @@ def test_rotating_sink_streams_live_across_rotations(tmp_path: Path) -> None:
 
 def _gamma_rows(path: Path) -> int:
     with contextlib.suppress(Exception):  # maybe in the middle of a write
-        return len(_series(_read(path).get("/node/0/gamma/estimate", []))[1])
+        return len(chunk_series(entity_chunks(path).get("/node/0/gamma/estimate", []))[1])
     return -1
 
 
@@ -711,7 +680,7 @@ def test_a_larger_flush_interval_is_honoured(tmp_path: Path, kind: str) -> None:
         sink.recording.flush(timeout_sec=10)
         assert _gamma_rows(path) == 150 * (batch + 1)
     sink.close()
-    _, v = _series(_read(path)["/node/0/gamma/estimate"])
+    _, v = chunk_series(entity_chunks(path)["/node/0/gamma/estimate"])
     np.testing.assert_array_equal(v, np.arange(300))
 
 
@@ -787,26 +756,6 @@ def test_flush_interval_mistakes_are_one_line(tmp_path: Path, capsys: pytest.Cap
     assert not list(tmp_path.iterdir())  # nothing written
 
 
-def _plain(col: pa.Array) -> pa.Array:
-    """Time stamps as their integer nanoseconds (a datetime would drop them)."""
-    return col.cast(pa.int64()) if pa.types.is_timestamp(col.type) else col
-
-
-def rows(path: Path) -> dict[tuple[str, bool], list[str]]:
-    """Every row of every store of a recording (its row id, times and components), per
-    entity, in a canonical order: what compaction must keep."""
-    out: dict[tuple[str, bool], list[str]] = defaultdict(list)
-    reader = RrdReader(path)
-    for store in [*reader.recordings(), *reader.blueprints()]:
-        for chunk in reader.stream(store=store):
-            rb = chunk.to_record_batch()
-            columns = {name: _plain(rb.column(name)).to_pylist() for name in rb.schema.names}
-            for i in range(chunk.num_rows):
-                out[(chunk.entity_path, chunk.is_static)].append(
-                    repr(sorted((name, col[i]) for name, col in columns.items())))
-    return {key: sorted(rows) for key, rows in out.items()}
-
-
 def test_compact_rrd_keeps_every_row(tmp_path: Path) -> None:
     """`compact_rrd` rewrites a whole recording (samples, voltages, events, counters, a
     threshold change, the blueprint store) with the real ``rerun rrd optimize``: it verifies,
@@ -825,7 +774,7 @@ def test_compact_rrd_keeps_every_row(tmp_path: Path) -> None:
     n_before = sum(1 for _ in RrdReader(before).stream())
     n_after = sum(1 for _ in RrdReader(path).stream())
     assert n_after < n_before / 3, (n_before, n_after)
-    assert rows(path) == rows(before)
-    assert {k[0] for k in rows(path)} >= {"/node/0/gamma/estimate", "/node/1/events",
+    assert recording_rows(path) == recording_rows(before)
+    assert {k[0] for k in recording_rows(path)} >= {"/node/0/gamma/estimate", "/node/1/events",
                                           "/monitor/counters/frames_ok"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["before.rrd", "run.rrd"]

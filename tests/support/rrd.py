@@ -7,6 +7,7 @@ from __future__ import annotations
 import shutil
 import tempfile
 import warnings
+from collections import defaultdict
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 from numpy.typing import NDArray
-from rerun.chunk import RrdReader
+from rerun.chunk import Chunk, RrdReader
 
 # NOTE: salvage_rrd lives in monitor.sinks.salvage; if it moves, this import is the only
 # line to change.
@@ -29,8 +30,12 @@ __all__ = [
     "Array",
     "Snapshots",
     "bad_outcomes",
+    "blueprint_names",
+    "chunk_series",
+    "entity_chunks",
     "outcome_total",
     "read_rrd",
+    "recording_rows",
     "series",
 ]
 
@@ -158,3 +163,54 @@ def outcome_total(c: Mapping[str, int]) -> int:
 
 def bad_outcomes(c: Mapping[str, int]) -> dict[str, int]:
     return {k: v for k, v in c.items() if v and _among(k, BAD_OUTCOMES)}
+
+
+def entity_chunks(path: Path) -> dict[str, list[Chunk]]:
+    """Chunks of the recording in file order, grouped by entity path (temporal only)."""
+    out: dict[str, list[Chunk]] = defaultdict(list)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a file without footer warns (live test)
+        reader = RrdReader(path)
+        for chunk in reader.stream():
+            if not chunk.is_static:
+                out[chunk.entity_path].append(chunk)
+    return out
+
+
+def chunk_series(chunks: list[Chunk]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(time [s], value) of a Scalars entity, sorted by time."""
+    ts: list[NDArray[np.int64]] = []
+    vs: list[NDArray[np.float64]] = []
+    for chunk in chunks:
+        rb = chunk.to_record_batch()
+        t = rb.column("time").cast(pa.int64()).to_numpy()
+        v = rb.column("Scalars:scalars").flatten().to_numpy()
+        assert len(t) == len(v) == chunk.num_rows  # one scalar per row
+        ts.append(t)
+        vs.append(v)
+    if not ts:
+        return np.zeros(0), np.zeros(0)
+    t_all = np.concatenate(ts)
+    v_all = np.concatenate(vs)
+    order = np.argsort(t_all, kind="stable")
+    return t_all[order] / 1e9, v_all[order]
+
+
+def _plain(col: pa.Array) -> pa.Array:
+    """Time stamps as their integer nanoseconds (a datetime would drop them)."""
+    return col.cast(pa.int64()) if pa.types.is_timestamp(col.type) else col
+
+
+def recording_rows(path: Path) -> dict[tuple[str, bool], list[str]]:
+    """Every row of every store of a recording (its row id, times and components), per
+    entity, in a canonical order: what compaction must keep."""
+    out: dict[tuple[str, bool], list[str]] = defaultdict(list)
+    reader = RrdReader(path)
+    for store in [*reader.recordings(), *reader.blueprints()]:
+        for chunk in reader.stream(store=store):
+            rb = chunk.to_record_batch()
+            columns = {name: _plain(rb.column(name)).to_pylist() for name in rb.schema.names}
+            for i in range(chunk.num_rows):
+                out[(chunk.entity_path, chunk.is_static)].append(
+                    repr(sorted((name, col[i]) for name, col in columns.items())))
+    return {key: sorted(rows) for key, rows in out.items()}

@@ -1,0 +1,66 @@
+"""Captures for `motor-monitor identify` and the command itself, as the identify tests run
+them: the press rig's twin (`press_capture`), node 0 of our bus under a PRBS command
+(`our_capture`), and `identify` in a subprocess (`run_identify`)."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import can
+import numpy as np
+
+from monitor.bus.codec import load_database
+from monitor.bus.rigcodec import RigCodec
+from monitor.rig import build_decoder, load_rig
+from sim_ecu.ecu import VirtualECU
+from sim_ecu.rig_ecu import RigECU
+from sim_ecu.scenario import load_scenario, scenario_from_dict
+from tests.support import BIN
+from tests.support.paths import TEST_RIGS
+from tests.support.pipeline import changed_currents
+
+__all__ = ["PRESS", "T0", "our_capture", "press_capture", "run_identify"]
+
+PRESS = TEST_RIGS / "press.toml"
+T0 = 1.7e9
+
+
+def press_capture(path: Path, scenario_toml: Path | None = None, *,
+                  steady: bool = False) -> Path:
+    """A minute of the press rig's node 1 (its excitation scenario, or a steady command),
+    written to `path` by python-can."""
+    rig = load_rig(PRESS)
+    scenario = (scenario_from_dict({"name": "steady", "duration": 60.0}) if steady
+                else load_scenario(scenario_toml or PRESS.parent / "press_excite.toml"))
+    codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec)  # a rig of its own DBC
+    ecu = RigECU(None, codec, rig, 1, scenario, seed=4)
+    with can.Logger(str(path)) as log:
+        for msg in ecu.frames(start_time=T0):
+            log(msg)
+    return path
+
+
+def our_capture(path: Path, *, noisy_from: float | None = None) -> Path:
+    """40 s of node 0 on our bus under a PRBS command; from `noisy_from` seconds on, the
+    current sensor adds 1 A of noise (twice the model's sigma): the plant is the same,
+    its noise is not."""
+    db = load_database()
+    sc = scenario_from_dict({"name": "prbs", "duration": 40.0, "voltage": {
+        "prbs": {"level": 220.0, "amplitude": 20.0, "clock": 0.5, "seed": 3}}})
+    rng = np.random.default_rng(7)
+    frames = list(VirtualECU(None, db, 0, sc, seed=5).frames(start_time=T0))
+    if noisy_from is not None:
+        frames = changed_currents(db, frames, lambda v, t: (
+            v + float(rng.normal(0.0, 1.0)) if t - T0 >= noisy_from else v))
+    with can.Logger(str(path)) as log:
+        for m in frames:
+            log(m)
+    return path
+
+
+def run_identify(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """`motor-monitor identify ARGS` in `cwd`, its output captured."""
+    return subprocess.run([str(BIN / "motor-monitor"), "identify", *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
