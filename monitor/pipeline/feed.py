@@ -6,7 +6,7 @@ command, the archive engines and the columnar replay (whose `ticks` kernel is ha
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import can
@@ -20,8 +20,12 @@ TICK_S = 0.05
 """Bus time between timeout checks, as in the live loop."""
 
 
-def feed_log(pipe: MonitorPipeline, frames: Iterable[can.Message]) -> int:
-    """Every frame into `pipe`, with its timeouts checked in bus time; returns the count."""
+def feed_log(pipe: MonitorPipeline, frames: Iterable[can.Message],
+             on_tick: Callable[[float], None] | None = None) -> int:
+    """Every frame into `pipe`, with its timeouts checked in bus time; returns the count.
+
+    ``on_tick`` is called with the bus time of each check, after it: what else a loop does
+    at that pace (a sink's ``maybe_flush`` on a simulated clock, say)."""
     last_tick = -math.inf
     n = 0
     for msg in frames:
@@ -31,6 +35,8 @@ def feed_log(pipe: MonitorPipeline, frames: Iterable[can.Message]) -> int:
         if ts - last_tick >= TICK_S:
             last_tick = ts
             pipe.tick(ts)
+            if on_tick is not None:
+                on_tick(ts)
     return n
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from tests.support import BIN
+from tests.support.daemon import notified_daemon
 
 MONITOR = str(BIN / "motor-monitor")
 
@@ -30,16 +31,10 @@ def _recv_all(sock: socket.socket, until: float, stop_on: bytes) -> list[bytes]:
 
 
 def test_notify_protocol_and_sigterm_leave_a_verified_recording(tmp_path: Path) -> None:
-    addr = str(tmp_path / "notify.sock")
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(addr)
     rrd = tmp_path / "run.rrd"
-    env = dict(os.environ, NOTIFY_SOCKET=addr, WATCHDOG_USEC="2000000")
-    proc = subprocess.Popen(
-        [MONITOR, "run", "--interface", "virtual", "--channel", "daemon-test", "--rrd", str(rrd)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-    )
-    try:
+    env = dict(os.environ, WATCHDOG_USEC="2000000")
+    with notified_daemon(["run", "--interface", "virtual", "--channel", "daemon-test",
+                          "--rrd", str(rrd)], tmp_path / "notify.sock", env) as (proc, sock):
         first = _recv_all(sock, time.monotonic() + 60, b"READY=1")
         assert any(b"READY=1" in d for d in first), first
         # STATUS with counters, and watchdog pings at half of WATCHDOG_USEC (1 s)
@@ -50,10 +45,6 @@ def test_notify_protocol_and_sigterm_leave_a_verified_recording(tmp_path: Path) 
         last = _recv_all(sock, time.monotonic() + 20, b"STOPPING=1")
         assert any(b"STOPPING=1" in d for d in last)
         _, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        sock.close()
     assert proc.returncode == 0, err
     assert "stopped (signal 15)" in err and "Traceback" not in err
     verify = subprocess.run([str(BIN / "rerun"), "rrd", "verify", str(rrd)],

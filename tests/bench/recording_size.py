@@ -35,7 +35,7 @@ import tempfile
 import time
 import warnings
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +44,7 @@ import can
 from monitor.bus.codec import load_database
 from monitor.bus.rawlog import RotatingBusLog
 from monitor.pipeline import MonitorConfig, MonitorPipeline
+from monitor.pipeline.feed import feed_log
 from monitor.sinks.base import FanOut
 from monitor.sinks.compact import compact_rrd
 from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S, RerunSink
@@ -51,7 +52,6 @@ from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import Scenario, scenario_from_dict
 
 T0 = 1.7e9
-TICK_S = 0.05  # the daemon's loop: pipe.tick and sink.maybe_flush this often
 RAW_FLUSH_S = 0.1  # the raw log's flush interval in the daemon
 FRAME_S = 222e-6  # one 8-byte standard frame at 500 kbit/s
 CYCLE_S = 16.0
@@ -88,6 +88,21 @@ def frames(duration: float, seed: int) -> Iterator[can.Message]:
         m.channel = "can0"
         i += 1
         yield m
+
+
+def logged(msgs: Iterable[can.Message], logs: Sequence[RotatingBusLog]
+           ) -> Iterator[can.Message]:
+    """`msgs`, each written to `logs` before it is handed on; the logs flushed every
+    `RAW_FLUSH_S` of bus time, once the pipeline has taken the frame."""
+    last_raw = T0
+    for msg in msgs:
+        for log in logs:
+            log(msg)
+        yield msg
+        if msg.timestamp - last_raw >= RAW_FLUSH_S:
+            last_raw = msg.timestamp
+            for log in logs:
+                log.flush()
 
 
 def rrd_layout(path: Path) -> dict[str, int]:
@@ -133,23 +148,15 @@ def record(out: Path, minutes: float, flush_s: float, seed: int) -> dict[str, An
     pipe = MonitorPipeline(db, MonitorConfig(nodes=(0,)), sink=sink)
     # The simulated monotonic clock: bus time, shifted to start where the sinks' clocks did.
     mono0 = time.monotonic()
-    last_tick = last_raw = T0
-    n = 0
+    last_tick = T0
+
+    def on_tick(ts: float) -> None:
+        nonlocal last_tick
+        last_tick = ts
+        sink.maybe_flush(mono0 + (ts - T0))
+
     started = time.perf_counter()
-    for msg in frames(duration, seed):
-        raw_log(msg)
-        raw_blf(msg)
-        pipe.feed(msg)
-        n += 1
-        ts = msg.timestamp
-        if ts - last_tick >= TICK_S:
-            last_tick = ts
-            pipe.tick(ts)
-            sink.maybe_flush(mono0 + (ts - T0))
-        if ts - last_raw >= RAW_FLUSH_S:
-            last_raw = ts
-            raw_log.flush()
-            raw_blf.flush()
+    n = feed_log(pipe, logged(frames(duration, seed), (raw_log, raw_blf)), on_tick)
     pipe.emit_counters(last_tick)
     sink.close()
     raw_log.stop()

@@ -6,7 +6,6 @@ from __future__ import annotations
 import importlib.util
 import os
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -21,7 +20,7 @@ from monitor.estimation.model import ContinuousDescriptor, dc_motor
 from monitor.jit import JIT_DISABLED
 from sim_ecu.plant import SimulatedRun, simulate
 from sim_ecu.scenario import load_scenario, scenario_from_dict
-from tests.support import BIN
+from tests.support.daemon import notified_daemon
 
 
 @pytest.fixture(scope="module")
@@ -107,26 +106,16 @@ def test_the_warmed_cache_leaves_the_daemon_nothing_to_compile(tmp_path: Path) -
     saved = list((tmp_path / "cache").rglob("*.nbi"))
     assert saved, "the warm-up cached nothing"
 
-    addr = str(tmp_path / "notify.sock")
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(addr)
-    sock.settimeout(600)
     out = tmp_path / "daemon.out"
-    with out.open("w") as stdout:
-        proc = subprocess.Popen(
-            [str(BIN / "motor-monitor"), "run", "--interface",
-             "virtual", "--channel", "warm-cache-test"],
-            env=dict(env, NOTIFY_SOCKET=addr, NUMBA_DEBUG_CACHE="1"), stdout=stdout,
-            stderr=subprocess.PIPE, text=True)
-    try:
+    with out.open("w") as stdout, notified_daemon(
+            ["run", "--interface", "virtual", "--channel", "warm-cache-test"],
+            tmp_path / "notify.sock", dict(env, NUMBA_DEBUG_CACHE="1"),
+            stdout=stdout) as (proc, sock):
+        sock.settimeout(600)
         while b"READY=1" not in sock.recv(4096):
             pass
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        sock.close()
     assert proc.returncode == 0, err
     debug = out.read_text()
     assert "data loaded" in debug, debug[-2000:]

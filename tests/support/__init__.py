@@ -16,6 +16,7 @@
 * `vcan_harness`: shell scripts run on real vcan, natively or in User-Mode Linux.
 * `vcan_scripts`: the scripts of ``scripts/`` run on vcan, and what they print.
 * `log_readers`: a log's frames as each reader gives them, random frames, MF4 files.
+* `daemon`: ``motor-monitor`` started under a service manager's notify socket.
 """
 
 from __future__ import annotations
