@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.bus.cia402 import IGNORED_NOT_OPERATIONAL, IGNORED_PROTOCOL, report_counter
+from monitor.bus.cia402 import IGNORED_NOT_OPERATIONAL, IGNORED_PROTOCOL
 from monitor.columnar import kernels as K
 from monitor.columnar.decode import REASONS, DecodedChunk, NotColumnar, RouteTable
 from monitor.columnar.reader import DEFAULT_CHUNK_FRAMES, FrameChunk, read_chunks
@@ -38,8 +38,6 @@ from monitor.pipeline.events import (
     Diagnosis,
     DiagnosisEvent,
     SampleColumns,
-    drive_event,
-    error_frame_event,
 )
 from monitor.pipeline.feed import replay_frames
 from monitor.pipeline.samples import delayed, held_column
@@ -129,7 +127,8 @@ class ColumnarEngine:
         cnt.received(n, int(c.is_fd.sum()), int((c.is_fd & c.is_esi).sum()))
         events: list[tuple[int, int, int, Any]] = []  # (key, node order, seq, event)
         for i in np.flatnonzero(c.error).tolist():
-            self._error_frame(c, i, events)
+            event = self.pipe.error_frame(c.message(i))
+            events.append((2 * i, -1, len(events), event))  # keys: rows of this chunk
         dec = self.table.decode(c)
         tick_idx = np.zeros(n, np.int64)  # the frames after which `feed_log` ticks
         nt = K.ticks(c.t, self.last_tick, tick_idx, K.TICK_S) if self.ticks else 0
@@ -158,8 +157,7 @@ class ColumnarEngine:
                     protocol[i], reports = watch.unread(m.arbitration_id, m.is_extended_id,
                                                         bytes(m.data), float(c.t[i]))
                 for r in reports:
-                    cnt.inc(report_counter(r))
-                    events.append((key, -1, len(events), drive_event(r)))
+                    events.append((key, -1, len(events), self.pipe.drive_report(r)))
                     state = watch.operational(r.node)
                     if state != now[r.node]:
                         now[r.node] = state
@@ -260,15 +258,6 @@ class ColumnarEngine:
                 self.pipe.sink.on_bus_event(ev)
         self.pipe.emit_counters(float(c.t[-1]))
 
-    def _error_frame(self, c: FrameChunk, i: int, events: list[tuple[int, int, int, Any]]
-                     ) -> None:
-        self.counters.inc(C.BUS_ERROR_FRAMES)
-        names, event = error_frame_event(c.message(i))
-        for name in names:
-            self.counters.inc(C.bus_error(name))
-        self._warn("errframe-" + ",".join(names), event.text)
-        events.append((2 * i, -1, len(events), event))  # keys: rows of this chunk
-
     def _node_chunk(self, nm: NodeMonitor, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
                     ra: NDArray[np.int64], lost_all: NDArray[np.int64],
                     wrap_all: NDArray[np.bool_], tick_idx: NDArray[np.int64], created: int,
@@ -327,11 +316,7 @@ class ColumnarEngine:
                 cfg.max_gap_s, cfg.silence_timeout_s, cfg.jitter_fraction, status, kk, restart,
                 jitter, rate_change)
         for j in np.flatnonzero(rate_change).tolist():
-            counter, event = admission.rate_event(float(t_o[j]), nm.node, int(rate_change[j]),
-                                                  cfg.rate)
-            if counter is not None:
-                cnt.inc(counter)
-                self._warn(f"rate-{nm.node}", event.text)
+            event = self.pipe.rate_change(float(t_o[j]), nm.node, int(rate_change[j]))
             events.append((2 * int(fr[oi[j]]), order, len(events), event))
         if late:
             nm.admission[admission.RESUME] = 1.0

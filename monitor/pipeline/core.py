@@ -324,12 +324,17 @@ class MonitorPipeline:
 
     def _on_error_frame(self, msg: can.Message) -> None:
         """A SocketCAN error frame: counted per condition, logged, shown in the recording."""
+        self.sink.on_bus_event(self.error_frame(msg))
+
+    def error_frame(self, msg: can.Message) -> BusEvent:
+        """Count and log a SocketCAN error frame, per condition; its bus event (both engines:
+        the columnar one puts it in its chunk's order)."""
         self.counters.inc(C.BUS_ERROR_FRAMES)
         names, event = error_frame_event(msg)
         for name in names:
             self.counters.inc(C.bus_error(name))
         self.warn.warn("errframe-" + ",".join(names), event.text)
-        self.sink.on_bus_event(event)
+        return event
 
     def _rejected(self, res: Rejected) -> None:
         reason = str(res.reason)
@@ -388,11 +393,7 @@ class MonitorPipeline:
             nm.admission, t, lost, wrap, bool(nm.u_seen.all()), False, cfg.rate,
             cfg.max_gap_s, cfg.silence_timeout_s, cfg.jitter_fraction)
         if rate_change:
-            counter, event = rate_event(t, nm.node, rate_change, cfg.rate)
-            if counter is not None:
-                self.counters.inc(counter)
-                log.warning("%s", event.text)
-            self.sink.on_bus_event(event)
+            self.sink.on_bus_event(self.rate_change(t, nm.node, rate_change))
         if wrap:
             if status == REPEATED:
                 self._repeated(d.kind, d.node, d.counter)
@@ -482,8 +483,21 @@ class MonitorPipeline:
     def _drive_reports(self, reports: list[DriveReport]) -> None:
         """What a CANopen drive said about itself: counted, and a bus event each."""
         for r in reports:
-            self.counters.inc(report_counter(r))
-            self.sink.on_bus_event(drive_event(r))
+            self.sink.on_bus_event(self.drive_report(r))
+
+    def rate_change(self, t: float, node: int, change: int) -> BusEvent:
+        """Count and log a node's samples leaving (or coming back to) the nominal rate
+        (`admission.rate_event`); its bus event (both engines)."""
+        counter, event = rate_event(t, node, change, self.cfg.rate)
+        if counter is not None:
+            self.counters.inc(counter)
+            self.warn.warn(f"rate-{node}", event.text)
+        return event
+
+    def drive_report(self, report: DriveReport) -> BusEvent:
+        """Count what a CANopen drive said about itself; its bus event (both engines)."""
+        self.counters.inc(report_counter(report))
+        return drive_event(report)
 
     def tick(self, now: float) -> None:
         """Timeouts and steady publication, at bus time `now` (no frame needed)."""
