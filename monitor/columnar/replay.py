@@ -80,7 +80,9 @@ class ColumnarEngine:
     gives the same events, samples and counters, so the two can be mixed on one pipeline:
     the live daemon hands a socket's backlog to `chunk` and single frames to `feed`.
     `ticks`: check the timeouts every `TICK_S` of the frames' time stamps inside a chunk,
-    as `feed_log` does (a replay); False where the caller ticks (the live loop).
+    as `feed_log` does, and hand the counters to the sink after every chunk (a replay);
+    False where the caller ticks (the live loop), the counters then going to the sink at the
+    per-frame engine's pace (`MonitorPipeline.counters_due`).
     Raises `NotColumnar` for a codec whose frames must go one by one (SecOC).
     """
 
@@ -256,7 +258,9 @@ class ColumnarEngine:
                 self.pipe.sink.on_diagnosis(ev)
             else:
                 self.pipe.sink.on_bus_event(ev)
-        self.pipe.emit_counters(float(c.t[-1]))
+        t_end = float(c.t[-1])
+        if self.ticks or self.pipe.counters_due(t_end):  # live: at the per-frame pace
+            self.pipe.emit_counters(t_end)
 
     def _node_chunk(self, nm: NodeMonitor, c: FrameChunk, dec: DecodedChunk, fr: NDArray[np.int64],
                     ra: NDArray[np.int64], lost_all: NDArray[np.int64],

@@ -440,7 +440,7 @@ class MonitorPipeline:
                                    inputs=tuple(u.tolist()), outputs=tuple(y.tolist()),
                                    predicted=tuple(out.y_est.tolist()),
                                    gammas=tuple(out.gamma.tolist())))
-        if t - self._last_counters_t >= self.cfg.counters_period_s:
+        if self.counters_due(t):
             self.emit_counters(t)
 
     # ------------------------------------------------------------------ diagnosis out
@@ -510,6 +510,10 @@ class MonitorPipeline:
         # silent bus, error frames, an outage) they still reach the sinks.
         if now - self._last_counters_t >= 2.0 * self.cfg.counters_period_s:
             self.emit_counters(now)
+
+    def counters_due(self, t: float) -> bool:
+        """Whether the counters are due at a sample's time t (every `counters_period_s`)."""
+        return t - self._last_counters_t >= self.cfg.counters_period_s
 
     def emit_counters(self, t: float) -> None:
         """Hand every counter to the sink at time `t` (also called on exit)."""
