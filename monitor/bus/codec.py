@@ -30,8 +30,9 @@ Without a key sync frames decode as plain ``sync`` samples (`Decoded.value` is
 SyncFreshness), nothing checked.
 
 Decoding never raises: every frame yields `Decoded` or `Rejected` with a reason from
-`RejectReason`. Checks run cheapest-first: error/remote/extended flags, id lookup, frame
-format (every message of our bus is classic CAN: a CAN FD frame with its ID is ``fd_frame``,
+`RejectReason`. Checks run cheapest-first (after the flags and the route, in
+`check_payload`, the one order of our bus's and every rig's codec): error/remote/extended
+flags, id lookup, frame format (every message of our bus is classic CAN: a CAN FD frame with its ID is ``fd_frame``,
 whatever its length), length,
 CRC, reserved bits (unused bits must be 0 -- a non-zero one means the sender uses another
 DBC revision, reported as ``malformed``), the SecOC MAC and freshness (with a key), then
@@ -47,13 +48,13 @@ import logging
 import math
 import os
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Final, cast
+from typing import TYPE_CHECKING, Final, TypeVar, cast
 
 import cantools.database
 from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
@@ -61,7 +62,6 @@ from cantools.database.can import Database, Message
 
 from monitor.bus.errors import CodecError
 from monitor.bus.scheme import (
-    FRAME_LENGTH,
     HEALTH_STATES,
     KINDS,
     N_NODES,
@@ -177,6 +177,63 @@ class Rejected:
     node: int | None = None
     kind: Kind | None = None
     detail: str = ""
+
+
+# ----------------------------------------------------------------------------- checks
+
+R = TypeVar("R")
+
+
+def check_payload(message: Message, arbitration_id: int, data: object, is_fd: bool,
+                  timestamp: float, node: int, kind: Kind | None, *, e2e: bool,
+                  reserved_mask: int, limits: Sequence[tuple[str, float, float]], route: R,
+                  verify: Callable[[R, bytes], tuple[RejectReason, str] | None] | None,
+                  ) -> dict[str, float] | Rejected:
+    """The checks of a frame routed to `message`, in their one order for every codec (our
+    bus's and a rig's): frame format (CAN FD or classic, as the message), the payload as
+    bytes, length, the E2E profile-2 CRC (`e2e`), reserved bits (`reserved_mask`: bits no
+    signal uses must be 0), SecOC (`verify` of `route`, with a key), decoding by cantools,
+    then the limits of the signals the estimator reads (NaN and inf fail). Returns the
+    decoded signals (physical values, choices as ints), or why not; never raises."""
+    if type(data) is bytes:
+        payload = data
+    else:
+        try:
+            payload = bytes(data)  # type: ignore[call-overload]
+        except Exception as exc:  # any object handed in by a driver: report, not raise
+            return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, kind,
+                            f"payload is {type(exc).__name__}")
+    if is_fd != message.is_fd:
+        want, got = ("CAN FD", "classic CAN") if message.is_fd else ("classic CAN", "CAN FD")
+        return Rejected(RejectReason.FD_FRAME, arbitration_id, timestamp, node, kind,
+                        f"{got} frame of {len(payload)} bytes; {message.name} is a {want} "
+                        "message")
+    if len(payload) != message.length:
+        return Rejected(RejectReason.WRONG_LENGTH, arbitration_id, timestamp, node, kind,
+                        f"{len(payload)} bytes, expected {message.length}")
+    if e2e and not check_profile2_crc(payload, message):
+        return Rejected(RejectReason.BAD_CRC, arbitration_id, timestamp, node, kind,
+                        f"crc 0x{payload[0]:02X}, counter {payload[1] & 0xF}")
+    if reserved_mask and int.from_bytes(payload, "little") & reserved_mask:
+        return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, kind,
+                        "reserved bits set")
+    if verify is not None:
+        failed = verify(route, payload)
+        if failed is not None:
+            return Rejected(failed[0], arbitration_id, timestamp, node, kind, failed[1])
+    try:
+        signals = cast("dict[str, float]",
+                       message.decode(payload, decode_choices=False, scaling=True,
+                                      allow_truncated=False, allow_excess=False))
+    except Exception as exc:  # decode must never raise; cantools may raise several types
+        return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, kind,
+                        f"{type(exc).__name__}: {exc}")
+    for name, lo, hi in limits:
+        v = signals[name]
+        if not (lo <= v <= hi and math.isfinite(v)):  # NaN and inf, ranged or not
+            return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp, node, kind,
+                            f"{name}={v} not in [{lo}, {hi}]")
+    return signals
 
 
 # ----------------------------------------------------------------------------- database
@@ -388,53 +445,14 @@ class MotorDatabase(SecOCHolder):
         if route is None:
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not in {self.source}")
-        if is_fd:
-            return Rejected(RejectReason.FD_FRAME, arbitration_id, timestamp, route.node,
-                            route.kind, f"CAN FD frame of {len(data)} bytes; "
-                            f"{route.message.name} is a classic CAN message")
-        if type(data) is not bytes:
-            try:
-                data = bytes(data)
-            except Exception as exc:  # any object handed in by a driver: report, not raise
-                return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, route.node,
-                                route.kind, f"payload is {type(exc).__name__}")
-        if len(data) != FRAME_LENGTH:
-            return Rejected(RejectReason.WRONG_LENGTH, arbitration_id, timestamp, route.node,
-                            route.kind, f"{len(data)} bytes, expected {FRAME_LENGTH}")
-        message = route.message
-        if route.data_id is not None and not check_profile2_crc(data, message):
-            return Rejected(RejectReason.BAD_CRC, arbitration_id, timestamp, route.node,
-                            route.kind, f"crc 0x{data[0]:02X}, counter {data[1] & 0xF}")
-        if int.from_bytes(data, "little") & route.reserved_mask:
-            return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, route.node,
-                            route.kind, "reserved bits set")
-        if route.secoc is not None and self._secoc is not None:
-            failed = self._secoc.verify(route.secoc, (route.kind, route.node), data)
-            if failed is not None:
-                return Rejected(VERDICT_REASON[failed[0]], arbitration_id, timestamp,
-                                route.node, route.kind, failed[1])
-        elif route.sync is not None and self._secoc is not None:
-            index = route.sync.kind_index(data)
-            if index < len(SECOC_KINDS):  # otherwise out_of_range below, nothing verified
-                failed = self._secoc.verify_sync(route.sync, (SECOC_KINDS[index], route.node),
-                                                 data)
-                if failed is not None:
-                    return Rejected(VERDICT_REASON[failed[0]], arbitration_id, timestamp,
-                                    route.node, route.kind, failed[1])
-        try:
-            signals = cast(
-                "dict[str, float]",
-                message.decode(data, decode_choices=False, scaling=True,
-                               allow_truncated=False, allow_excess=False),
-            )
-        except Exception as exc:  # decode must never raise; cantools may raise several types
-            return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, route.node,
-                            route.kind, f"{type(exc).__name__}: {exc}")
-        for name, lo, hi in route.limits:
-            v = signals[name]
-            if not lo <= v <= hi:  # also catches NaN
-                return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp,
-                                route.node, route.kind, f"{name}={v} not in [{lo}, {hi}]")
+        checked = check_payload(
+            route.message, arbitration_id, data, is_fd, timestamp, route.node, route.kind,
+            e2e=route.data_id is not None, reserved_mask=route.reserved_mask,
+            limits=route.limits, route=route,
+            verify=self._verify if self._secoc is not None else None)
+        if isinstance(checked, Rejected):
+            return checked
+        signals = checked
         kind = route.kind
         value = float(signals[route.value_signal])
         return Decoded(
@@ -448,6 +466,22 @@ class MotorDatabase(SecOCHolder):
             (value,) if kind == "current" else (),
             value if kind == "truth" else None,
         )
+
+    def _verify(self, route: Route, data: bytes) -> tuple[RejectReason, str] | None:
+        """Why a current, voltage or sync frame fails SecOC (None: authentic and fresh, or
+        nothing to verify: a sync frame of no stream is out_of_range by its limits)."""
+        assert self._secoc is not None
+        if route.secoc is not None:
+            failed = self._secoc.verify(route.secoc, (route.kind, route.node), data)
+        elif route.sync is not None:
+            index = route.sync.kind_index(data)
+            if index >= len(SECOC_KINDS):
+                return None
+            failed = self._secoc.verify_sync(route.sync, (SECOC_KINDS[index], route.node),
+                                             data)
+        else:
+            return None
+        return None if failed is None else (VERDICT_REASON[failed[0]], failed[1])
 
     def decode_can(self, msg: can.Message) -> Decoded | Rejected:
         """`decode` for a python-can message (flags read from the message, not guessed)."""

@@ -32,11 +32,11 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, NamedTuple, cast
+from typing import TYPE_CHECKING, NamedTuple
 
 import cantools.database
 import numpy as np
-from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
+from cantools.autosar.end_to_end import apply_profile2_crc
 from cantools.database.can import Database, Message, Signal
 from cantools.database.can.formats.arxml import AutosarEnd2EndProperties, AutosarMessageSpecifics
 from numpy.typing import NDArray
@@ -47,6 +47,7 @@ from monitor.bus.codec import (
     MotorDatabase,
     Rejected,
     RejectReason,
+    check_payload,
     load_dbcs,
 )
 from monitor.bus.errors import CodecError, SecOCError
@@ -332,35 +333,15 @@ class RigCodec(SecOCHolder):
                                 detail="the DBC defines this ID with the other ID length")
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not a rig message in {self.source}")
-        spec, message, node = route.spec, route.message, route.node
-        data = bytes(data)
-        if is_fd != message.is_fd:
-            want, got = ("CAN FD", "classic CAN") if message.is_fd else ("classic CAN", "CAN FD")
-            return Rejected(RejectReason.FD_FRAME, arbitration_id, timestamp, node, None,
-                            f"{got} frame of {len(data)} bytes; {message.name} is a {want} "
-                            "message")
-        if len(data) != message.length:
-            return Rejected(RejectReason.WRONG_LENGTH, arbitration_id, timestamp, node,
-                            None, f"{len(data)} bytes, expected {message.length}")
-        if spec.e2e and not check_profile2_crc(data, message):
-            return Rejected(RejectReason.BAD_CRC, arbitration_id, timestamp, node, None,
-                            f"crc 0x{data[0]:02X}, counter {data[1] & 0xF}")
-        if self._secoc is not None and (route.secoc is not None or route.sync is not None):
-            failed = self._verify(route, data)
-            if failed is not None:
-                return Rejected(failed[0], arbitration_id, timestamp, node, None, failed[1])
-        try:
-            signals = cast("dict[str, float]",
-                           message.decode(data, decode_choices=False, scaling=True,
-                                          allow_truncated=False, allow_excess=False))
-        except Exception as exc:  # decode must never raise; cantools may raise several types
-            return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, None,
-                            f"{type(exc).__name__}: {exc}")
-        for name, lo, hi in route.limits:
-            v = signals[name]
-            if not (lo <= v <= hi and math.isfinite(v)):  # NaN and inf, ranged or not
-                return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp, node,
-                                None, f"{name}={v} not in [{lo}, {hi}]")
+        spec, node = route.spec, route.node
+        checked = check_payload(
+            route.message, arbitration_id, data, is_fd, timestamp, node, None, e2e=spec.e2e,
+            reserved_mask=0, limits=route.limits, route=route,
+            verify=self._verify if self._secoc is not None and (
+                route.secoc is not None or route.sync is not None) else None)
+        if isinstance(checked, Rejected):
+            return checked
+        signals = checked
         if route.sync is not None:
             assert self.sync is not None
             return Decoded("sync", node, timestamp, float(signals[self.sync.freshness]), None,
