@@ -30,14 +30,13 @@ Without a key sync frames decode as plain ``sync`` samples (`Decoded.value` is
 SyncFreshness), nothing checked.
 
 Decoding never raises: every frame yields `Decoded` or `Rejected` with a reason from
-`RejectReason`. Checks run cheapest-first (after the flags and the route, in
-`check_payload`, the one order of our bus's and every rig's codec): error/remote/extended
-flags, id lookup, frame format (every message of our bus is classic CAN: a CAN FD frame with its ID is ``fd_frame``,
-whatever its length), length,
-CRC, reserved bits (unused bits must be 0 -- a non-zero one means the sender uses another
-DBC revision, reported as ``malformed``), the SecOC MAC and freshness (with a key), then
-the DBC min/max of every signal (NaN fails). An authentic frame consumes its freshness
-value even if a range check then rejects it.
+`RejectReason`. Checks run cheapest-first: error/remote/extended flags, id lookup, then, in
+`check_payload` (the one order of our bus's and every rig's codec), frame format (every
+message of our bus is classic CAN: a CAN FD frame with its ID is ``fd_frame``, whatever its
+length), length, CRC, reserved bits (unused bits must be 0 -- a non-zero one means the
+sender uses another DBC revision, reported as ``malformed``), the SecOC MAC and freshness
+(with a key), then the DBC min/max of every signal (NaN fails). An authentic frame consumes
+its freshness value even if a range check then rejects it.
 """
 
 from __future__ import annotations
@@ -47,14 +46,16 @@ import copy
 import logging
 import math
 import os
+import sys
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import partial
 from importlib import resources
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Final, TypeVar, cast
+from typing import TYPE_CHECKING, Final, NamedTuple, cast
 
 import cantools.database
 from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
@@ -181,20 +182,62 @@ class Rejected:
 
 # ----------------------------------------------------------------------------- checks
 
-R = TypeVar("R")
+Verify = Callable[[bytes], tuple[RejectReason, str] | None]
+"""A codec's SecOC check of one route's payload: why it fails (None: authentic and fresh,
+or nothing to verify)."""
+
+Decode = Callable[[bytes, bool, bool, bool, bool], dict[str, float]]
+"""A message's ``decode_simple`` (cantools' ``decode`` of a message that is no container):
+payload, decode_choices, scaling, allow_truncated, allow_excess -> signals."""
+
+_LARGEST: Final = sys.float_info.max  # a limit's infinite end, as a finite bound
 
 
-def check_payload(message: Message, arbitration_id: int, data: object, is_fd: bool,
-                  timestamp: float, node: int, kind: Kind | None, *, e2e: bool,
-                  reserved_mask: int, limits: Sequence[tuple[str, float, float]], route: R,
-                  verify: Callable[[R, bytes], tuple[RejectReason, str] | None] | None,
-                  ) -> dict[str, float] | Rejected:
-    """The checks of a frame routed to `message`, in their one order for every codec (our
-    bus's and a rig's): frame format (CAN FD or classic, as the message), the payload as
-    bytes, length, the E2E profile-2 CRC (`e2e`), reserved bits (`reserved_mask`: bits no
-    signal uses must be 0), SecOC (`verify` of `route`, with a key), decoding by cantools,
-    then the limits of the signals the estimator reads (NaN and inf fail). Returns the
-    decoded signals (physical values, choices as ints), or why not; never raises."""
+class PayloadCheck(NamedTuple):
+    """What `check_payload` needs of one route, read once when the codec builds its routes
+    (no cantools property or method is looked up per frame): the message, its decoder, its
+    length and frame format, whether E2E profile 2 protects it, the bits no signal uses
+    (`reserved_mask`, 0: none checked), the limits of the signals the estimator reads, the
+    codec's SecOC check of the route (None: no key, or nothing to verify), and the node and
+    kind a rejection names. Each limit is (signal, low, high, min, max): [min, max] as the
+    codec gives it (what a rejection says), [low, high] the same range with an infinite end
+    replaced by the largest finite float, so that ``low <= v <= high`` alone fails NaN and
+    inf."""
+
+    message: Message
+    decode: Decode
+    length: int
+    is_fd: bool
+    e2e: bool
+    reserved_mask: int
+    limits: tuple[tuple[str, float, float, float, float], ...]
+    verify: Verify | None
+    node: int
+    kind: Kind | None
+
+    @classmethod
+    def of(cls, message: Message, node: int, kind: Kind | None, e2e: bool, reserved_mask: int,
+           limits: tuple[tuple[str, float, float], ...], verify: Verify | None
+           ) -> PayloadCheck:
+        """The check of a route to `message`; `limits` (signal, min, max)."""
+        # decode_choices=False (below) gives every signal as a number
+        decode = cast("Decode", message.decode_simple)
+        bounds = tuple((name, max(lo, -_LARGEST), min(hi, _LARGEST), lo, hi)
+                       for name, lo, hi in limits)
+        return cls(message, decode, message.length, message.is_fd, e2e, reserved_mask, bounds,
+                    verify, node, kind)
+
+
+def check_payload(check: PayloadCheck, arbitration_id: int, data: object, is_fd: bool,
+                  timestamp: float) -> dict[str, float] | Rejected:
+    """The checks of a frame routed to `check.message`, in their one order for every codec
+    (our bus's and a rig's): the payload as bytes, frame format (CAN FD or classic, as the
+    message), length, the E2E profile-2 CRC, reserved bits (bits no signal uses must be 0),
+    SecOC (with a key), decoding by cantools, then the limits of the signals the estimator
+    reads (NaN and inf fail). Returns the decoded signals (physical values, choices as
+    ints), or why not; never raises (hot path: one call per frame, so `check` is a tuple
+    built once per route)."""
+    message, decode, length, fd, e2e, reserved_mask, limits, verify, node, kind = check
     if type(data) is bytes:
         payload = data
     else:
@@ -203,14 +246,14 @@ def check_payload(message: Message, arbitration_id: int, data: object, is_fd: bo
         except Exception as exc:  # any object handed in by a driver: report, not raise
             return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, kind,
                             f"payload is {type(exc).__name__}")
-    if is_fd != message.is_fd:
-        want, got = ("CAN FD", "classic CAN") if message.is_fd else ("classic CAN", "CAN FD")
+    if is_fd != fd:
+        want, got = ("CAN FD", "classic CAN") if fd else ("classic CAN", "CAN FD")
         return Rejected(RejectReason.FD_FRAME, arbitration_id, timestamp, node, kind,
                         f"{got} frame of {len(payload)} bytes; {message.name} is a {want} "
                         "message")
-    if len(payload) != message.length:
+    if len(payload) != length:
         return Rejected(RejectReason.WRONG_LENGTH, arbitration_id, timestamp, node, kind,
-                        f"{len(payload)} bytes, expected {message.length}")
+                        f"{len(payload)} bytes, expected {length}")
     if e2e and not check_profile2_crc(payload, message):
         return Rejected(RejectReason.BAD_CRC, arbitration_id, timestamp, node, kind,
                         f"crc 0x{payload[0]:02X}, counter {payload[1] & 0xF}")
@@ -218,19 +261,18 @@ def check_payload(message: Message, arbitration_id: int, data: object, is_fd: bo
         return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, kind,
                         "reserved bits set")
     if verify is not None:
-        failed = verify(route, payload)
+        failed = verify(payload)
         if failed is not None:
             return Rejected(failed[0], arbitration_id, timestamp, node, kind, failed[1])
     try:
-        signals = cast("dict[str, float]",
-                       message.decode(payload, decode_choices=False, scaling=True,
-                                      allow_truncated=False, allow_excess=False))
+        # decode_choices=False, scaling=True, allow_truncated=False, allow_excess=False
+        signals = decode(payload, False, True, False, False)
     except Exception as exc:  # decode must never raise; cantools may raise several types
         return Rejected(RejectReason.MALFORMED, arbitration_id, timestamp, node, kind,
                         f"{type(exc).__name__}: {exc}")
-    for name, lo, hi in limits:
+    for name, low, high, lo, hi in limits:
         v = signals[name]
-        if not (lo <= v <= hi and math.isfinite(v)):  # NaN and inf, ranged or not
+        if not low <= v <= high:  # NaN and inf too, ranged or not: low and high are finite
             return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp, node, kind,
                             f"{name}={v} not in [{lo}, {hi}]")
     return signals
@@ -259,6 +301,17 @@ class MotorDatabase(SecOCHolder):
         self._secoc = None
         if secoc_key is not None:
             self._secoc = self._new_secoc(secoc_key, secoc_window)
+        self._checks = self._build_checks()
+
+    def _build_checks(self) -> dict[int, tuple[Route, PayloadCheck]]:
+        """Each frame ID's route and its `check_payload` check, SecOC verified by this
+        database's engine (rebuilt when the engine changes)."""
+        secoc = self._secoc is not None
+        return {fid: (r, PayloadCheck.of(
+                    r.message, r.node, r.kind, r.data_id is not None, r.reserved_mask,
+                    r.limits,
+                    partial(self._verify, r) if secoc and (r.secoc or r.sync) else None))
+                for fid, r in self._routes.items()}
 
     @property
     def routes(self) -> Mapping[int, Route]:
@@ -277,6 +330,7 @@ class MotorDatabase(SecOCHolder):
         """A database on the same DBC with its own SecOC key and fresh counters (None: off)."""
         clone = copy.copy(self)
         clone._secoc = None if key is None else self._new_secoc(key, window)
+        clone._checks = clone._build_checks()
         return clone
 
     # -- SecOC ------------------------------------------------------------------------
@@ -441,18 +495,14 @@ class MotorDatabase(SecOCHolder):
         if is_extended:
             return Rejected(RejectReason.EXTENDED_ID, arbitration_id, timestamp,
                             detail=f"29-bit id 0x{arbitration_id:08X}")
-        route = self._routes.get(arbitration_id)
-        if route is None:
+        hit = self._checks.get(arbitration_id)
+        if hit is None:
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not in {self.source}")
-        checked = check_payload(
-            route.message, arbitration_id, data, is_fd, timestamp, route.node, route.kind,
-            e2e=route.data_id is not None, reserved_mask=route.reserved_mask,
-            limits=route.limits, route=route,
-            verify=self._verify if self._secoc is not None else None)
-        if isinstance(checked, Rejected):
-            return checked
-        signals = checked
+        route, check = hit
+        signals = check_payload(check, arbitration_id, data, is_fd, timestamp)
+        if isinstance(signals, Rejected):
+            return signals
         kind = route.kind
         value = float(signals[route.value_signal])
         return Decoded(
@@ -473,14 +523,13 @@ class MotorDatabase(SecOCHolder):
         assert self._secoc is not None
         if route.secoc is not None:
             failed = self._secoc.verify(route.secoc, (route.kind, route.node), data)
-        elif route.sync is not None:
+        else:
+            assert route.sync is not None  # only secured and sync routes are verified
             index = route.sync.kind_index(data)
             if index >= len(SECOC_KINDS):
                 return None
             failed = self._secoc.verify_sync(route.sync, (SECOC_KINDS[index], route.node),
                                              data)
-        else:
-            return None
         return None if failed is None else (VERDICT_REASON[failed[0]], failed[1])
 
     def decode_can(self, msg: can.Message) -> Decoded | Rejected:

@@ -12,7 +12,8 @@ classic ones; a frame whose format is not the message's (FD for a classic messag
 the reverse) is ``fd_frame``, before its length is looked at. Decoding never raises:
 every frame is `Decoded` (the model's inputs and outputs converted to the model's units)
 or `Rejected` with a reason from `RejectReason`, like `monitor.bus.codec.MotorDatabase`
-for our own bus.
+for our own bus, whose checks of a routed frame (`monitor.bus.codec.check_payload`, no
+reserved bits here) it runs in the same order.
 
 SecOC (`monitor.bus.secoc`, as on our own bus): a secured message carries a truncated
 freshness value and a truncated AES-CMAC in signals the rig names (`RigSecOC`); its SecOC
@@ -30,6 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING, NamedTuple
@@ -45,6 +47,7 @@ from monitor.bus.codec import (
     VERDICT_REASON,
     Decoded,
     MotorDatabase,
+    PayloadCheck,
     Rejected,
     RejectReason,
     check_payload,
@@ -191,6 +194,12 @@ class RigCodec(SecOCHolder):
             if not self._sync_streams:
                 raise CodecError(f"{source}: a SecOC key, but no rig message has SecOC")
             self._secoc = SecOC(secoc_key, window=secoc_window)
+        secured = self._secoc is not None
+        self._checks: dict[tuple[int, bool], tuple[RigRoute, PayloadCheck]] = {
+            key: (r, PayloadCheck.of(
+                r.message, r.node, None, r.spec.e2e, 0, r.limits,
+                partial(self._verify, r) if secured and (r.secoc or r.sync) else None))
+            for key, r in self._routes.items()}
 
     def _secured(self, route: RigRoute, frame_id: int, is_sync: bool) -> RigRoute:
         """`route` with its SecOC layout (data ID: the frame ID's low 16 bits)."""
@@ -326,22 +335,18 @@ class RigCodec(SecOCHolder):
         if is_remote:
             return Rejected(RejectReason.REMOTE_FRAME, arbitration_id, timestamp,
                             detail="remote frames carry no data")
-        route = self._routes.get((arbitration_id, is_extended))
-        if route is None:
+        hit = self._checks.get((arbitration_id, is_extended))
+        if hit is None:
             if (arbitration_id, not is_extended) in self._routes:
                 return Rejected(RejectReason.EXTENDED_ID, arbitration_id, timestamp,
                                 detail="the DBC defines this ID with the other ID length")
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not a rig message in {self.source}")
+        route, check = hit
+        signals = check_payload(check, arbitration_id, data, is_fd, timestamp)
+        if isinstance(signals, Rejected):
+            return signals
         spec, node = route.spec, route.node
-        checked = check_payload(
-            route.message, arbitration_id, data, is_fd, timestamp, node, None, e2e=spec.e2e,
-            reserved_mask=0, limits=route.limits, route=route,
-            verify=self._verify if self._secoc is not None and (
-                route.secoc is not None or route.sync is not None) else None)
-        if isinstance(checked, Rejected):
-            return checked
-        signals = checked
         if route.sync is not None:
             assert self.sync is not None
             return Decoded("sync", node, timestamp, float(signals[self.sync.freshness]), None,
