@@ -33,9 +33,13 @@ The same transitions, due diagnoses, bus events, samples and counters as
 ``feed_log(MonitorPipeline(db, cfg, sink), read_log(path))`` (tests/columnar/test_columnar.py). What
 differs: samples and inputs reach a sink node by node per chunk (each node's in order),
 before that chunk's events; the counters reach the sink once per chunk (at its last frame's
-time) rather than about once a second of bus time; rejected frames are logged once per
-reason per file rather than rate-limited. SecOC needs per-frame freshness state: with a
-key the file goes through the per-frame path (one log line says so).
+time) rather than about once a second of bus time. SecOC needs per-frame freshness state:
+with a key the file goes through the per-frame path (one log line says so).
+
+The engine (`replay.ColumnarEngine`) runs on a `MonitorPipeline`'s state -- its nodes,
+counters, alive-counter tracker, drives, warnings and sink -- so chunks and single frames
+can be mixed on one pipeline: the live daemon hands a socket's backlog to it in one call
+and a few frames to the per-frame engine (`live.BacklogFeed`).
 """
 
 from monitor.columnar.decode import NotColumnar

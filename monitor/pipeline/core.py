@@ -110,6 +110,7 @@ __all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
 log = logging.getLogger("motor_monitor")
 _RESTART = np.ones(1, np.bool_)  # `delayed`'s restart flag of one sample
 _STATES = tuple(HealthState)
+_WARMED: set[tuple[int, int, int, str]] = set()  # estimators whose kernels this process loaded
 
 
 class FrameDecoder(Protocol):
@@ -282,10 +283,14 @@ class MonitorPipeline:
         self.held: set[int] = set()  # nodes whose drive said it was not operational
         # Load the compiled kernels now, not on the first frame of a live bus.
         # (the structure event's onset search and re-processing too: a JIT compile in the
-        # middle of a flood would stall the daemon for seconds)
-        FuzzyUKF(self.model, self.cfg.estimator).warm_up()
-        rules.warm_up(self.diag_prm)
-        warm_up()
+        # middle of a flood would stall the daemon for seconds); once per process and kind
+        # of estimator: an archive makes a pipeline per file
+        key = (self.model.n, self.model.m, self.model.p, repr(self.cfg.estimator))
+        if key not in _WARMED:
+            FuzzyUKF(self.model, self.cfg.estimator).warm_up()
+            rules.warm_up(self.diag_prm)
+            warm_up()
+            _WARMED.add(key)
         for n in self.cfg.nodes or ():
             self.node(n)
 
