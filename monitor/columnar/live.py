@@ -25,10 +25,11 @@ __all__ = ["COLUMNAR_MIN_FRAMES", "BacklogFeed"]
 log = logging.getLogger("motor_monitor")
 
 COLUMNAR_MIN_FRAMES = 48
-"""The fewest frames handed to the columnar engine in one call. Measured on our bus
-(`python -m tests.bench.backlog`): a chunk costs about 1 ms whatever its size, a frame
-about 60 us on the per-frame path and 10 us in columns, so the two break even at about 20
-frames; above 48 the chunk is well ahead."""
+"""The fewest frames handed to the columnar engine in one call. On our bus
+(`python -m tests.bench.backlog`) a chunk costs about 1 ms whatever its size (on a quiet
+machine), a frame about 60 us on the per-frame path and 10 us in columns: the two break even
+between 10 and 30 frames, and from about 50 on a chunk takes under half the per-frame
+time."""
 
 
 class BacklogFeed:
