@@ -59,17 +59,16 @@ def _same(a: tuple[Recorder, MonitorPipeline, Any], b: tuple[Recorder, MonitorPi
     assert pb.summary()["nodes"] == pa.summary()["nodes"]
 
 
-FRAMES = {
-    "faults, bad, lost, repeated and late frames, two nodes": sim_frames(
-        "fault-outage-recovery", bad=True, drop=23, repeat=31, late=True, nodes=(0, 1))[:5000],
-}
+FRAMES = sim_frames("fault-outage-recovery", bad=True, drop=23, repeat=31, late=True,
+                    nodes=(0, 1))[:5000]
+"""Faults, bad, lost, repeated and late frames, two nodes."""
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.integers(1, 400), min_size=1, max_size=12), st.integers(1, 120))
 def test_backlogs_and_single_frames_leave_the_same_state(sizes: list[int],
                                                          min_frames: int) -> None:
-    frames = FRAMES["faults, bad, lost, repeated and late frames, two nodes"]
+    frames = FRAMES
     cfg = MonitorConfig(nodes=None)
     per_frame = _live(frames, sizes, ALL_PER_FRAME, cfg)
     assert per_frame[2].chunks == 0
@@ -82,7 +81,7 @@ def test_backlogs_and_single_frames_leave_the_same_state(sizes: list[int],
 def test_every_backlog_in_columns_gives_the_per_frame_result() -> None:
     """All in columns (batches of 1 to 97 frames, every one a chunk) against all one by
     one: chunk boundaries fall at every kind of frame."""
-    frames = FRAMES["faults, bad, lost, repeated and late frames, two nodes"]
+    frames = FRAMES
     sizes = [1, 97, 2, 13, 64, 5, 40]
     cfg = MonitorConfig(nodes=None)
     per_frame = _live(frames, sizes, ALL_PER_FRAME, cfg)
