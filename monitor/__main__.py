@@ -1,5 +1,5 @@
 import sys
 
-from monitor.app.cli import main
+from monitor.app.cli import program
 
-sys.exit(main())
+sys.exit(program())

@@ -1,5 +1,5 @@
 """``python -m sim_ecu``: the ``sim-ecu`` command."""
 
-from sim_ecu.cli import main
+from sim_ecu.program import main
 
 raise SystemExit(main())

@@ -47,7 +47,7 @@ from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.pipeline import DiagnosisEvent, MonitorConfig
 from monitor.pipeline.feed import feed_log
 from monitor.sinks.blueprint import counter_path
-from sim_ecu import VirtualECU
+from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import Scenario, load_scenario, scenario_from_dict
 from tests.support import BIN
 from tests.support.dbc import REPO_DBC

@@ -28,11 +28,12 @@ import pytest
 
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.estimation.model import DCMotorParameters, dc_motor
-from sim_ecu import ECUError, VirtualECU, load_motor_parameters, motor_parameters
+from sim_ecu.ecu import ECUError, VirtualECU, load_motor_parameters, motor_parameters
 from sim_ecu.cli import main
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import load_scenario, scenario_from_dict
 from tests.support.paths import ROOT
+from tests.support.pipeline import decode_all
 from tests.support.vcan_scripts import RunOnVcan, run_script, script_values
 
 
@@ -65,13 +66,6 @@ def _drain(bus: can.BusABC) -> list[can.Message]:
     return out
 
 
-def _decode_all(mdb: MotorDatabase, frames: list[can.Message]) -> list[Decoded]:
-    decoded = [mdb.decode_can(m) for m in frames]
-    rejected = [d for d in decoded if not isinstance(d, Decoded)]
-    assert not rejected, rejected[:3]
-    return [d for d in decoded if isinstance(d, Decoded)]
-
-
 def _by_kind(decoded: list[Decoded], kind: str) -> list[Decoded]:
     return [d for d in decoded if d.kind == kind]
 
@@ -83,7 +77,7 @@ def test_frames_two_seconds_of_fault_outage_recovery(mdb: MotorDatabase) -> None
     scenario = load_scenario("fault-outage-recovery")
     ecu = VirtualECU(None, mdb, 5, scenario, rate=100.0, voltage_rate=20.0, seed=1)
     frames = list(ecu.frames(2.0))
-    decoded = _decode_all(mdb, frames)
+    decoded = decode_all(mdb, frames)
     assert all(d.node == 5 for d in decoded)
     current, voltage, truth = (_by_kind(decoded, k) for k in ("current", "voltage", "truth"))
     assert (len(current), len(voltage), len(truth)) == (200, 40, 200)
@@ -109,7 +103,7 @@ def test_keyed_ecu_sends_secoc_syncs_at_start_and_every_second(mdb: MotorDatabas
     ecu = VirtualECU(None, mdb, 5, load_scenario("healthy"), rate=100.0, key=key)
     frames = list(ecu.frames(2.5))
     rx = load_database(secoc_key=key)
-    decoded = _decode_all(rx, frames)  # the syncs make a fresh monitor accept the rest
+    decoded = decode_all(rx, frames)  # the syncs make a fresh monitor accept the rest
     syncs = _by_kind(decoded, "sync")
     assert [(d.timestamp, d.raw["SyncKind"], d.value) for d in syncs] == [
         (0.0, 0, 0), (0.0, 1, 0), (1.0, 0, 100), (1.0, 1, 20), (2.0, 0, 200), (2.0, 1, 40)]
@@ -118,7 +112,7 @@ def test_keyed_ecu_sends_secoc_syncs_at_start_and_every_second(mdb: MotorDatabas
     assert all(m.arbitration_id == 0x1F5 for m in frames if mdb.decode_can(m).kind == "sync")
     # without a key: no syncs, and the stats look as they always did
     plain = VirtualECU(None, mdb, 5, load_scenario("healthy"), rate=100.0)
-    assert not any(d.kind == "sync" for d in _decode_all(mdb, list(plain.frames(2.5))))
+    assert not any(d.kind == "sync" for d in decode_all(mdb, list(plain.frames(2.5))))
     assert "sync" not in plain.stats.produced and "sync" not in plain.stats.summary()
 
 
@@ -132,7 +126,7 @@ def test_a_sync_on_a_skipped_sample_goes_out_with_the_next_one(mdb: MotorDatabas
     assert kinds[0][:2] == ["sync", "sync"] and all("sync" not in k for k in kinds[1:])
     sim.step(False, 0.0)  # sample 100, a sync sample, skipped (an overrun)
     sim.step(False, 0.0)
-    late = _decode_all(mdb, sim.step(True, 0.0))
+    late = decode_all(mdb, sim.step(True, 0.0))
     assert [d.kind for d in late[:3]] == ["sync", "sync", "current"]
     assert late[0].value == 99  # the freshness signed so far: samples 100, 101 unsigned
 
@@ -140,7 +134,7 @@ def test_a_sync_on_a_skipped_sample_goes_out_with_the_next_one(mdb: MotorDatabas
 def test_truth_follows_the_whole_scenario(mdb: MotorDatabase) -> None:
     scenario = load_scenario("fault-outage-recovery")
     ecu = VirtualECU(None, mdb, 0, scenario, seed=2)
-    truth = _by_kind(_decode_all(mdb, list(ecu.frames())), "truth")
+    truth = _by_kind(decode_all(mdb, list(ecu.frames())), "truth")
     assert len(truth) == round(scenario.duration * 100)
     gammas = np.array([d.value for d in truth])
     expected = np.array([scenario.gamma_at(k / 100)[0] for k in range(len(truth))])
@@ -155,7 +149,7 @@ def test_current_frames_carry_the_plant_simulation(mdb: MotorDatabase) -> None:
     """Same model, seed and noise order as sim_ecu.plant.simulate, up to DBC resolution."""
     scenario = load_scenario("incipient")
     ecu = VirtualECU(None, mdb, 3, scenario, seed=11)
-    decoded = _decode_all(mdb, list(ecu.frames()))
+    decoded = decode_all(mdb, list(ecu.frames()))
     current = np.array([d.value for d in _by_kind(decoded, "current")])
     truth = _by_kind(decoded, "truth")
     run = simulate(dc_motor(), scenario, 0.01, seed=11)
@@ -200,7 +194,7 @@ def test_voltage_frame_at_every_command_change(mdb: MotorDatabase) -> None:
         }
     )
     ecu = VirtualECU(None, mdb, 2, scenario, voltage_rate=10.0)
-    voltage = _by_kind(_decode_all(mdb, list(ecu.frames())), "voltage")
+    voltage = _by_kind(decode_all(mdb, list(ecu.frames())), "voltage")
     times = [round(d.timestamp * 100) for d in voltage]
     assert times == [0, 10, 20, 30, 33, 40, 50, 60, 70, 71, 80, 90]
     for d in voltage:
@@ -210,7 +204,7 @@ def test_voltage_frame_at_every_command_change(mdb: MotorDatabase) -> None:
 
 def test_non_integer_voltage_ratio_spreads_frames(mdb: MotorDatabase) -> None:
     ecu = VirtualECU(None, mdb, 2, load_scenario("healthy"), rate=100.0, voltage_rate=30.0)
-    voltage = _by_kind(_decode_all(mdb, list(ecu.frames(1.0))), "voltage")
+    voltage = _by_kind(decode_all(mdb, list(ecu.frames(1.0))), "voltage")
     assert len(voltage) == 30
     gaps = np.diff([round(d.timestamp * 100) for d in voltage])
     assert set(gaps) <= {3, 4}
@@ -222,7 +216,7 @@ def test_values_outside_the_dbc_range_are_clipped_and_counted(mdb: MotorDatabase
         {"name": "overdrive", "duration": 0.5, "voltage": {"steps": [[0.0, 1000.0]]}}
     )
     ecu = VirtualECU(None, mdb, 0, scenario)
-    decoded = _decode_all(mdb, list(ecu.frames()))
+    decoded = decode_all(mdb, list(ecu.frames()))
     assert all(d.value == pytest.approx(400.0) for d in _by_kind(decoded, "voltage"))
     assert max(d.value for d in _by_kind(decoded, "current")) == pytest.approx(300.0)
     assert ecu.stats.clipped["voltage"] == 10
@@ -235,7 +229,7 @@ def test_inputs_hold_after_the_scenario_and_start_time(mdb: MotorDatabase) -> No
         {"name": "short", "duration": 1.0, "fault": [{"start": 0.5, "gamma": 0.3}]}
     )
     ecu = VirtualECU(None, mdb, 0, scenario, truth=True)
-    truth = _by_kind(_decode_all(mdb, list(ecu.frames(2.0, start_time=1000.0))), "truth")
+    truth = _by_kind(decode_all(mdb, list(ecu.frames(2.0, start_time=1000.0))), "truth")
     assert len(truth) == 200
     assert truth[0].timestamp == pytest.approx(1000.0)
     assert truth[-1].timestamp == pytest.approx(1001.99)
@@ -245,7 +239,7 @@ def test_inputs_hold_after_the_scenario_and_start_time(mdb: MotorDatabase) -> No
 
 def test_no_truth_and_infinite_frames(mdb: MotorDatabase) -> None:
     ecu = VirtualECU(None, mdb, 0, load_scenario("healthy"), truth=False)
-    kinds = {d.kind for d in _decode_all(mdb, list(ecu.frames(0.5)))}
+    kinds = {d.kind for d in decode_all(mdb, list(ecu.frames(0.5)))}
     assert kinds == {"current", "voltage"}
     endless = ecu.frames(math.inf)
     assert len([next(endless) for _ in range(5000)]) == 5000  # past the 20 s scenario
@@ -288,12 +282,12 @@ def test_motor_table(mdb: MotorDatabase, tmp_path: Path) -> None:
     assert params == DCMotorParameters(Ra=4.0, La=1.0)
     assert load_motor_parameters("healthy") is None
     ecu = VirtualECU(None, mdb, 0, load_scenario(path), motor=params)
-    first = _decode_all(mdb, list(ecu.frames(0.01)))[0]
+    first = decode_all(mdb, list(ecu.frames(0.01)))[0]
     # Steady current b u / (Ra b + Ke Ki) = 0.05 * 220 / (0.2 + 0.0625).
     assert first.value == pytest.approx(0.05 * 220 / 0.2625, abs=2.0)
     # La = 0 (singular E): the current is algebraic, truth still carries current and speed.
     ecu0 = VirtualECU(None, mdb, 0, load_scenario("healthy"), motor=DCMotorParameters(La=0.0))
-    truth = _by_kind(_decode_all(mdb, list(ecu0.frames(0.1))), "truth")
+    truth = _by_kind(decode_all(mdb, list(ecu0.frames(0.1))), "truth")
     assert truth[0].raw["TrueCurrent"] == pytest.approx(67.69, abs=0.02)
     assert truth[0].raw["TrueSpeed"] == pytest.approx(338.46, abs=0.02)
     for table, msg in (({"Rb": 1.0}, "unknown key"), ({"Ra": -1.0}, "Ra"), ({"J": "x"}, "J")):
@@ -324,20 +318,21 @@ def test_run_paces_frames_without_drift(
     rate = 200.0
     ecu = VirtualECU(tx, mdb, 4, load_scenario("fault-outage-recovery"), rate=rate, seed=3)
     stats = ecu.run(0.5)
-    received = _decode_all(mdb, _drain(rx))
+    received = decode_all(mdb, _drain(rx))
     current = _by_kind(received, "current")
     assert stats.samples == 100
     assert stats.send_errors == 0
     assert len(current) == stats.sent["current"] == 100 - stats.overruns
     assert len(_by_kind(received, "truth")) == stats.sent["truth"]
     assert len(_by_kind(received, "voltage")) == stats.sent["voltage"] >= 10 - stats.overruns
-    counted = [d for d in current if d.counter is not None]
-    ks = _sample_indices([d.counter for d in counted], [d.timestamp for d in counted], rate)
+    counters = [d.counter for d in current if d.counter is not None]
+    stamps = [d.timestamp for d in current if d.counter is not None]
+    ks = _sample_indices(counters, stamps, rate)
     assert ks[-1] == 99
     # The virtual bus stamps frames at send time. Offsets from the schedule k / rate must
     # not grow: the mean period equals 1 / rate within 1 %. Medians over the first and the
     # last ten frames keep one frame delayed by a busy machine from deciding the outcome.
-    offsets = np.array([d.timestamp for d in counted]) - np.array(ks) / rate
+    offsets = np.array(stamps) - np.array(ks) / rate
     span = (np.median(ks[-10:]) - np.median(ks[:10])) / rate
     mean_period = (np.median(offsets[-10:]) - np.median(offsets[:10]) + span) / (span * rate)
     assert mean_period == pytest.approx(1.0 / rate, rel=0.01)
@@ -354,7 +349,7 @@ def test_run_stops_on_event(mdb: MotorDatabase, bus_pair: tuple[can.BusABC, can.
     stats = ecu.run(math.inf, stop)
     assert time.monotonic() - t0 < 1.0
     assert 20 <= stats.samples <= 40
-    assert len(_by_kind(_decode_all(mdb, _drain(rx)), "current")) == stats.sent["current"]
+    assert len(_by_kind(decode_all(mdb, _drain(rx)), "current")) == stats.sent["current"]
 
 
 def test_send_errors_are_counted_and_logged_once_per_burst(
@@ -466,7 +461,7 @@ def test_cli_in_process_frames_reach_a_receiver(
     try:
         rc = main(["--interface", "virtual", "--channel", channel, "--node", "7",
                    "--scenario", "healthy", "--duration", "0.2", "--no-truth", "--seed", "9"])
-        received = _decode_all(mdb, _drain(rx))
+        received = decode_all(mdb, _drain(rx))
     finally:
         rx.shutdown()
     assert rc == 0
@@ -500,7 +495,7 @@ def test_cli_with_a_key_sends_signed_frames(
         rx.shutdown()
     assert rc == 0, capsys.readouterr().err
     keyed = load_database(secoc_key=SECOC_KEY)
-    decoded = _decode_all(keyed, frames)  # every frame verifies: authentic and fresh
+    decoded = decode_all(keyed, frames)  # every frame verifies: authentic and fresh
     assert {d.kind for d in decoded} == {"current", "voltage", "truth", "sync"}
     # one sync per stream before the first data frame (the run is shorter than a second)
     assert [(d.kind, d.raw.get("SyncKind"), d.value) for d in decoded[:2]] == [
@@ -567,7 +562,7 @@ def test_cli_secoc_state_keeps_the_counters_across_runs(
     monitor = load_database(secoc_key=SECOC_KEY)  # one monitor sees every run
     assert monitor.secoc is not None
     args = ("--key", str(key), "--secoc-state", str(state))
-    first = _decode_all(monitor, _cli_run(channel, *args))
+    first = decode_all(monitor, _cli_run(channel, *args))
     assert first[0].kind == "sync" and first[0].value == 0
     assert stat_mode(state) == 0o600
     # the freshness counts the frames sent (30 and 6 unless a loaded machine skipped some)
@@ -577,7 +572,7 @@ def test_cli_secoc_state_keeps_the_counters_across_runs(
     assert saved == {"tx/current/4": current, "tx/voltage/4": voltage}
     # a second run continues a minute of frames ahead (it might have crashed after a
     # save), says so in its first sync, and the monitor goes on without a rejection
-    second = _decode_all(monitor, _cli_run(channel, *args))
+    second = decode_all(monitor, _cli_run(channel, *args))
     margin = 60 * 100
     assert [(d.kind, d.value) for d in second[:2]] == [("sync", current + margin),
                                                        ("sync", voltage + margin)]
@@ -753,7 +748,7 @@ def test_cli_on_real_socketcan(
     assert "current=100 voltage=20 truth=100, send errors 0" in ecu_err
     with can.CanutilsLogReader(tmp_path / "cap.log") as reader:
         frames = list(reader)
-    decoded = _decode_all(mdb, frames)
+    decoded = decode_all(mdb, frames)
     assert [len(_by_kind(decoded, k)) for k in ("current", "voltage", "truth")] == [100, 20, 100]
     offline = VirtualECU(None, mdb, 2, load_scenario("fault-outage-recovery"), seed=5)
     assert [bytes(m.data) for m in frames] == [bytes(m.data) for m in offline.frames(1.0)]
