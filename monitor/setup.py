@@ -30,13 +30,7 @@ from monitor.rig.check import signal_units
 from monitor.sinks.base import Sink
 from monitor.sinks.compact import Compactor
 from monitor.sinks.jsonl import JsonLinesSink
-from monitor.sinks.rerun import (
-    DEFAULT_FLUSH_INTERVAL_S,
-    REPLAY_BATCH_SIZE,
-    REPLAY_PART_BYTES,
-    RerunSink,
-)
-from monitor.sinks.rotation import RotatingRerunSink
+from monitor.sinks.outlet import DEFAULT_FLUSH_INTERVAL_S, REPLAY_BATCH_SIZE, REPLAY_PART_BYTES
 
 __all__ = ["MonitorSettings", "MonitorSetup", "Rotation", "event_lines", "fault_unit",
            "frame_decoder", "monitor_config", "monitor_setup", "plant_signals",
@@ -170,6 +164,11 @@ def recording_sink(cfg: MonitorConfig, rig: Rig | None, *, rrd: str | Path | Non
     cannot start is one `MonitorError` line."""
     if not (rrd or connect or rotation):
         return None
+    # rerun-sdk (0.5 s of a start, with pandas, which its first archetype imports) only for
+    # a monitor that records
+    from monitor.sinks.rerun import RerunSink
+    from monitor.sinks.rotation import RotatingRerunSink
+
     common: dict[str, Any] = {"nodes": cfg.nodes or (), "f1": cfg.thresholds.f1,
                               "f2": cfg.thresholds.f2, "connect_url": connect,
                               "flush_interval_s": flush_interval_s,

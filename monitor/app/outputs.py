@@ -21,7 +21,7 @@ from monitor.setup import (
     samples_sink,
 )
 from monitor.sinks.base import Sink
-from monitor.sinks.rerun import DEFAULT_FLUSH_INTERVAL_S
+from monitor.sinks.outlet import DEFAULT_FLUSH_INTERVAL_S
 
 if TYPE_CHECKING:
     from monitor.rig import Rig

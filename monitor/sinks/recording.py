@@ -33,7 +33,7 @@ from monitor.sinks.blueprint import (
     signal_legend,
     signal_parts,
 )
-from monitor.sinks.outlet import RecordingOutlet
+from monitor.sinks.outlet import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet
 from monitor.sinks.runs import EXACT_LINE, RUNS
 
 __all__ = ["DEFAULT_FLUSH_INTERVAL_S", "TIMELINE", "RecordingSink"]
@@ -44,9 +44,6 @@ Array = NDArray[np.float64]
 
 TIMELINE: Final = "time"
 
-DEFAULT_FLUSH_INTERVAL_S: Final = 0.1
-"""Buffered samples reach the file at most this long after they were added (plus the period of
-the `maybe_flush` calls and ~1 ms of writing)."""
 
 _BATCHER_TICK_S: Final = 1.0
 """The SDK's micro-batcher holds row-wise ``log`` calls at most this long; `RerunSink.flush`

@@ -74,27 +74,15 @@ them for their users.
 
 from __future__ import annotations
 
-from typing import Final
-
-from monitor.sinks.outlet import RecordingOutlet
-from monitor.sinks.recording import DEFAULT_FLUSH_INTERVAL_S
+from monitor.sinks.outlet import (
+    DEFAULT_FLUSH_INTERVAL_S,
+    REPLAY_BATCH_SIZE,
+    REPLAY_PART_BYTES,
+    RecordingOutlet,
+)
 from monitor.sinks.rotation import RerunSink, recording_parts
 from monitor.sinks.runs import RUNS, run_ends
 
 __all__ = ["DEFAULT_FLUSH_INTERVAL_S", "REPLAY_BATCH_SIZE", "REPLAY_PART_BYTES", "RUNS",
            "RecordingOutlet", "RerunSink", "recording_parts", "run_ends"]
 
-REPLAY_BATCH_SIZE: Final = 1 << 15
-"""Rows per chunk when a replay is recorded (`RerunSink` ``batch_size``): nothing waits for a
-replay's samples, so each chunk is as large as a compacted file's (256 KiB a float64 column;
-``rerun rrd optimize`` aims at 2 MiB chunks). Against the live default of 2,048 rows, a replay
-of 10^7 frames writes 16x fewer chunks (the footer manifest the SDK holds in memory until the
-file closes shrinks with them), a ~30 % smaller file, ~25 % faster (`python -m
-tests.bench.pipeline`)."""
-
-REPLAY_PART_BYTES: Final = 1 << 30
-"""A replay's recording goes on into a new part once its file has reached this size
-(`RerunSink` ``part_bytes``): about 4*10^7 frames of a 100 Hz node, an hour of a saturated
-1 Mbit/s bus. A part is what the viewer loads whole into memory, and the SDK keeps each open
-file's footer manifest (a few kB a chunk) in memory until it closes: parts keep both bounded
-however long the log."""

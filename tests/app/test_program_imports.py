@@ -1,7 +1,8 @@
 """The programs start with what their command uses: `motor-monitor run` and `sim-ecu` without
-python-can's MF4 support (asammdf: `monitor.runtime.imports`) and without the other commands'
-modules; the command list is whole where it is asked for. Each case starts the program as
-its own process (``python -X importtime -m ...``: the names it imported, from its stderr)."""
+python-can's MF4 support (asammdf: `monitor.runtime.imports`), the daemon without the other
+commands' modules and, until a recording is asked for, without rerun-sdk and pandas; the
+command list is whole where it is asked for. Each case starts the program as its own process
+(``python -X importtime -m ...``: the names it imported, from its stderr)."""
 
 from __future__ import annotations
 
@@ -36,10 +37,10 @@ def test_the_daemon_starts_without_mf4_and_the_other_commands() -> None:
     names, out = _imported("monitor", "run", "--help")
     assert "--interface" in out
     roots = _roots(names)
-    assert "can" in roots and "rerun" in roots  # what it does use
-    for unused in ("asammdf.blocks", "experiments", "sim_ecu", "monitor.identify",
-                   "monitor.archive", "monitor.app.replay", "monitor.app.identify",
-                   "monitor.app.calibrate"):
+    assert "can" in roots and "numba" in roots  # what it does use
+    for unused in ("asammdf.blocks", "rerun", "pandas", "experiments", "sim_ecu",
+                   "monitor.identify", "monitor.archive", "monitor.app.replay",
+                   "monitor.app.identify", "monitor.app.calibrate"):
         assert unused not in roots, unused
 
 
