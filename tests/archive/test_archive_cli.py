@@ -8,6 +8,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import can
 import pytest
 
 from monitor.app.cli import main
@@ -23,17 +24,17 @@ from tests.archive.logs import ecu_frames, write_log
 
 
 @pytest.fixture(scope="module")
-def short_frames() -> list[object]:
+def short_frames() -> list[can.Message]:
     return list(ecu_frames(("fault-outage-recovery",), seed=5, duration=5.0))
 
 
 @pytest.fixture
-def tree(tmp_path: Path, short_frames: list[object]) -> Path:
+def tree(tmp_path: Path, short_frames: list[can.Message]) -> Path:
     """a/run.log, b/run.log (equal basenames), c/x/run.asc, c/y/notes.txt, d/run.blf,
     d/run.log (equal stems)."""
     root = tmp_path / "tree"
     for name in ("a/run.log", "b/run.log", "c/x/run.asc", "d/run.blf", "d/run.log"):
-        write_log(root / name, short_frames)  # type: ignore[arg-type]
+        write_log(root / name, short_frames)
     (root / "c" / "y").mkdir(parents=True)
     (root / "c" / "y" / "notes.txt").write_text("not a log\n")
     return root

@@ -37,7 +37,7 @@ def test_serial_run_summarises_every_log_and_reports_the_damaged_ones(
     assert len(failures) == 2, proc.stderr  # each logged once
     assert f"replayed {GOOD_LOGS} of {GOOD_LOGS + 2} logs (2 failed)" in proc.stderr
 
-    by_log: dict[str, list[dict[str, object]]] = {}
+    by_log: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
         by_log.setdefault(str(r["log"]), []).append(r)
     assert len(by_log) == GOOD_LOGS + 2
@@ -66,22 +66,22 @@ def test_serial_run_summarises_every_log_and_reports_the_damaged_ones(
         for r in log_rows:
             assert r["status"] == "ok" and r["reason"] == ""
             assert r["frames"] == r["frames/received"] and r["frames"] > 3000
-            in_states = sum(float(r[f"seconds_{s}"]) for s in STATES)  # type: ignore[arg-type]
+            in_states = sum(float(r[f"seconds_{s}"]) for s in STATES)
             assert in_states == pytest.approx(r["duration_s"], abs=1e-6)
             assert r["events"] == name + ".events.jsonl"
-            assert math.isfinite(r["worst_nis"]) and r["worst_nis"] > 0  # type: ignore[arg-type]
-            assert 1000 < r["samples"] <= 100 * r["duration_s"] + 1  # type: ignore[operator]
+            assert math.isfinite(r["worst_nis"]) and r["worst_nis"] > 0
+            assert 1000 < r["samples"] <= 100 * r["duration_s"] + 1
             transitions = r["transitions"]
             assert isinstance(transitions, list) and len(transitions) == r["transitions_count"]
             assert transitions[0]["previous"] == "no_data"
             assert transitions[0]["state"] == "fault_free"
         if scenarios[0] == "fault-outage-recovery":
-            states = [t["state"] for t in log_rows[0]["transitions"]]  # type: ignore[union-attr]
+            states = [t["state"] for t in log_rows[0]["transitions"]]
             assert "fault" in states and "outage" in states, states
-            assert float(log_rows[0]["seconds_outage"]) > 1.0  # type: ignore[arg-type]
+            assert float(log_rows[0]["seconds_outage"]) > 1.0
         if scenarios[0] == "healthy":
-            assert float(log_rows[0]["seconds_fault_free"]) > 0.9 * float(  # type: ignore[arg-type]
-                log_rows[0]["duration_s"])  # type: ignore[arg-type]
+            assert float(log_rows[0]["seconds_fault_free"]) > 0.9 * float(
+                log_rows[0]["duration_s"])
 
     # outputs named after the logs' paths: equal basenames in other directories kept apart
     events = events_of(out)

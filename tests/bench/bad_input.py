@@ -34,6 +34,7 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -300,7 +301,7 @@ def main() -> int:
             shutil.rmtree(work, ignore_errors=True)
     print(table(rows))
     frames = sum(r.sent for r in rows if r.group == "frames")
-    totals = {
+    totals: dict[str, Any] = {  # the JSON line's figures: counts and the kinds not ok
         "kinds": len(rows),
         "frame_kinds": sum(r.group == "frames" for r in rows),
         "fault_kinds": sum(r.group == "faults" for r in rows),

@@ -57,7 +57,7 @@ def _fd_frames(node: int = 1, scenario: str = "fault-outage-recovery") -> list[c
 
 def _fd_pipe(events: list[DiagnosisEvent] | None = None) -> MonitorPipeline:
     rig = load_rig(FD_RIG)
-    return pipeline(_fd_codec(), monitor_config(NO_OVERRIDES, rig), events=events)  # type: ignore[arg-type]
+    return pipeline(_fd_codec(), monitor_config(NO_OVERRIDES, rig), events=events)
 
 
 def _balanced(c: Counters | dict[str, int]) -> None:

@@ -657,7 +657,7 @@ def test_pipeline_with_a_key_estimates_and_rejects_forged_and_replayed_frames() 
 
     last = frames[half - 1]
     currents = [m for m in frames[:half] if m.arbitration_id == 0x110]
-    db = pipe.db
+    db = _db(pipe)
     injected: list[can.Message] = []
     for i, m in enumerate(currents[-5:]):  # replays, with timestamps that move on
         injected.append(can.Message(arbitration_id=m.arbitration_id, data=bytes(m.data),
@@ -692,7 +692,7 @@ def test_pipeline_with_a_key_rejects_an_unsigned_ecu() -> None:
     # an unsigned ECU sends no sync either: its streams are never synchronised
     assert pipe.counters["rejected/unsynced"] == 100 + 20  # every current and voltage frame
     assert pipe.counters["samples/truth"] == 100  # SimTruth is not authenticated
-    _synced(pipe.db)  # synchronised by hand, its frames are plainly unauthentic
+    _synced(_db(pipe))  # synchronised by hand, its frames are plainly unauthentic
     feed_all(pipe, VirtualECU(None, load_database(), 1, load_scenario("healthy"), seed=2)
                    .frames(1.0, start_time=T0 + 1.0))
     assert _current(pipe) == 0
@@ -723,6 +723,19 @@ def _rejected(pipe: MonitorPipeline) -> dict[str, int]:
 def _keyed_pipe(db: MotorDatabase | None = None) -> MonitorPipeline:
     return MonitorPipeline(db if db is not None else load_database(secoc_key=KEY),
                            MonitorConfig())
+
+
+def _db(pipe: MonitorPipeline) -> MotorDatabase:
+    """The pipeline's decoder: our own bus's database in these tests."""
+    assert isinstance(pipe.db, MotorDatabase), pipe.db
+    return pipe.db
+
+
+def _secoc(pipe: MonitorPipeline) -> SecOC:
+    """The SecOC state of a keyed pipeline's database."""
+    secoc = _db(pipe).secoc
+    assert secoc is not None
+    return secoc
 
 
 def _sync_of(frames: list[can.Message], k: int, kind: Kind = "current") -> can.Message:
@@ -870,7 +883,7 @@ def test_monitor_started_after_500_frames_recovers_at_the_first_sync() -> None:
     feed_all(pipe, (m for m in late if _k(m) >= 600))
     assert _rejected(pipe) == {"rejected/unsynced": n_data}  # none after the sync
     assert pipe.counters["samples/secoc_sync"] == 2 * 3  # samples 600, 700, 800
-    assert pipe.db.secoc is not None and pipe.db.secoc.rx_freshness(("current", 0)) == 900
+    assert _secoc(pipe).rx_freshness(("current", 0)) == 900
     # from the sync on it estimates exactly as a monitor that started there
     reference = _keyed_pipe()
     feed_all(reference, (m for m in frames if _k(m) >= 600))
@@ -887,9 +900,9 @@ def test_restart_with_saved_state(tmp_path: Path) -> None:
     state = tmp_path / "secoc.state"
     first = _keyed_pipe()
     feed_all(first, (m for m in frames if _k(m) < 250))
-    assert first.db.secoc is not None and not _rejected(first)
-    first.db.secoc.save_state(state)
-    assert first.db.secoc.rx_freshness(("current", 0)) == 250
+    assert not _rejected(first)
+    _secoc(first).save_state(state)
+    assert _secoc(first).rx_freshness(("current", 0)) == 250
 
     # a quick restart (20 samples lost): continues at once, before the next sync (300)
     db = load_database(secoc_key=KEY)
@@ -922,8 +935,7 @@ def test_replayed_old_sync_after_a_restart_cannot_roll_back(tmp_path: Path) -> N
     state = tmp_path / "state.json"
     first = _keyed_pipe()
     feed_all(first, (m for m in frames if _k(m) < 350))
-    assert first.db.secoc is not None
-    first.db.secoc.save_state(state)
+    _secoc(first).save_state(state)
 
     db = load_database(secoc_key=KEY)
     assert db.secoc is not None and db.secoc.load_state(state) == 2
@@ -980,7 +992,7 @@ def test_more_than_a_window_of_lost_frames_recovers_at_the_next_sync() -> None:
     assert pipe.counters["samples/input"] == 40  # 20 voltage frames lost: in the window
     feed_all(pipe, (m for m in frames if _k(m) >= 300))
     assert _rejected(pipe) == rejected  # recovered at the sync
-    assert pipe.db.secoc is not None and pipe.db.secoc.rx_freshness(("current", 0)) == 500
+    assert _secoc(pipe).rx_freshness(("current", 0)) == 500
     assert _current(pipe) == 150 + 200 - 1
 
 

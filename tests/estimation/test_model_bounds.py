@@ -31,7 +31,7 @@ from monitor.estimation.model import (
     van_loan,
 )
 from monitor.pipeline import MonitorConfig
-from monitor.rig import RigError, build_model, load_rig
+from monitor.rig import RigError, build_model, load_rig, model_of
 from monitor.rig.load import MAX_RATE_HZ, MIN_RATE_HZ
 from tests.support import BIN
 from tests.support.paths import TEST_RIGS
@@ -162,7 +162,7 @@ ACCEPTED = [
 def test_accepted_models_run_in_the_estimator(tmp_path: Path, what: str,
                                               kw: dict[str, object]) -> None:
     rig = load_rig(_state_space(tmp_path, **kw))  # type: ignore[arg-type]
-    model = build_model(rig).discretize(1.0 / rig.rate)
+    model = build_model(rig).discretize(1.0 / model_of(rig)[1])
     est = FuzzyUKF(model)
     T = model.T
     # a sample, a gap of 3 periods, the longest gap the pipeline predicts through
@@ -175,7 +175,7 @@ def test_the_servo_at_any_accepted_rate(tmp_path: Path, rate: float) -> None:
     # at 1 Hz its 1 kHz pole made Van Loan's expm(-A T) overflow (e^1000): NaN Q, then a
     # LinAlgError in the estimator's initial covariance
     rig = load_rig(_servo(tmp_path, "rate = 1000.0", f"rate = {rate!r}"))
-    model = build_model(rig).discretize(1.0 / rig.rate)
+    model = build_model(rig).discretize(1.0 / model_of(rig)[1])
     _, _, Q = model.at(model.T)
     assert np.all(np.isfinite(Q)) and np.all(np.linalg.eigvalsh(Q) >= 0)
     FuzzyUKF(model).step([24.0], [0.5], model.T)

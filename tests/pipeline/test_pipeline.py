@@ -10,12 +10,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from monitor.bus.codec import MotorDatabase, load_database
+from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.diagnosis import HealthState
 from monitor.pipeline import DiagnosisEvent, MonitorConfig, MonitorPipeline
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import load_scenario
-from tests.support.pipeline import feed_all, pipeline, stalled, without_currents
+from tests.support.pipeline import decode_all, feed_all, pipeline, stalled, without_currents
 
 T0 = 1_700_000_000.0
 
@@ -39,6 +39,13 @@ def _pipe(db: MotorDatabase, **kw: object) -> tuple[MonitorPipeline, list[Diagno
     return pipeline(db, cfg, events=events, sent=sent), events, sent
 
 
+def _diagnoses(db: MotorDatabase, sent: list[can.Message]) -> list[Decoded]:
+    """The published frames decoded; each must be a valid MonitorDiagnosis frame."""
+    decoded = decode_all(db, sent)
+    assert all(d.kind == "diagnosis" for d in decoded), decoded
+    return decoded
+
+
 def test_fault_outage_recovery_is_diagnosed_and_published(db: MotorDatabase,
                                                           frames: list[can.Message]) -> None:
     pipe, events, sent = _pipe(db)
@@ -51,21 +58,20 @@ def test_fault_outage_recovery_is_diagnosed_and_published(db: MotorDatabase,
     outage = next(t for t, s in states if s == "outage")
     assert 8.0 < outage <= 8.2
     # published frames decode as MonitorDiagnosis with the states in order
-    decoded = [db.decode_can(m) for m in sent]
-    assert all(getattr(d, "kind", None) == "diagnosis" for d in decoded)
-    hs = [int(d.raw["HealthState"]) for d in decoded]  # type: ignore[union-attr]
+    decoded = _diagnoses(db, sent)
+    hs = [int(d.raw["HealthState"]) for d in decoded]
     assert HealthState.OUTAGE in hs and hs[-1] == HealthState.FAULT_FREE
     # steady publication at ~10 Hz over 16 s plus the transitions
     assert 150 <= len(sent) <= 175
-    counters = [d.counter for d in decoded]  # type: ignore[union-attr]
+    counters = [d.counter for d in decoded if d.counter is not None]
+    assert len(counters) == len(decoded)  # every diagnosis frame carries its alive counter
     assert all((b - a) % 16 == 1 for a, b in itertools.pairwise(counters))
     c = pipe.counters
     assert c["samples/estimated"] == 1599 and not any(k.startswith("rejected/") for k in c)
 
 
-def _msg(arb: int, data: bytes, t: float, **kw: object) -> can.Message:
-    return can.Message(arbitration_id=arb, data=data, timestamp=t, is_extended_id=False,
-                       **kw)  # type: ignore[arg-type]
+def _msg(arb: int, data: bytes, t: float) -> can.Message:
+    return can.Message(arbitration_id=arb, data=data, timestamp=t, is_extended_id=False)
 
 
 def test_bad_frames_are_counted_and_never_reach_the_estimator(
@@ -79,7 +85,7 @@ def test_bad_frames_are_counted_and_never_reach_the_estimator(
     t = good[-1].timestamp
     bad = [
         _msg(0x555, b"\x00" * 8, t),  # unknown id
-        _msg(0x110, cur.data[:5], t),  # wrong length
+        _msg(0x110, bytes(cur.data[:5]), t),  # wrong length
         _msg(0x110, bytes([cur.data[0] ^ 0xFF]) + bytes(cur.data[1:]), t),  # bad CRC
         can.Message(arbitration_id=0x110, data=bytes(cur.data), is_extended_id=True,
                     timestamp=t),  # extended id
@@ -135,9 +141,9 @@ def test_silent_ecu_turns_no_data_and_says_so_on_the_bus(db: MotorDatabase,
     assert events[-1].state == "no_data" and events[-1].cause == "silence"
     n = len(sent)
     pipe.tick(t + 0.8)
-    new = [db.decode_can(m) for m in sent[n:]]
-    assert {d.node for d in new} == {0, 5}  # type: ignore[union-attr]
-    assert all(d.raw["HealthState"] == 3 for d in new)  # type: ignore[union-attr]
+    new = _diagnoses(db, sent[n:])
+    assert {d.node for d in new} == {0, 5}
+    assert all(d.raw["HealthState"] == 3 for d in new)
     # the ECU comes back: classification resumes
     feed_all(pipe, frames[300:600])
     assert pipe.nodes[0].state == HealthState.FAULT_FREE

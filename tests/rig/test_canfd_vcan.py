@@ -106,7 +106,7 @@ def test_fd_frames_on_vcan_are_counted_and_decoded(vcan: RunOnVcan, tmp_path: Pa
     (raw,) = (tmp_path / "raw").glob("bus-*.log")
     r = load_rig(RIG)
     cfg = monitor_config(argparse.Namespace(nodes=(1,), rate=None, thresholds=None), r)
-    pipe = pipeline(build_decoder(r), cfg)  # type: ignore[arg-type]
+    pipe = pipeline(build_decoder(r), cfg)
     feed_log(pipe, read_log(raw))
     col = replay_file(raw, build_decoder(r), cfg)
     assert col.counters == dict(pipe.counters)

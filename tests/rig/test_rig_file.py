@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from monitor.bus.codec import MotorDatabase
+from monitor.bus.codec import Decoded, MotorDatabase
 from monitor.bus.rigcodec import RigCodec
 from monitor.rig import build_decoder, build_model, builtin_rig, load_rig
 from tests.support import BIN
@@ -40,6 +40,7 @@ def test_foreign_rig_loads_with_its_layout() -> None:
     assert codec.frame_id("AxisFeedback", 2) == (2 << 5) | 2
     fid, ext, data = codec.encode_sample("AxisFeedback", 1, [0.0], [0.25])
     d = codec.decode(fid, data, ext, False, False, 1.0)
+    assert isinstance(d, Decoded), d
     assert d.outputs == pytest.approx((0.25,), rel=1e-6)  # mA in the DBC, A in the model
 
 

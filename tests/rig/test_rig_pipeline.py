@@ -9,9 +9,10 @@ import can
 import pytest
 
 from monitor.app.options import monitor_config
+from monitor.bus.rigcodec import RigCodec
 from monitor.pipeline import DiagnosisEvent, MonitorPipeline
 from monitor.pipeline.feed import feed_log
-from monitor.rig import build_decoder, load_rig
+from monitor.rig import Rig, build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.support.paths import TEST_RIGS
@@ -20,11 +21,17 @@ from tests.support.pipeline import pipeline
 NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
 
 
+def _codec(rig: Rig) -> RigCodec:
+    codec = build_decoder(rig)
+    assert isinstance(codec, RigCodec)  # the test rigs are foreign layouts
+    return codec
+
+
 def _run(rig_name: str, scenario: str, node: int, *, drop: int = 0
          ) -> tuple[MonitorPipeline, list[DiagnosisEvent]]:
     rig = load_rig(TEST_RIGS / rig_name)
-    codec = build_decoder(rig)
-    ecu = RigECU(None, build_decoder(rig), rig, node, load_scenario(TEST_RIGS / scenario), seed=5)
+    codec = _codec(rig)
+    ecu = RigECU(None, _codec(rig), rig, node, load_scenario(TEST_RIGS / scenario), seed=5)
     events: list[DiagnosisEvent] = []
     pipe = pipeline(codec, monitor_config(NO_OVERRIDES, rig), events=events)
     frames = ecu.frames(start_time=1000.0)
@@ -59,8 +66,7 @@ def test_lost_samples_are_found_and_predicted_through(rig: str, scenario: str,
 
 
 def test_a_frame_of_the_wrong_length_or_crc_is_rejected() -> None:
-    rig = load_rig(TEST_RIGS / "press.toml")
-    codec = build_decoder(rig)
+    codec = _codec(load_rig(TEST_RIGS / "press.toml"))
     fid, ext, data = codec.encode_sample("Fb", 1, [220.0], [60.0], counter=3)
     bad_crc = bytes([data[0] ^ 0xFF]) + data[1:]
     for payload, reason in ((data[:4], "wrong_length"), (bad_crc, "bad_crc")):

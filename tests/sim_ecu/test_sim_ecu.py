@@ -28,8 +28,8 @@ import pytest
 
 from monitor.bus.codec import Decoded, MotorDatabase, load_database
 from monitor.estimation.model import DCMotorParameters, dc_motor
-from sim_ecu.ecu import ECUError, VirtualECU, load_motor_parameters, motor_parameters
 from sim_ecu.cli import main
+from sim_ecu.ecu import ECUError, VirtualECU, load_motor_parameters, motor_parameters
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import load_scenario, scenario_from_dict
 from tests.support.paths import ROOT

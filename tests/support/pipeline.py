@@ -11,6 +11,7 @@ import can
 from monitor.bus.codec import Decoded, MotorDatabase
 from monitor.estimation.fuzzy_ukf import FuzzyUKFConfig
 from monitor.pipeline import Counters, DiagnosisEvent, MonitorConfig, MonitorPipeline
+from monitor.pipeline.core import FrameDecoder
 from monitor.pipeline.events import BusEvent, Diagnosis, InputSample, Sample
 from monitor.pipeline.feed import feed_log
 from monitor.sinks.base import FanOut, Sink
@@ -53,7 +54,7 @@ class Recorder(Sink):
         self.inputs.append(sample)
 
 
-def pipeline(db: MotorDatabase, cfg: MonitorConfig | None = None, *,
+def pipeline(db: FrameDecoder, cfg: MonitorConfig | None = None, *,
              events: list[DiagnosisEvent] | None = None, sent: list[can.Message] | None = None,
              sink: Sink | None = None) -> MonitorPipeline:
     """A pipeline whose transitions go to `events` and whose MonitorDiagnosis frames go to
@@ -61,10 +62,20 @@ def pipeline(db: MotorDatabase, cfg: MonitorConfig | None = None, *,
     counters = Counters()
     sinks: list[Sink] = [] if sink is None else [sink]
     if sent is not None:
+        # MonitorDiagnosis frames exist on our own bus only, as in `monitor.app.run`
+        assert isinstance(db, MotorDatabase), "frames to `sent` need our own bus's database"
         sinks.append(BusPublisher(db, sent.append, counters))
     if events is not None:
         sinks.append(Transitions(events))
     return MonitorPipeline(db, cfg, sink=FanOut(sinks), counters=counters)
+
+
+def decode_all(db: FrameDecoder, frames: Iterable[can.Message]) -> list[Decoded]:
+    """`frames` decoded, after asserting that the decoder rejects none of them."""
+    decoded = [db.decode_can(m) for m in frames]
+    rejected = [d for d in decoded if not isinstance(d, Decoded)]
+    assert not rejected, rejected[:3]
+    return [d for d in decoded if isinstance(d, Decoded)]
 
 
 def feed_all(pipe: MonitorPipeline, frames: Iterable[can.Message]) -> None:
