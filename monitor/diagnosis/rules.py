@@ -37,14 +37,15 @@ from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import gammaincinv
 
 from monitor.diagnosis.thresholds import DiagnosisError, Thresholds
 from monitor.jit import JIT_DISABLED, njit
 
 __all__ = ["FLAG_CAUSES", "HEALTH_CAUSES", "NO_DATA", "OUT", "PARAMS", "STATE", "FloatVector",
-           "IntVector", "cls_no_data", "cls_update", "mm_reset", "mm_update", "new_out",
-           "new_state", "on_sample", "on_tick", "params", "region", "report", "reported_state",
-           "run", "step_vectors", "warm_up"]
+           "IntVector", "chi2_quantile", "cls_no_data", "cls_update", "mm_reset", "mm_update",
+           "new_out", "new_state", "on_sample", "on_tick", "params", "region", "report",
+           "reported_state", "run", "step_vectors", "warm_up"]
 
 F8 = NDArray[np.float64]
 I8 = NDArray[np.int64]
@@ -105,6 +106,14 @@ FLAG_CAUSES = ("nis", "restart", "silence")
 """The cause of a change of the flag, by its `OUT` flag code - 1."""
 
 
+def chi2_quantile(q: float, dof: float) -> float:
+    """The q-quantile of a chi-square of `dof` degrees of freedom: 2 P^-1(dof / 2, q), the
+    regularised lower incomplete gamma function's inverse, which is what scipy.stats.chi2.ppf
+    returns (tests hold the two to each other), from scipy.special: importing scipy.stats
+    costs the daemon half a second of its start."""
+    return float(2.0 * gammaincinv(0.5 * dof, q))
+
+
 def params(thresholds: Thresholds, *, dwell_s: float = 0.05, hysteresis: float = 0.02,
            outputs: int = 1, rate: float = 100.0, window_s: float = 2.0,
            mismatch_dwell_s: float = 3.0, alpha: float = 1e-3,
@@ -115,8 +124,6 @@ def params(thresholds: Thresholds, *, dwell_s: float = 0.05, hysteresis: float =
     The mismatch band is that of `MismatchDetector`: the [alpha/2, 1 - alpha/2] quantiles
     of the exponential average (coefficient a = 1 / (window_s rate)) of a chi-square NIS
     with `outputs` degrees of freedom, p / v times a chi-square with v = p (2 - a) / a."""
-    from scipy.stats import chi2
-
     dwell_s = float(dwell_s)
     hysteresis = float(hysteresis)
     if not (math.isfinite(dwell_s) and dwell_s >= 0.0):
@@ -133,8 +140,8 @@ def params(thresholds: Thresholds, *, dwell_s: float = 0.05, hysteresis: float =
     f1, f2 = thresholds.f1, thresholds.f2
     return np.array([f1, f2, f1 + hysteresis, f1 - hysteresis, f2 + hysteresis,
                      f2 - hysteresis, dwell_s, a,
-                     float(chi2.ppf(0.5 * alpha, dof)) * outputs / dof,
-                     float(chi2.ppf(1.0 - 0.5 * alpha, dof)) * outputs / dof,
+                     chi2_quantile(0.5 * alpha, dof) * outputs / dof,
+                     chi2_quantile(1.0 - 0.5 * alpha, dof) * outputs / dof,
                      float(mismatch_dwell_s), float(outputs), float(publish_period_s),
                      float(silence_timeout_s), float(bool(withhold))])
 

@@ -8,8 +8,9 @@ descriptor system
 and obtains it from the continuous DC-motor model (63-67) by forward Euler with T = 1 s
 (69). That discretisation is unstable for T > 0.508 s (E^-1 A has an eigenvalue near 95),
 so this module discretises the *continuous* descriptor model exactly, by zero-order hold
-at the ECU's sample period (scipy.signal.cont2discrete), and discretises a continuous
-process-noise intensity by Van Loan's method.
+at the ECU's sample period (`zoh`, scipy.linalg's matrix exponential as
+scipy.signal.cont2discrete takes it), and discretises a continuous process-noise intensity
+by Van Loan's method.
 
 A model is any linear plant with n states, m actuators and p outputs:
 
@@ -59,7 +60,6 @@ from typing import Literal, NamedTuple, cast
 
 import numpy as np
 import scipy.linalg
-import scipy.signal
 from numpy.typing import NDArray
 
 from monitor.errors import MonitorError, one_line
@@ -365,6 +365,23 @@ def van_loan(A: Array, Qc: Array, T: float) -> Array:
         Qd = 0.5 * (Qd + Qd.T)
         F = F @ F
     return Qd
+
+
+def zoh(A: Array, B: Array, T: float) -> tuple[Array, Array]:
+    """(Ad, Bd): the zero-order hold of x' = A x + B u at period T, from the one exponential
+    expm([[A, B], [0, 0]] T) = [[Ad, Bd], [0, I]].
+
+    The same exponential of the same matrix as scipy.signal.cont2discrete(method="zoh"), so
+    the same result bit for bit (tests hold the two to each other), taken from scipy.linalg because importing scipy.signal costs the daemon a
+    second of its start (three in the User-Mode Linux guest): it parses the docstrings of its
+    whole API when imported.
+    """
+    n, m = B.shape
+    M = np.zeros((n + m, n + m))
+    M[:n, :n] = A
+    M[:n, n:] = B
+    G = scipy.linalg.expm(M * T)
+    return G[:n, :n], G[:n, n:]
 
 
 def inverse_zoh(Ad: Array, Bd: Array, T: float) -> tuple[Array, Array]:
@@ -1076,9 +1093,7 @@ class DiscreteModel:
         # periods (predicting through lost samples) of an unstable model may overflow,
         # which the estimator meets as NaN, counts and restarts from: no warning each time.
         with np.errstate(over="ignore", invalid="ignore", under="ignore"):
-            Ad, Bd, _, _, _ = scipy.signal.cont2discrete(
-                (ss.A, ss.B, ss.C, ss.D), key * 1e-6, method="zoh"
-            )
+            Ad, Bd = zoh(ss.A, ss.B, key * 1e-6)
             Qd = van_loan(ss.A, self.continuous.noise_standard_form(), key * 1e-6)
         W = self.Wobs
         entry = (

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from scipy.stats import chi2
 
 from monitor.diagnosis import (
     DEFAULT_THRESHOLDS,
@@ -30,6 +31,7 @@ from monitor.diagnosis import (
     thresholds_from_clusters,
     transitions,
 )
+from monitor.diagnosis.rules import chi2_quantile
 
 FF, FAULT, OUTAGE, NO_DATA = (
     HealthState.FAULT_FREE,
@@ -665,3 +667,10 @@ def test_the_views_step_the_rules_of_the_pipeline() -> None:
         assert md.flagged == (s[rules.FLAGGED] != 0.0)
         seen.add((int(oc.state), md.flagged))
     assert len(seen) >= 6
+
+
+@given(q=st.floats(1e-9, 1.0 - 1e-9), dof=st.floats(0.5, 1e5))
+@settings(max_examples=300, deadline=None, derandomize=True, database=None)
+def test_the_mismatch_bands_quantile_is_scipy_stats(q: float, dof: float) -> None:
+    """`rules.chi2_quantile` (the mismatch band's bounds) against scipy.stats.chi2, its peer."""
+    assert chi2_quantile(q, dof) == pytest.approx(float(chi2.ppf(q, dof)), rel=1e-12, abs=0.0)

@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 import scipy.signal
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from monitor.estimation.model import (
     ContinuousDescriptor,
@@ -17,6 +19,7 @@ from monitor.estimation.model import (
     inverse_van_loan,
     model_from_matrices,
     van_loan,
+    zoh,
 )
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import load_scenario
@@ -212,6 +215,26 @@ def test_observability_is_checked_for_the_fault_actuators_only() -> None:
     assert m.discretize(0.01).fault_inputs == (0,)
     with pytest.raises(ModelError, match=r"\(u2\) does not show .* not observable"):
         _cd(B=np.eye(2), fault_inputs=(1,)).discretize(0.01)
+
+
+@given(n=st.integers(1, 5), m=st.integers(1, 3), seed=st.integers(0, 2**32 - 1),
+       log_T=st.floats(-5.0, 0.0), log_scale=st.floats(-3.0, 3.0))
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+def test_zoh_is_scipy_signals(n: int, m: int, seed: int, log_T: float, log_scale: float
+                              ) -> None:
+    """The monitor's zero-order hold against scipy.signal.cont2discrete, its peer: random
+    stable, unstable, oscillating and integrating plants over five decades of periods."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n)) * 10.0**log_scale
+    if seed % 3 == 0:
+        A[:, 0] = 0.0  # an integrator (a position)
+    B = rng.normal(size=(n, m))
+    T = 10.0**log_T
+    want_A, want_B, _, _, _ = scipy.signal.cont2discrete((A, B, np.eye(n), np.zeros((n, m))),
+                                                         T, method="zoh")
+    got_A, got_B = zoh(A, B, T)
+    assert got_A == pytest.approx(want_A, rel=1e-12, abs=1e-12 * np.abs(want_A).max())
+    assert got_B == pytest.approx(want_B, rel=1e-12, abs=1e-12 * np.abs(want_B).max())
 
 
 def _zoh(cont: ContinuousDescriptor, T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
