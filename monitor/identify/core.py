@@ -31,6 +31,7 @@ from monitor.identify.delay import MAX_ESTIMATED_DELAY, estimate_input_delay
 from monitor.identify.errors import IdentifyError
 from monitor.identify.excitation import RECORDING_ADVICE
 from monitor.identify.lti import dsim, integrating, kalman, predict, steady_state_x0
+from monitor.identify.noise import process_noise_scale
 from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, fit_rows, no_past
 
 Array = NDArray[np.float64]
@@ -347,9 +348,13 @@ def quantisation_floor(R: ArrayLike, steps: Sequence[float | None]) -> Array:
 
 
 def _floored(cand: _Candidate, steps: Sequence[tuple[float, str] | None],
-             names: Sequence[str]) -> tuple[_Candidate, list[dict[str, Any]]]:
+             names: Sequence[str], u: Array, y: Array, T: float
+             ) -> tuple[_Candidate, list[dict[str, Any]]]:
     """The candidate with its R floored at each output's quantisation
-    (`quantisation_floor`), and a report entry per output whose step is known."""
+    (`quantisation_floor`) and, where the floor applied, its Qc scaled to the likelihood's
+    best with that R on the training rows u, y (`monitor.identify.noise`: the rounding the
+    fit gave the process noise leaves it), and a report entry per output whose step is
+    known."""
     learned = np.asarray(cand.model.R, dtype=float)
     R = quantisation_floor(learned, [None if s is None else s[0] for s in steps])
     rows = [{"output": names[i], "step": float(s[0]), "source": s[1],
@@ -358,7 +363,10 @@ def _floored(cand: _Candidate, steps: Sequence[tuple[float, str] | None],
             for i, s in enumerate(steps) if s is not None]
     if not any(r["applied"] for r in rows):
         return cand, rows
-    return replace(cand, model=replace(cand.model, R=R)), rows
+    model = replace(cand.model, R=R)
+    scale = process_noise_scale(model, u, y, T)
+    return replace(cand, model=replace(model, Qc=scale * np.asarray(model.Qc)),
+                   q=cand.q * scale), rows
 
 
 def _fuzzy_ukf(model: ContinuousDescriptor, held: Array, y: Array, ntr: int,
@@ -547,9 +555,9 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
     if kind == "auto" and "reason" not in auto_note:
         auto_note["reason"] = "better hold-out fit" if siso else "more than one input or output"
     cand, ev, traces = best
-    learned_R = cand.model.R
+    learned_R, learned_q = cand.model.R, cand.q
     # the model written is the one every check below, and the replay's, must judge
-    cand, floor = _floored(cand, steps, names[1])
+    cand, floor = _floored(cand, steps, names[1], utr, ytr, T)
     if cand is not best[0]:
         ev, traces = _evaluate(cand.model, u, y, ntr, T)
     timing["fit"] = time.perf_counter() - t
@@ -609,7 +617,8 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         "noise": {"q": cand.q, "Qc": _floats(cand.model.Qc), "R": _floats(cand.model.R),
                   "method": "maximum likelihood of the steady-state Kalman filter's "
                             "innovations (noise model (1)-(2)); mean NIS = p at the optimum",
-                  **({"R_learned": _floats(learned_R), "quantisation_floor": floor,
+                  **({"R_learned": _floats(learned_R), "q_learned": learned_q,
+                      "quantisation_floor": floor,
                       "quantisation_rule": "R[i][i] >= step_i^2 / 12, the variance of "
                                            "rounding to whole steps (Widrow)"}
                      if floor else {})},
