@@ -30,8 +30,9 @@ Without a key sync frames decode as plain ``sync`` samples (`Decoded.value` is
 SyncFreshness), nothing checked.
 
 Decoding never raises: every frame yields `Decoded` or `Rejected` with a reason from
-`RejectReason`. Checks run cheapest-first: error/remote/extended flags, id lookup, then, in
-`check_payload` (the one order of our bus's and every rig's codec), frame format (every
+`RejectReason`. Checks run cheapest-first, in the one order `CHECK_ORDER` of our bus's and
+every rig's codec and of the column decoder (`monitor.columnar.decode`): error/remote/
+extended flags, id lookup, then, in `check_payload`, frame format (every
 message of our bus is classic CAN: a CAN FD frame with its ID is ``fd_frame``, whatever its
 length), length, CRC, reserved bits (unused bits must be 0 -- a non-zero one means the
 sender uses another DBC revision, reported as ``malformed``), the SecOC MAC and freshness
@@ -46,7 +47,6 @@ import copy
 import logging
 import math
 import os
-import sys
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -54,7 +54,6 @@ from enum import StrEnum
 from functools import partial
 from importlib import resources
 from pathlib import Path
-from types import MappingProxyType
 from typing import TYPE_CHECKING, Final, NamedTuple, cast
 
 import cantools.database
@@ -62,13 +61,13 @@ from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
 from cantools.database.can import Database, Message
 
 from monitor.bus.errors import CodecError
+from monitor.bus.route import Limit, Route
 from monitor.bus.scheme import (
     HEALTH_STATES,
     KINDS,
     N_NODES,
     SECOC_KINDS,
     Kind,
-    Route,
     build_routes,
     check_node,
     check_secoc_capable,
@@ -93,6 +92,7 @@ if TYPE_CHECKING:
     import can
 
 __all__ = [
+    "CHECK_ORDER",
     "HEALTH_STATES",
     "KINDS",
     "N_NODES",
@@ -102,8 +102,10 @@ __all__ = [
     "Decoded",
     "Kind",
     "MotorDatabase",
+    "PayloadCheck",
     "RejectReason",
     "Rejected",
+    "check_payload",
     "default_dbc_path",
     "e2e_data_id",
     "frame_id",
@@ -134,6 +136,27 @@ class RejectReason(StrEnum):
     UNSYNCED = "unsynced"  # SecOC: the stream's freshness is unknown until a sync frame
     FD_FRAME = "fd_frame"  # CAN FD frame for a classic DBC message, or the reverse
 
+
+CHECK_ORDER: Final[tuple[RejectReason, ...]] = (
+    RejectReason.ERROR_FRAME,
+    RejectReason.REMOTE_FRAME,
+    RejectReason.EXTENDED_ID,
+    RejectReason.UNKNOWN_ID,
+    RejectReason.FD_FRAME,
+    RejectReason.WRONG_LENGTH,
+    RejectReason.BAD_CRC,
+    RejectReason.MALFORMED,  # reserved bits set
+    RejectReason.BAD_MAC,  # the SecOC check gives one of these three
+    RejectReason.STALE_FRESHNESS,
+    RejectReason.UNSYNCED,
+    RejectReason.OUT_OF_RANGE,
+)
+"""The one order of a frame's checks: a frame failing several gets the first failed one's
+reason, from every codec's ``decode`` (flags and ID there, the payload in `check_payload`)
+and from the column decoder (`monitor.columnar.decode.RouteTable`). A payload that is no
+bytes, or that cantools cannot decode, is ``malformed`` where that is found (before the
+frame format, after SecOC); columns meet neither. Every check of the payload needs the
+frame format and length checked first, so they stay ahead of the content checks."""
 
 VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {  # SecOC's verdicts as outcomes
     Verdict.BAD_MAC: RejectReason.BAD_MAC,
@@ -176,7 +199,7 @@ class Rejected:
     arbitration_id: int
     timestamp: float
     node: int | None = None
-    kind: Kind | None = None
+    kind: str | None = None  # Decoded.kind of the route, once the ID is known
     detail: str = ""
 
 
@@ -190,19 +213,12 @@ Decode = Callable[[bytes, bool, bool, bool, bool], dict[str, float]]
 """A message's ``decode_simple`` (cantools' ``decode`` of a message that is no container):
 payload, decode_choices, scaling, allow_truncated, allow_excess -> signals."""
 
-_LARGEST: Final = sys.float_info.max  # a limit's infinite end, as a finite bound
-
-
 class PayloadCheck(NamedTuple):
-    """What `check_payload` needs of one route, read once when the codec builds its routes
-    (no cantools property or method is looked up per frame): the message, its decoder, its
-    length and frame format, whether E2E profile 2 protects it, the bits no signal uses
-    (`reserved_mask`, 0: none checked), the limits of the signals the estimator reads, the
-    codec's SecOC check of the route (None: no key, or nothing to verify), and the node and
-    kind a rejection names. Each limit is (signal, low, high, min, max): [min, max] as the
-    codec gives it (what a rejection says), [low, high] the same range with an infinite end
-    replaced by the largest finite float, so that ``low <= v <= high`` alone fails NaN and
-    inf."""
+    """What `check_payload` needs of one `Route`, read once when the codec builds its
+    routing (no cantools property or method is looked up per frame): the message, its
+    decoder, the route's length, frame format, E2E, reserved bits and limits, the codec's
+    SecOC check of the route (None: no key, or nothing to verify), and the node and kind a
+    rejection names."""
 
     message: Message
     decode: Decode
@@ -210,33 +226,30 @@ class PayloadCheck(NamedTuple):
     is_fd: bool
     e2e: bool
     reserved_mask: int
-    limits: tuple[tuple[str, float, float, float, float], ...]
+    limits: tuple[Limit, ...]
     verify: Verify | None
     node: int
-    kind: Kind | None
+    kind: str
 
     @classmethod
-    def of(cls, message: Message, node: int, kind: Kind | None, e2e: bool, reserved_mask: int,
-           limits: tuple[tuple[str, float, float], ...], verify: Verify | None
-           ) -> PayloadCheck:
-        """The check of a route to `message`; `limits` (signal, min, max)."""
-        # decode_choices=False (below) gives every signal as a number
-        decode = cast("Decode", message.decode_simple)
-        bounds = tuple((name, max(lo, -_LARGEST), min(hi, _LARGEST), lo, hi)
-                       for name, lo, hi in limits)
-        return cls(message, decode, message.length, message.is_fd, e2e, reserved_mask, bounds,
-                    verify, node, kind)
+    def of(cls, route: Route, verify: Verify | None) -> PayloadCheck:
+        """The check of `route`, with the codec's SecOC check of it."""
+        # decode_choices=False (in check_payload) gives every signal as a number
+        decode = cast("Decode", route.message.decode_simple)
+        return cls(route.message, decode, route.length, route.fd, route.e2e,
+                   route.reserved_mask, route.limits, verify, route.node, route.kind)
 
 
 def check_payload(check: PayloadCheck, arbitration_id: int, data: object, is_fd: bool,
                   timestamp: float) -> dict[str, float] | Rejected:
-    """The checks of a frame routed to `check.message`, in their one order for every codec
+    """The checks of a frame routed to `check.message`, in `CHECK_ORDER` for every codec
     (our bus's and a rig's): the payload as bytes, frame format (CAN FD or classic, as the
     message), length, the E2E profile-2 CRC, reserved bits (bits no signal uses must be 0),
-    SecOC (with a key), decoding by cantools, then the limits of the signals the estimator
-    reads (NaN and inf fail). Returns the decoded signals (physical values, choices as
-    ints), or why not; never raises (hot path: one call per frame, so `check` is a tuple
-    built once per route)."""
+    SecOC (with a key), decoding by cantools, then the limits (NaN and inf fail). Returns
+    the decoded signals (physical values, choices as ints), or why not; never raises (hot
+    path: one call per frame, so `check` is a tuple built once per route, and the order is
+    written out, not looked up: tests/columnar/test_route_verdicts holds it to the column
+    decoder's, which follows `CHECK_ORDER` step by step)."""
     message, decode, length, fd, e2e, reserved_mask, limits, verify, node, kind = check
     if type(data) is bytes:
         payload = data
@@ -281,6 +294,31 @@ def check_payload(check: PayloadCheck, arbitration_id: int, data: object, is_fd:
 # ----------------------------------------------------------------------------- database
 
 
+class _Reading(NamedTuple):
+    """How `MotorDatabase.decode` makes a sample of a route's signals, read off its `Route`
+    once: on our bus a frame's one value signal (factor 1) is its `Decoded.value` and at
+    most one of model input `as_input`, the model's output, the true gamma."""
+
+    kind: str
+    node: int
+    signal: str
+    counter: str | None
+    as_input: int | None
+    as_output: bool
+    as_truth: bool
+
+    @classmethod
+    def of(cls, route: Route) -> _Reading:
+        assert route.value is not None and route.value[1] == 1.0  # build_routes
+        signal = route.value[0]
+        assert all((s, f) == (signal, 1.0) for _, s, f in route.inputs)
+        assert route.outputs in ((), ((signal, 1.0),)) and route.truth in (None, signal)
+        return cls(route.kind, route.node, signal, route.counter,
+                   route.inputs[0][0] if route.inputs else None, bool(route.outputs),
+                   route.truth is not None)
+
+
+
 class MotorDatabase(SecOCHolder):
     """The motor bus DBC plus a pre-built frame-id routing table for the hot decode path.
 
@@ -290,33 +328,33 @@ class MotorDatabase(SecOCHolder):
     counters are separate), so keep one object for the whole life of a bus connection.
     """
 
+    accepts_extended: Final = False
+    """Our bus is 11-bit only: every 29-bit frame is ``extended_id`` (`RouteSource`)."""
+
     def __init__(self, db: Database, source: str, secoc_key: bytes | None = None, *,
                  secoc_window: int = DEFAULT_WINDOW) -> None:
         self._db = db
         self.source = source
-        self._routes: dict[int, Route] = build_routes(db, source)
-        self._by_kind: dict[tuple[Kind, int], Route] = {
-            (r.kind, r.node): r for r in self._routes.values()
-        }
+        self._routes = build_routes(db, source)
+        self._by_kind: dict[tuple[str, int], Route] = {(r.kind, r.node): r for r in self._routes}
         self._secoc = None
         if secoc_key is not None:
             self._secoc = self._new_secoc(secoc_key, secoc_window)
         self._checks = self._build_checks()
 
-    def _build_checks(self) -> dict[int, tuple[Route, PayloadCheck]]:
-        """Each frame ID's route and its `check_payload` check, SecOC verified by this
-        database's engine (rebuilt when the engine changes)."""
+    def _build_checks(self) -> dict[int, tuple[PayloadCheck, _Reading]]:
+        """Each frame ID's `check_payload` check, SecOC verified by this database's engine
+        (rebuilt when the engine changes), and how its sample is read."""
         secoc = self._secoc is not None
-        return {fid: (r, PayloadCheck.of(
-                    r.message, r.node, r.kind, r.data_id is not None, r.reserved_mask,
-                    r.limits,
-                    partial(self._verify, r) if secoc and (r.secoc or r.sync) else None))
-                for fid, r in self._routes.items()}
+        return {r.frame_id: (PayloadCheck.of(
+                    r, partial(self._verify, r) if secoc and (r.secoc or r.sync) else None),
+                    _Reading.of(r))
+                for r in self._routes}
 
     @property
-    def routes(self) -> Mapping[int, Route]:
-        """Every frame ID of the bus and how it is read (read-only view)."""
-        return MappingProxyType(self._routes)
+    def routes(self) -> tuple[Route, ...]:
+        """Every frame ID of the bus and how it is read, in frame-ID order (`RouteSource`)."""
+        return self._routes
 
     def _new_secoc(self, key: bytes, window: int) -> SecOC:
         check_secoc_capable(self._routes, self.source)
@@ -355,7 +393,7 @@ class MotorDatabase(SecOCHolder):
         """The frame id of `kind` for `node`, as in the DBC."""
         return self._route(kind, node).message.frame_id
 
-    def _route(self, kind: Kind, node: int) -> Route:
+    def _route(self, kind: str, node: int) -> Route:
         check_node(node)
         route = self._by_kind.get((kind, node))
         if route is None:
@@ -445,7 +483,7 @@ class MotorDatabase(SecOCHolder):
             if not isinstance(value, int | float) or not math.isfinite(value):
                 raise CodecError(f"{name}: {signal} must be a finite number, got {value!r}")
         signals = dict(values)
-        if route.data_id is not None:
+        if route.e2e:
             if counter is None or not isinstance(counter, int) or not 0 <= counter <= 15:
                 raise CodecError(f"{name}: counter must be an int in 0..15, got {counter!r}")
             signals["CRC"] = 0
@@ -463,7 +501,7 @@ class MotorDatabase(SecOCHolder):
                 payload = self._secoc.sign(route.secoc, (kind, node), payload)
             except SecOCError as exc:
                 raise CodecError(str(exc)) from None
-        if route.data_id is None:
+        if not route.e2e:
             return payload
         protected = apply_profile2_crc(payload, route.message)
         if protected is None:  # cannot happen for a route built by build_routes
@@ -499,22 +537,22 @@ class MotorDatabase(SecOCHolder):
         if hit is None:
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not in {self.source}")
-        route, check = hit
+        check, reading = hit
         signals = check_payload(check, arbitration_id, data, is_fd, timestamp)
         if isinstance(signals, Rejected):
             return signals
-        kind = route.kind
-        value = float(signals[route.value_signal])
+        kind, node, signal, counter, as_input, as_output, as_truth = reading
+        value = float(signals[signal])
         return Decoded(
             kind,
-            route.node,
+            node,
             timestamp,
             value,
-            None if route.data_id is None else int(signals["Counter"]),
+            None if counter is None else int(signals[counter]),
             signals,
-            ((0, value),) if kind == "voltage" else (),
-            (value,) if kind == "current" else (),
-            value if kind == "truth" else None,
+            ((as_input, value),) if as_input is not None else (),
+            (value,) if as_output else (),
+            value if as_truth else None,
         )
 
     def _verify(self, route: Route, data: bytes) -> tuple[RejectReason, str] | None:

@@ -30,11 +30,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from types import MappingProxyType
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Final, NamedTuple
 
 import cantools.database
 import numpy as np
@@ -46,7 +45,6 @@ from numpy.typing import NDArray
 from monitor.bus.codec import (
     VERDICT_REASON,
     Decoded,
-    MotorDatabase,
     PayloadCheck,
     Rejected,
     RejectReason,
@@ -54,6 +52,7 @@ from monitor.bus.codec import (
     load_dbcs,
 )
 from monitor.bus.errors import CodecError, SecOCError
+from monitor.bus.route import Limit, Route
 from monitor.bus.secoc import DEFAULT_WINDOW, SecOC, SecOCHolder, SecOCLayout, SyncLayout
 from monitor.errors import one_line
 
@@ -61,8 +60,9 @@ if TYPE_CHECKING:
     import can
 
     from monitor.bus.canopen import CanopenNode
+    from monitor.bus.route import RouteSource
 
-__all__ = ["Quantisation", "Resolver", "RigCodec", "RigMessage", "RigRoute", "RigSecOC", "RigSync",
+__all__ = ["Quantisation", "Resolver", "RigCodec", "RigMessage", "RigSecOC", "RigSync",
            "load_rig_dbcs", "output_quantisation"]
 
 
@@ -112,19 +112,6 @@ a node number in the ID bits every node shares node 0's DBC message: the resolve
 a copy per node, so that each carries its own E2E data ID."""
 
 
-@dataclass(frozen=True, slots=True)
-class RigRoute:
-    """One arbitration ID of the rig: its DBC message, how the rig reads it, its node, the
-    signals' limits, its SecOC or sync layout."""
-
-    message: Message
-    spec: RigMessage
-    node: int
-    limits: tuple[tuple[str, float, float], ...]
-    secoc: SecOCLayout | None = None
-    sync: SyncLayout | None = None
-
-
 def load_rig_dbcs(paths: Sequence[Path]) -> Database:
     """`load_dbcs`, and at least one message in them."""
     db = load_dbcs(paths)
@@ -143,6 +130,9 @@ class RigCodec(SecOCHolder):
     and checked by `monitor.rig.check`.
     """
 
+    accepts_extended: Final = True
+    """29-bit frames are routed by their ID (`monitor.bus.route.RouteSource`)."""
+
     def __init__(self, db: Database, source: str, messages: Sequence[RigMessage],
                  resolve: Resolver, nodes: Sequence[int], *, sync: RigSync | None = None,
                  secoc_key: bytes | None = None, secoc_window: int = DEFAULT_WINDOW) -> None:
@@ -153,13 +143,14 @@ class RigCodec(SecOCHolder):
         self.drives: tuple[CanopenNode, ...] = ()
         """A CANopen rig's drives, whose EMCY, heartbeat and statusword frames the engines
         read beside the rig's messages (`monitor.bus.cia402.drive_watch`)."""
-        self._routes: dict[tuple[int, bool], RigRoute] = {}
-        self._by_name: dict[tuple[str, int], tuple[RigRoute, int]] = {}
+        self._by_key: dict[tuple[int, bool], Route] = {}
+        self._by_name: dict[tuple[str, int], Route] = {}
         self._sync_streams = {m.secoc.sync_kind: m.secoc.stream
                               for m in messages if m.secoc is not None}
         if self._sync_streams and sync is None:
             raise CodecError(f"{source}: SecOC needs a sync message")
         data_ids: dict[int, str] = {}
+        names: dict[tuple[int, bool], str] = {}  # each ID's rig message, for a clash
         sync_spec = None if sync is None else RigMessage(sync.message)
         for spec in (*messages, *(() if sync_spec is None else (sync_spec,))):
             for node in nodes:
@@ -167,17 +158,19 @@ class RigCodec(SecOCHolder):
                 if found is None:
                     continue
                 message, frame_id = found
+                is_sync = spec is sync_spec
                 route = self._secured(
-                    RigRoute(message, spec, node, _limits(message, spec)), frame_id,
-                    spec is sync_spec)
+                    _route(message, frame_id, spec, node, sync if is_sync else None), spec,
+                    is_sync)
                 key = (frame_id, message.is_extended_frame)
-                other = self._routes.get(key)
-                if other is not None and other is not route:
+                other = self._by_key.get(key)
+                if other is not None:
                     raise CodecError(f"{source}: {spec.name} of node {node} and "
-                                     f"{other.spec.name} of node {other.node} share ID "
+                                     f"{names[key]} of node {other.node} share ID "
                                      f"0x{frame_id:X}")
-                self._routes[key] = route
-                self._by_name[(spec.name, node)] = (route, frame_id)
+                self._by_key[key] = route
+                names[key] = spec.name
+                self._by_name[(spec.name, node)] = route
                 if spec.e2e:
                     _attach_e2e(message, frame_id if spec.data_id is None else spec.data_id)
                 if route.secoc is not None:
@@ -194,41 +187,41 @@ class RigCodec(SecOCHolder):
             if not self._sync_streams:
                 raise CodecError(f"{source}: a SecOC key, but no rig message has SecOC")
             self._secoc = SecOC(secoc_key, window=secoc_window)
+        self._routes = tuple(self._by_key[k] for k in sorted(self._by_key))
         secured = self._secoc is not None
-        self._checks: dict[tuple[int, bool], tuple[RigRoute, PayloadCheck]] = {
-            key: (r, PayloadCheck.of(
-                r.message, r.node, None, r.spec.e2e, 0, r.limits,
-                partial(self._verify, r) if secured and (r.secoc or r.sync) else None))
-            for key, r in self._routes.items()}
+        self._checks: dict[tuple[int, bool], tuple[PayloadCheck, Route]] = {
+            (r.frame_id, r.extended): (PayloadCheck.of(
+                r, partial(self._verify, r) if secured and (r.secoc or r.sync) else None), r)
+            for r in self._routes}
 
-    def _secured(self, route: RigRoute, frame_id: int, is_sync: bool) -> RigRoute:
-        """`route` with its SecOC layout (data ID: the frame ID's low 16 bits)."""
-        msg, sec, data_id = route.message, route.spec.secoc, frame_id & 0xFFFF
+    def _secured(self, route: Route, spec: RigMessage, is_sync: bool) -> Route:
+        """`route` with its SecOC or sync layout (data ID: the frame ID's low 16 bits)."""
+        msg, sec, data_id = route.message, spec.secoc, route.frame_id & 0xFFFF
         try:
             if is_sync:
                 assert self.sync is not None
                 s = self.sync
                 kind, fv, auth = (msg.get_signal_by_name(n)
                                   for n in (s.kind, s.freshness, s.authenticator))
-                return RigRoute(msg, route.spec, route.node, route.limits,
-                              sync=SyncLayout.from_signals(msg, kind, fv, auth, data_id=data_id,
-                                                           freshness_bits=s.freshness_length))
+                return replace(route, sync=SyncLayout.from_signals(
+                    msg, kind, fv, auth, data_id=data_id, freshness_bits=s.freshness_length))
             if sec is None:
                 return route
             fv, auth = (msg.get_signal_by_name(n) for n in (sec.freshness, sec.authenticator))
             layout = SecOCLayout.from_signals(msg, fv, auth, data_id=data_id,
                                               freshness_bits=sec.freshness_length,
-                                              crc_byte=route.spec.e2e)
-            return RigRoute(msg, route.spec, route.node, route.limits, secoc=layout)
+                                              crc_byte=spec.e2e)
+            return replace(route, secoc=layout)
         except KeyError as exc:
             raise CodecError(f"{msg.name}: no signal {exc.args[0]} for SecOC") from None
         except SecOCError as exc:
             raise CodecError(str(exc)) from None
 
     @property
-    def routes(self) -> Mapping[tuple[int, bool], RigRoute]:
-        """Every (arbitration ID, extended) of the rig and how it is read (read-only)."""
-        return MappingProxyType(self._routes)
+    def routes(self) -> tuple[Route, ...]:
+        """Every (arbitration ID, extended) of the rig and how it is read, in that order
+        (`monitor.bus.route.RouteSource`)."""
+        return self._routes
 
     @property
     def secured(self) -> bool:
@@ -236,15 +229,21 @@ class RigCodec(SecOCHolder):
         return bool(self._sync_streams)
 
     @property
+    def frame_by_frame(self) -> bool:
+        """Whether frames must be decoded one at a time, in order: with SecOC messages, key
+        or not (a rig's sync frames, even unverified, are counted by the per-frame path)."""
+        return self.secured
+
+    @property
     def nodes(self) -> tuple[int, ...]:
         return tuple(sorted({n for _, n in self._by_name}))
 
     def frame_id(self, name: str, node: int) -> int:
         """The arbitration ID of rig message `name` of `node`."""
-        return self._lookup(name, node)[1]
+        return self._lookup(name, node).frame_id
 
     def message(self, name: str, node: int) -> Message:
-        return self._lookup(name, node)[0].message
+        return self._lookup(name, node).message
 
     def sync_message(self, node: int) -> Message:
         """`node`'s SecOC sync message (`CodecError` if the rig has none)."""
@@ -252,7 +251,7 @@ class RigCodec(SecOCHolder):
             raise CodecError("this rig has no SecOC sync message")
         return self.message(self.sync.message, node)
 
-    def _lookup(self, name: str, node: int) -> tuple[RigRoute, int]:
+    def _lookup(self, name: str, node: int) -> Route:
         hit = self._by_name.get((name, node))
         if hit is None:
             raise CodecError(f"no message {name} for node {node} on this rig")
@@ -266,8 +265,9 @@ class RigCodec(SecOCHolder):
         `values` (DBC signal name -> physical value in the DBC's unit); signals not given
         are sent at 0 (or the nearest value their range allows); with E2E, `counter`
         (0..15) and the CRC are applied."""
-        route, frame_id = self._lookup(name, node)
-        msg, spec = route.message, route.spec
+        route = self._lookup(name, node)
+        msg, frame_id = route.message, route.frame_id
+        spec = self.specs[name] if name in self.specs else RigMessage(name)  # the sync message
         signals: dict[str, float] = {}
         for s in msg.signals:
             lo = s.minimum if s.minimum is not None else -math.inf
@@ -305,7 +305,7 @@ class RigCodec(SecOCHolder):
             raise CodecError(f"{name} has no SecOC")
         if self._secoc is None:
             raise CodecError(f"{self.sync.message}: sync frames need a SecOC key")
-        route = self._lookup(self.sync.message, node)[0]
+        route = self._lookup(self.sync.message, node)
         assert route.sync is not None
         frame_id, ext, payload = self.encode(self.sync.message, node,
                                              {self.sync.kind: spec.secoc.sync_kind})
@@ -337,35 +337,30 @@ class RigCodec(SecOCHolder):
                             detail="remote frames carry no data")
         hit = self._checks.get((arbitration_id, is_extended))
         if hit is None:
-            if (arbitration_id, not is_extended) in self._routes:
+            if (arbitration_id, not is_extended) in self._by_key:
                 return Rejected(RejectReason.EXTENDED_ID, arbitration_id, timestamp,
                                 detail="the DBC defines this ID with the other ID length")
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not a rig message in {self.source}")
-        route, check = hit
+        check, route = hit
         signals = check_payload(check, arbitration_id, data, is_fd, timestamp)
         if isinstance(signals, Rejected):
             return signals
-        spec, node = route.spec, route.node
-        if route.sync is not None:
-            assert self.sync is not None
-            return Decoded("sync", node, timestamp, float(signals[self.sync.freshness]), None,
-                           signals)
-        inputs = tuple((i, float(signals[s]) * f) for i, s, f in spec.inputs)
-        outputs = tuple(float(signals[s]) * f for s, f in spec.outputs)
-        truth = None if spec.truth is None else float(signals[spec.truth])
-        first = inputs[0][1] if inputs else outputs[0] if outputs else (truth or 0.0)
-        return Decoded(spec.name, node, timestamp, first,
-                       None if spec.counter is None else int(signals[spec.counter]),
+        inputs = tuple((i, float(signals[s]) * f) for i, s, f in route.inputs)
+        outputs = tuple(float(signals[s]) * f for s, f in route.outputs)
+        truth = None if route.truth is None else float(signals[route.truth])
+        value = 0.0 if route.value is None else float(signals[route.value[0]]) * route.value[1]
+        return Decoded(route.kind, route.node, timestamp, value,
+                       None if route.counter is None else int(signals[route.counter]),
                        signals, inputs, outputs, truth)
 
-    def _verify(self, route: RigRoute, data: bytes) -> tuple[RejectReason, str] | None:
+    def _verify(self, route: Route, data: bytes) -> tuple[RejectReason, str] | None:
         """Why a secured or sync frame is rejected (None: authentic and fresh)."""
         assert self._secoc is not None
         if route.secoc is not None:
-            assert route.spec.secoc is not None
-            failed = self._secoc.verify(route.secoc, (route.spec.secoc.stream, route.node),
-                                        data)
+            secoc = self.specs[route.kind].secoc
+            assert secoc is not None
+            failed = self._secoc.verify(route.secoc, (secoc.stream, route.node), data)
         else:
             assert route.sync is not None
             index = route.sync.kind_index(data)
@@ -389,20 +384,15 @@ class Quantisation(NamedTuple):
     source: str
 
 
-def output_quantisation(decoder: MotorDatabase | RigCodec, node: int
+def output_quantisation(decoder: RouteSource, node: int
                         ) -> tuple[Quantisation | None, ...]:
     """Per model output of `node`, in output order, the step of its decoded values: an
     integer-coded signal carries whole raw counts, so its values are multiples of the
     signal's scale (a DBC's factor; a CANopen object's scaling, `monitor.bus.canopen`) times
     the unit factor to the model's unit. None for a float-coded signal (its resolution is
     relative to its value, no fixed step); () for a node without outputs on this bus."""
-    signals: list[tuple[Message, tuple[tuple[str, float], ...]]]
-    if isinstance(decoder, MotorDatabase):  # our own bus: the armature current, unscaled
-        signals = [(r.message, ((r.value_signal, 1.0),)) for r in decoder.routes.values()
-                   if r.kind == "current" and r.node == node]
-    else:
-        signals = [(r.message, r.spec.outputs) for r in decoder.routes.values()
-                   if r.node == node and r.spec.outputs]
+    signals = [(r.message, r.outputs) for r in decoder.routes
+               if r.node == node and r.outputs]
     if not signals:
         return ()
     message, outputs = signals[0]  # every output is in the one output message
@@ -420,7 +410,26 @@ def output_quantisation(decoder: MotorDatabase | RigCodec, node: int
     return tuple(out)
 
 
-def _limits(message: Message, spec: RigMessage) -> tuple[tuple[str, float, float], ...]:
+def _route(message: Message, frame_id: int, spec: RigMessage, node: int,
+           sync: RigSync | None) -> Route:
+    """The route of rig message `spec` of `node` on `frame_id` (its SecOC layout added by
+    `RigCodec._secured`): its kind the rig message's name, "sync" for the `sync` message;
+    `Decoded.value` the first input, else the first output, else the truth, in the model's
+    unit; the sync message's the freshness it carries. No reserved bits checked (a rig's
+    DBC may leave bits its senders use)."""
+    if sync is not None:
+        return Route(frame_id, bool(message.is_extended_frame), message, node, "sync",
+                     int(message.length), bool(message.is_fd), False, 0, (), None, (), (),
+                     None, (sync.freshness, 1.0))
+    value = (spec.inputs[0][1:] if spec.inputs else spec.outputs[0] if spec.outputs
+             else None if spec.truth is None else (spec.truth, 1.0))
+    return Route(frame_id, bool(message.is_extended_frame), message, node, spec.name,
+                 int(message.length), bool(message.is_fd), spec.e2e, 0,
+                 _limits(message, spec), spec.counter, spec.inputs, spec.outputs, spec.truth,
+                 value)
+
+
+def _limits(message: Message, spec: RigMessage) -> tuple[Limit, ...]:
     """[min, max] of every signal the estimator reads (NaN and inf fail it, with or
     without a range in the DBC)."""
     used = [s for _, s, _ in spec.inputs] + [s for s, _ in spec.outputs]
@@ -433,7 +442,7 @@ def _limits(message: Message, spec: RigMessage) -> tuple[tuple[str, float, float
         hi = math.inf if sig.maximum is None else float(sig.maximum)
         if lo == hi == 0.0:  # a DBC that writes [0|0] means "no range given"
             lo, hi = -math.inf, math.inf
-        out.append((name, lo, hi))
+        out.append(Limit.of(name, lo, hi))
     return tuple(out)
 
 

@@ -2,7 +2,8 @@
 
 `build_routes` validates a cantools database against the scheme below, attaches to each
 protected message the AUTOSAR properties cantools' E2E and SecOC helpers read, and
-returns the frame-id -> `Route` table that `monitor.bus.codec` decodes with.
+returns the routes (`monitor.bus.route.Route`, one per frame ID) that `monitor.bus.codec`
+decodes with.
 
 Bus layout (standard 11-bit ids, DLC 8, Intel byte order; node 0..15 = id & 0xF; DBC
 message names carry the node as ``_N<node>``, e.g. ``MotorCurrent_N3``):
@@ -47,7 +48,7 @@ without them (an older revision) loads; `check_secoc_capable` says why it cannot
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final, Literal, cast, get_args
@@ -59,6 +60,7 @@ from cantools.database.can.formats.arxml import (
 )
 
 from monitor.bus.errors import CodecError, SecOCError
+from monitor.bus.route import Limit, Route
 from monitor.bus.secoc import AUTHENTICATOR_SIGNAL, FRESHNESS_SIGNAL, SecOCLayout, SyncLayout
 from monitor.diagnosis.classifier import HealthState
 
@@ -69,7 +71,6 @@ __all__ = [
     "N_NODES",
     "SECOC_KINDS",
     "Kind",
-    "Route",
     "build_routes",
     "check_node",
     "check_secoc_capable",
@@ -126,26 +127,14 @@ def check_node(node: int) -> None:
         raise CodecError(f"node must be an int in 0..{N_NODES - 1}, got {node!r}")
 
 
-@dataclass(frozen=True, slots=True)
-class Route:
-    """What the decoder needs to know about one frame id, checked and precomputed."""
-
-    message: Message
-    kind: Kind
-    node: int
-    data_id: int | None  # None: not E2E protected
-    reserved_mask: int  # bits of int.from_bytes(payload, "little") no signal uses
-    limits: tuple[tuple[str, float, float], ...]  # (signal, min, max) physical
-    value_signal: str
-    secoc: SecOCLayout | None = None  # None: the DBC gives this message no SecOC signals
-    sync: SyncLayout | None = None  # sync frames only
-
-
 _Fail = Callable[[str], CodecError]
 
 
-def build_routes(db: Database, source: str) -> dict[int, Route]:
-    """Validate the DBC against the bus scheme and build the id -> route table."""
+def build_routes(db: Database, source: str) -> tuple[Route, ...]:
+    """Validate the DBC against the bus scheme and build its routes, in frame-ID order: the
+    value signal of a voltage frame is model input 0, that of a current frame the model's
+    output, that of a truth frame the true gamma (every factor 1: the DBC is in the model's
+    units)."""
     name_of = Path(source).name
 
     def fail(what: str) -> CodecError:
@@ -187,12 +176,18 @@ def build_routes(db: Database, source: str) -> dict[int, Route]:
         if kind == "diagnosis":
             _check_choices(msg, sigs, "HealthState", HEALTH_STATES, fail)
         limits = tuple(
-            (s.name, float(s.minimum), float(s.maximum))
+            Limit.of(s.name, float(s.minimum), float(s.maximum))
             for s in msg.signals
             if s.minimum is not None and s.maximum is not None and not _covers_raw(s)
         )
-        routes[msg.frame_id] = Route(msg, kind, node, data_id, _reserved_mask(msg), limits,
-                                     spec.value_signal, secoc, sync)
+        value = spec.value_signal
+        routes[msg.frame_id] = Route(
+            msg.frame_id, False, msg, node, kind, FRAME_LENGTH, bool(msg.is_fd),
+            data_id is not None, _reserved_mask(msg), limits,
+            "Counter" if data_id is not None else None,
+            ((0, value, 1.0),) if kind == "voltage" else (),
+            ((value, 1.0),) if kind == "current" else (),
+            value if kind == "truth" else None, (value, 1.0), secoc, sync)
     present = {r.kind for r in routes.values()}
     for kind, spec in _SPECS.items():
         if spec.sync and kind not in present:
@@ -201,20 +196,21 @@ def build_routes(db: Database, source: str) -> dict[int, Route]:
             if spec.base_id + node not in routes:
                 raise fail(f"missing message {spec.prefix}_N{node} "
                            f"(0x{spec.base_id + node:X}, {kind})")
-    return routes
+    return tuple(routes[fid] for fid in sorted(routes))
 
 
-def check_secoc_capable(routes: Mapping[int, Route], source: str) -> None:
+def check_secoc_capable(routes: Iterable[Route], source: str) -> None:
     """`CodecError` unless the DBC behind `routes` can authenticate: SecOC signals on every
     current and voltage message, and sync messages to resynchronise freshness."""
     name_of = Path(source).name
-    missing = sorted({r.message.name.split("_N")[0] for r in routes.values()
+    routes = tuple(routes)
+    missing = sorted({r.message.name.split("_N")[0] for r in routes
                       if r.kind in SECOC_KINDS and r.secoc is None})
     if missing:
         raise CodecError(f"{name_of}: {', '.join(missing)} carry no "
                          f"{FRESHNESS_SIGNAL}/{AUTHENTICATOR_SIGNAL}: this DBC cannot "
                          "authenticate (SecOC)")
-    if not any(r.kind == "sync" for r in routes.values()):
+    if not any(r.kind == "sync" for r in routes):
         raise CodecError(f"{name_of}: no {_SPECS['sync'].prefix}_N<node> "
                          "messages: this DBC cannot resynchronise SecOC freshness")
 

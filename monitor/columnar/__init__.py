@@ -16,8 +16,10 @@ scanners that hand what they do not take to python-can's readers, .mf4 as asammd
 .trc by python-can; under NUMBA_DISABLE_JIT all but candump by python-can):
 
 1. `decode.RouteTable` routes every frame by (ID, extended) with the per-frame codec's own
-   routes, checks length, E2E profile 2 (`e2e`: CRC-8/AUTOSAR by a table generated from and
-   checked against crccheck/cantools), reserved bits and limits, and decodes the signals
+   routes (`monitor.bus.route.Route`), checks them in the codec's order
+   (`monitor.bus.codec.CHECK_ORDER`): frame format, length, E2E profile 2 (`e2e`:
+   CRC-8/AUTOSAR by a table generated from and checked against crccheck/cantools),
+   reserved bits and limits, and decodes the signals
    from cantools' signal definitions (`signals`), whole columns at once;
 2. alive counters per stream (repeated, lost) vectorised;
 3. per node, held inputs and truth vectorised, the admission rules (`kernels.admit`), the

@@ -1,45 +1,41 @@
 """The rig's messages selected by ID and decoded for a whole chunk at once.
 
-`RouteTable.of(codec)` reads the routing table of the per-frame codec it stands beside --
-`monitor.bus.codec.MotorDatabase` (our bus) or `monitor.bus.rigcodec.RigCodec` (a rig file)
--- so both paths route, check and scale from the same objects: the cantools messages with
-the E2E properties the codec attached, the node of every ID, the signals' [min, max] limits
-the codec checks, the reserved bits of our bus. `RouteTable.decode(chunk)` then gives every
-frame the verdict the codec's ``decode`` gives it, in the codec's order of checks:
-
-* our bus: error, remote, extended, unknown ID, a CAN FD frame (``fd_frame``), length !=
-  8, CRC, reserved bits set (``malformed``), limits (``out_of_range``);
-* a rig: error, remote, ID of the other length (``extended_id``) or unknown, frame format
-  not the message's (``fd_frame``), length != the message's, CRC (E2E messages), limits.
-
+`RouteTable.of(codec)` reads the routes of the per-frame codec it stands beside
+(`monitor.bus.route.RouteSource`: `monitor.bus.codec.MotorDatabase` for our bus,
+`monitor.bus.rigcodec.RigCodec` for a rig file), so both paths route, check and scale from
+the same `monitor.bus.route.Route` objects: the cantools messages with the E2E properties
+the codec attached, the node of every ID, the limits, the reserved bits, the signals that
+are the model's inputs and outputs. `RouteTable.decode(chunk)` then gives every frame the
+verdict the codec's ``decode`` gives it, taking the checks in the one order
+`monitor.bus.codec.CHECK_ORDER` declares (error, remote, extended ID as the codec's
+``accepts_extended`` says, unknown ID, frame format, length, CRC, reserved bits, limits),
 and, for the frames it accepts, the values the pipeline reads off `Decoded`: the model's
 inputs (index, value in the model's unit), outputs, a simulator's truth, the alive
 counter, as columns. SecOC cannot be columnar (every frame's verdict depends on the
-freshness state of its stream): `RouteTable.of` refuses a codec with a key
-(`NotColumnar`), and the replay runs that file frame by frame. CAN FD messages of up to
-64 bytes are decoded in columns: each signal is read from the 8-byte window of the payload
-that holds it (a signal wider than any such window, or E2E on a message over 8 bytes, sends
-the file frame by frame); FD frames on a rig's classic messages, or on our bus, get their
-``fd_frame`` verdict here.
+freshness state of its stream): `RouteTable.of` refuses a codec whose ``frame_by_frame``
+is set (`NotColumnar`), and the replay runs that file frame by frame. CAN FD messages of up
+to 64 bytes are decoded in columns: each signal is read from the 8-byte window of the
+payload that holds it (a signal wider than any such window, or E2E on a message over 8
+bytes, sends the file frame by frame).
 """
 
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from cantools.database.can import Message
 from numpy.typing import NDArray
 
-from monitor.bus.codec import MotorDatabase, RejectReason
-from monitor.bus.rigcodec import RigCodec
+from monitor.bus.codec import CHECK_ORDER, RejectReason
+from monitor.bus.route import Route, RouteSource
 from monitor.columnar.chunk import FrameChunk
 from monitor.columnar.e2e import profile2_ok
 from monitor.columnar.signals import SignalExtractor, payload_integers
 
-__all__ = ["REASONS", "DecodedChunk", "NotColumnar", "Route", "RouteTable"]
+__all__ = ["REASONS", "DecodedChunk", "NotColumnar", "RouteTable"]
 
 REASONS: tuple[str, ...] = ("", *(str(r) for r in RejectReason))
 """Verdict codes: 0 accepted, i > 0 rejected for REASONS[i]."""
@@ -51,39 +47,26 @@ class NotColumnar(Exception):
     """This codec or file needs the per-frame path (the message says why)."""
 
 
-@dataclass
-class Route:
-    """One arbitration ID of the bus (standard or extended) as the codec routes it."""
+class _Signals:
+    """The column extractors of one route's signals, each made when first read."""
 
-    frame_id: int
-    extended: bool
-    message: Message
-    node: int
-    kind: str  # Decoded.kind: our bus's kind, or the rig message's name
-    length: int
-    e2e: bool
-    reserved_mask: int
-    limits: tuple[tuple[str, float, float], ...]
-    counter: str | None
-    inputs: tuple[tuple[int, str, float], ...]  # (input index, signal, factor)
-    outputs: tuple[tuple[str, float], ...]  # (signal, factor)
-    truth: str | None
-    fd: bool = False  # a CAN FD message in the DBC
-    stream: int = 0  # alive-counter stream (kind, node)
-    extractors: dict[str, tuple[int, SignalExtractor]] = field(default_factory=dict)
+    def __init__(self, route: Route) -> None:
+        self.route = route
+        self.extractors: dict[str, tuple[int, SignalExtractor]] = {}
 
     def extractor(self, name: str) -> tuple[int, SignalExtractor]:
         """(first byte of the 8-byte window that holds signal `name`, its extractor there)."""
         hit = self.extractors.get(name)
         if hit is None:
-            signal = self.message.get_signal_by_name(name)
-            first = window_of(signal, self.length)
+            r = self.route
+            signal = r.message.get_signal_by_name(name)
+            first = window_of(signal, r.length)
             if first is None:
-                raise NotColumnar(f"{self.message.name}: {name} spans more than 8 bytes")
+                raise NotColumnar(f"{r.message.name}: {name} spans more than 8 bytes")
             if first:
                 signal = copy.copy(signal)
                 signal.start -= 8 * first  # byte-aligned shift: either byte order
-            hit = (first, SignalExtractor(signal, min(self.length, 8)))
+            hit = (first, SignalExtractor(signal, min(r.length, 8)))
             self.extractors[name] = hit
         return hit
 
@@ -123,52 +106,43 @@ class DecodedChunk:
     counter: NDArray[np.int64]
 
 
-class RouteTable:
-    """All routes of a codec, looked up by (ID, extended) for whole columns."""
+_FrameCheck = Callable[["RouteTable", FrameChunk, NDArray[np.int64], NDArray[np.int64]],
+                       NDArray[np.bool_]]
+_PayloadCheck = Callable[[Route, FrameChunk, NDArray[np.int64], "_Values"], NDArray[np.bool_]]
 
-    def __init__(self, routes: list[Route], *, m: int, p: int, our_bus: bool) -> None:
+
+class RouteTable:
+    """All routes of a codec, looked up by (ID, extended) for whole columns.
+
+    `routes` are the codec's own; `route_stream[i]` the alive-counter stream (kind, node)
+    of route i, an index into `streams`."""
+
+    def __init__(self, routes: tuple[Route, ...], *, m: int, p: int,
+                 accepts_extended: bool) -> None:
         self.routes = routes
         self.m = m
         self.p = p
-        self.our_bus = our_bus
+        self.accepts_extended = accepts_extended
         keys = np.array([r.frame_id * 2 + int(r.extended) for r in routes], np.int64)
         order = np.argsort(keys)
         self._keys = keys[order]
         self._idx = order.astype(np.int64)
+        self._signals = [_Signals(r) for r in routes]
         streams: dict[tuple[str, int], int] = {}
-        for r in routes:
-            r.stream = streams.setdefault((r.kind, r.node), len(streams))
+        self.route_stream = [streams.setdefault((r.kind, r.node), len(streams))
+                             for r in routes]
         self.streams = list(streams)
 
     @classmethod
-    def of(cls, codec: Any, m: int, p: int) -> RouteTable:
-        """The table of a `MotorDatabase` or `RigCodec` for a model with m inputs and p
-        outputs. `NotColumnar` for SecOC, other codecs, or messages over 8 bytes."""
-        if getattr(codec, "secoc_enabled", False) or getattr(codec, "secured", False):
-            # (a rig's sync frames, even unverified, are counted as the per-frame path does)
-            raise NotColumnar("SecOC verification keeps per-frame freshness state")
-        routes: list[Route] = []
-        if isinstance(codec, MotorDatabase):
-            for fid, mr in codec.routes.items():
-                kind = str(mr.kind)
-                routes.append(Route(
-                    fid, False, mr.message, mr.node, kind, 8, mr.data_id is not None,
-                    mr.reserved_mask, tuple(mr.limits),
-                    "Counter" if mr.data_id is not None else None,
-                    ((0, mr.value_signal, 1.0),) if kind == "voltage" else (),
-                    ((mr.value_signal, 1.0),) if kind == "current" else (),
-                    mr.value_signal if kind == "truth" else None))
-            our = True
-        elif isinstance(codec, RigCodec):
-            for (fid, ext), rr in codec.routes.items():
-                spec = rr.spec
-                routes.append(Route(
-                    fid, ext, rr.message, rr.node, spec.name, int(rr.message.length), spec.e2e,
-                    0, tuple(rr.limits), spec.counter, tuple(spec.inputs),
-                    tuple(spec.outputs), spec.truth, bool(rr.message.is_fd)))
-            our = False
-        else:
+    def of(cls, codec: object, m: int, p: int) -> RouteTable:
+        """The table of a codec's routes (`RouteSource`) for a model with m inputs and p
+        outputs. `NotColumnar` for another decoder, SecOC, or messages whose signals no
+        8-byte window holds."""
+        if not isinstance(codec, RouteSource):
             raise NotColumnar(f"no columnar decoder for {type(codec).__name__}")
+        if codec.frame_by_frame:
+            raise NotColumnar("SecOC verification keeps per-frame freshness state")
+        routes = tuple(codec.routes)
         for r in routes:
             if not 0 < r.length <= 64:
                 raise NotColumnar(f"{r.message.name}: {r.length}-byte frames")
@@ -176,14 +150,14 @@ class RouteTable:
                 raise NotColumnar(f"{r.message.name}: E2E on {r.length}-byte CAN FD frames")
             if r.length > 8:
                 used = [s for _, s, _ in r.inputs] + [s for s, _ in r.outputs] + \
-                    [name for name, _, _ in r.limits]
+                    [lim.signal for lim in r.limits]
                 used += [x for x in (r.truth, r.counter) if x is not None]
                 for name in dict.fromkeys(used):
                     if window_of(r.message.get_signal_by_name(name), r.length) is None:
                         raise NotColumnar(f"{r.message.name}: {name} spans more than 8 bytes")
             if any(i >= m for i, _, _ in r.inputs) or len(r.outputs) > p:
                 raise NotColumnar(f"{r.message.name}: more signals than the model has")
-        return cls(routes, m=m, p=p, our_bus=our)
+        return cls(routes, m=m, p=p, accepts_extended=bool(codec.accepts_extended))
 
     def _lookup(self, key: NDArray[np.int64]) -> NDArray[np.int64]:
         if not len(self._keys):
@@ -193,26 +167,29 @@ class RouteTable:
         hit = self._keys[pos] == key
         return np.where(hit, self._idx[pos], -1)
 
+    # the checks of CHECK_ORDER: which frames fail each (of those still in play)
+
+    def _extended(self, c: FrameChunk, rows: NDArray[np.int64],
+                  route: NDArray[np.int64]) -> NDArray[np.bool_]:
+        ext = c.extended[rows]
+        if not self.accepts_extended:
+            return ext
+        other = self._lookup(c.arbitration_id[rows] * 2 + (~ext).astype(np.int64))
+        return (route[rows] < 0) & (other >= 0)
+
     def decode(self, c: FrameChunk) -> DecodedChunk:
         """Every frame's verdict and values (see `DecodedChunk`)."""
         n = len(c)
         code = np.zeros(n, np.int64)
-        ids = c.arbitration_id
-        ext = c.extended
-        route = self._lookup(ids * 2 + ext.astype(np.int64))
-        if self.our_bus:
-            # extended IDs are refused before the lookup
-            route = np.where(ext, -1, route)
-            code[route < 0] = _CODE[RejectReason.UNKNOWN_ID]
-            code[ext] = _CODE[RejectReason.EXTENDED_ID]
-        else:
-            other = self._lookup(ids * 2 + (~ext).astype(np.int64))
-            code[route < 0] = np.where(other[route < 0] >= 0, _CODE[RejectReason.EXTENDED_ID],
-                                       _CODE[RejectReason.UNKNOWN_ID])
-        code[c.remote] = _CODE[RejectReason.REMOTE_FRAME]
-        route[c.remote] = -1
-        code[c.error] = _CODE[RejectReason.ERROR_FRAME]
-        route[c.error] = -1
+        route = self._lookup(c.arbitration_id * 2 + c.extended.astype(np.int64))
+        rows = np.arange(n, dtype=np.int64)
+        for reason in CHECK_ORDER:  # the frame's flags and ID, for every frame at once
+            check = _FRAME.get(reason)
+            if check is not None:
+                bad = check(self, c, rows, route)
+                code[rows[bad]] = _CODE[reason]
+                route[rows[bad]] = -1
+                rows = rows[~bad]
         u = np.full((n, self.m), np.nan)
         y = np.full((n, self.p), np.nan)
         truth = np.full(n, np.nan)
@@ -221,37 +198,18 @@ class RouteTable:
         for ri in present.tolist():
             r = self.routes[ri]
             rows = np.flatnonzero(route == ri)
-            bad = c.is_fd[rows] != r.fd
-            code[rows[bad]] = _CODE[RejectReason.FD_FRAME]
-            rows = rows[~bad]
-            bad = c.length[rows] != r.length
-            code[rows[bad]] = _CODE[RejectReason.WRONG_LENGTH]
-            rows = rows[~bad]
+            vals = _Values(self._signals[ri], c.data[rows, :max(8, r.length)])
+            for reason in CHECK_ORDER:  # the payload, route by route
+                check_payload = _PAYLOAD.get(reason)
+                if check_payload is None or not len(rows):
+                    continue
+                bad = check_payload(r, c, rows, vals)
+                if bad.any():
+                    code[rows[bad]] = _CODE[reason]
+                    keep = ~bad
+                    rows, vals = rows[keep], vals.subset(keep)
             if not len(rows):
                 continue
-            data = c.data[rows, :max(8, r.length)]
-            if r.e2e:
-                ok = profile2_ok(r.message, data[:, :8], r.length)
-                code[rows[~ok]] = _CODE[RejectReason.BAD_CRC]
-                rows, data = rows[ok], data[ok]
-            vals = _Values(r, data)
-            if r.reserved_mask:
-                mask = np.uint64(r.reserved_mask & 0xFFFFFFFFFFFFFFFF)
-                bad = (vals.window(0)[0] & mask) != 0
-                code[rows[bad]] = _CODE[RejectReason.MALFORMED]
-                keep = ~bad
-                rows, vals = rows[keep], vals.subset(keep)
-            if not len(rows):
-                continue
-            inside = np.ones(len(rows), np.bool_)
-            for name, lo, hi in r.limits:
-                v = vals.get(name)
-                inside &= (lo <= v) & (v <= hi) & np.isfinite(v)  # as in the codec
-            code[rows[~inside]] = _CODE[RejectReason.OUT_OF_RANGE]
-            rows = rows[inside]
-            if not len(rows):
-                continue
-            vals = vals.subset(inside)
             for i, name, f in r.inputs:
                 u[rows, i] = vals.get(name) * f
             for j, (name, f) in enumerate(r.outputs):
@@ -267,12 +225,56 @@ class RouteTable:
         return DecodedChunk(code, route, u, y, truth, counter)
 
 
+_FRAME: dict[RejectReason, _FrameCheck] = {
+    RejectReason.ERROR_FRAME: lambda t, c, rows, route: c.error[rows],
+    RejectReason.REMOTE_FRAME: lambda t, c, rows, route: c.remote[rows],
+    RejectReason.EXTENDED_ID: lambda t, c, rows, route: t._extended(c, rows, route),
+    RejectReason.UNKNOWN_ID: lambda t, c, rows, route: route[rows] < 0,
+}
+"""The checks of `CHECK_ORDER` on a frame's flags and ID (`rows`: the frames still in play;
+`route`: each frame's route by its ID and length, -1 for none)."""
+
+
+def _crc_fails(r: Route, c: FrameChunk, rows: NDArray[np.int64], vals: _Values
+               ) -> NDArray[np.bool_]:
+    if not r.e2e:
+        return np.zeros(len(rows), np.bool_)
+    return ~profile2_ok(r.message, vals.data[:, :8], r.length)
+
+
+def _reserved_set(r: Route, c: FrameChunk, rows: NDArray[np.int64], vals: _Values
+                  ) -> NDArray[np.bool_]:
+    if not r.reserved_mask:
+        return np.zeros(len(rows), np.bool_)
+    mask = np.uint64(r.reserved_mask & 0xFFFFFFFFFFFFFFFF)
+    return (vals.window(0)[0] & mask) != 0
+
+
+def _outside_limits(r: Route, c: FrameChunk, rows: NDArray[np.int64], vals: _Values
+                    ) -> NDArray[np.bool_]:
+    inside = np.ones(len(rows), np.bool_)
+    for lim in r.limits:
+        v = vals.get(lim.signal)
+        inside &= (lim.low <= v) & (v <= lim.high)  # finite bounds: NaN and inf fail
+    return ~inside
+
+
+_PAYLOAD: dict[RejectReason, _PayloadCheck] = {
+    RejectReason.FD_FRAME: lambda r, c, rows, vals: c.is_fd[rows] != r.fd,
+    RejectReason.WRONG_LENGTH: lambda r, c, rows, vals: c.length[rows] != r.length,
+    RejectReason.BAD_CRC: _crc_fails,
+    RejectReason.MALFORMED: _reserved_set,  # reserved bits set
+    RejectReason.OUT_OF_RANGE: _outside_limits,
+}
+"""The payload checks of `CHECK_ORDER` on columns (SecOC's never run: `RouteTable.of`)."""
+
+
 class _Values:
     """Signals of one route's payloads (rows of `data`, at least 8 bytes wide), each
     extracted once, from the 8-byte window that holds it."""
 
-    def __init__(self, route: Route, data: NDArray[np.uint8]) -> None:
-        self.route = route
+    def __init__(self, signals: _Signals, data: NDArray[np.uint8]) -> None:
+        self.signals = signals
         self.data = data
         self.windows: dict[int, tuple[NDArray[np.uint64], NDArray[np.uint64]]] = {}
         self.cache: dict[str, NDArray[np.float64]] = {}
@@ -288,13 +290,13 @@ class _Values:
     def get(self, name: str) -> NDArray[np.float64]:
         v = self.cache.get(name)
         if v is None:
-            first, ex = self.route.extractor(name)
+            first, ex = self.signals.extractor(name)
             v = ex.extract(*self.window(first))
             self.cache[name] = v
         return v
 
     def subset(self, keep: NDArray[np.bool_]) -> _Values:
-        out = _Values(self.route, self.data[keep])
+        out = _Values(self.signals, self.data[keep])
         out.windows = {k: (le[keep], be[keep]) for k, (le, be) in self.windows.items()}
         out.cache = {k: v[keep] for k, v in self.cache.items()}
         return out

@@ -98,7 +98,7 @@ class ColumnarEngine:
         self.nodes = pipe.nodes
         self.cls_prm = pipe.diag_prm
         routes = self.table.routes
-        self.stream_of = np.array([r.stream for r in routes] or [0], np.int64)
+        self.stream_of = np.array(self.table.route_stream or [0], np.int64)
         self.output_only = np.array([bool(r.outputs) and not r.inputs and r.truth is None
                                      for r in routes] or [False])
         self.n_out = np.array([len(r.outputs) for r in routes] or [0], np.int64)

@@ -79,11 +79,10 @@ def rig_frames(codec: MotorDatabase | RigCodec) -> list[RigFrame]:
                                     int(msg.length), tuple(s for _, s, _ in spec.inputs),
                                     tuple(s for s, _ in spec.outputs), prot))
     else:
-        for frame_id, route in codec.routes.items():
-            out.append(RigFrame(route.message.name, route.node, frame_id, False, 8,
-                                (route.value_signal,) if str(route.kind) == "voltage" else (),
-                                (route.value_signal,) if str(route.kind) == "current" else (),
-                                "E2E" if route.data_id is not None else ""))
+        for r in codec.routes:
+            out.append(RigFrame(r.message.name, r.node, r.frame_id, r.extended, r.length,
+                                tuple(s for _, s, _ in r.inputs), tuple(s for s, _ in r.outputs),
+                                "E2E" if r.e2e else ""))
     return sorted(out, key=lambda f: (f.node, f.frame_id))
 
 

@@ -47,8 +47,7 @@ RATE = 100.0
 
 def _frame_id(kind: str, node: int) -> int:
     """The arbitration ID of our bus's message `kind` of `node` (dbc/motor.dbc)."""
-    return next(fid for fid, r in load_database().routes.items()
-                if str(r.kind) == kind and r.node == node)
+    return next(r.frame_id for r in load_database().routes if r.kind == kind and r.node == node)
 
 
 def _daemon(interface: str, channel: str, nodes: list[int], work: Path

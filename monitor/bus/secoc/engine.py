@@ -397,6 +397,12 @@ class SecOCHolder:
     def secoc_enabled(self) -> bool:
         return self._secoc is not None
 
+    @property
+    def frame_by_frame(self) -> bool:
+        """Whether frames must be decoded one at a time, in order: with a key a frame's
+        verdict depends on its stream's freshness state (`monitor.bus.route.RouteSource`)."""
+        return self._secoc is not None
+
 
 def _stamp(layout: SecOCLayout | SyncLayout, frame: bytes, freshness: int,
            mac: Callable[[bytes], bytes]) -> bytes:
