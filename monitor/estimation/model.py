@@ -372,9 +372,9 @@ def zoh(A: Array, B: Array, T: float) -> tuple[Array, Array]:
     expm([[A, B], [0, 0]] T) = [[Ad, Bd], [0, I]].
 
     The same exponential of the same matrix as scipy.signal.cont2discrete(method="zoh"), so
-    the same result bit for bit (tests hold the two to each other), taken from scipy.linalg because importing scipy.signal costs the daemon a
-    second of its start (three in the User-Mode Linux guest): it parses the docstrings of its
-    whole API when imported.
+    the same result bit for bit (tests hold the two to each other), taken from scipy.linalg
+    because importing scipy.signal costs the daemon a second of its start (three in the
+    User-Mode Linux guest): it parses the docstrings of its whole API when imported.
     """
     n, m = B.shape
     M = np.zeros((n + m, n + m))
