@@ -213,6 +213,7 @@ Decode = Callable[[bytes, bool, bool, bool, bool], dict[str, float]]
 """A message's ``decode_simple`` (cantools' ``decode`` of a message that is no container):
 payload, decode_choices, scaling, allow_truncated, allow_excess -> signals."""
 
+
 class PayloadCheck(NamedTuple):
     """What `check_payload` needs of one `Route`, read once when the codec builds its
     routing (no cantools property or method is looked up per frame): the message, its
@@ -316,7 +317,6 @@ class _Reading(NamedTuple):
         return cls(route.kind, route.node, signal, route.counter,
                    route.inputs[0][0] if route.inputs else None, bool(route.outputs),
                    route.truth is not None)
-
 
 
 class MotorDatabase(SecOCHolder):
