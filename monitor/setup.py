@@ -12,6 +12,7 @@ thresholds or key file is one `MonitorError` line, as on the command line.
 
 from __future__ import annotations
 
+import importlib
 import sys
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -33,7 +34,7 @@ from monitor.sinks.jsonl import JsonLinesSink
 from monitor.sinks.outlet import DEFAULT_FLUSH_INTERVAL_S, REPLAY_BATCH_SIZE, REPLAY_PART_BYTES
 
 __all__ = ["MonitorSettings", "MonitorSetup", "Rotation", "event_lines", "fault_unit",
-           "frame_decoder", "monitor_config", "monitor_setup", "plant_signals",
+           "frame_decoder", "load_recording", "monitor_config", "monitor_setup", "plant_signals",
            "recording_sink", "samples_sink", "setup_rig"]
 
 
@@ -152,6 +153,15 @@ class Rotation:
     max_total_bytes: int
 
 
+def load_recording() -> None:
+    """Import the Rerun sinks: rerun-sdk and the pandas its first archetype imports, half a
+    second here, seconds in a slow guest, paid only by a monitor that records. The daemon
+    calls it before its socket opens, so that no frame waits in the kernel's buffer (and
+    overflows it) while it loads."""
+    importlib.import_module("monitor.sinks.rerun")
+    importlib.import_module("monitor.sinks.rotation")
+
+
 def recording_sink(cfg: MonitorConfig, rig: Rig | None, *, rrd: str | Path | None = None,
                    connect: str | None = None, rotation: Rotation | None = None,
                    flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
@@ -164,8 +174,7 @@ def recording_sink(cfg: MonitorConfig, rig: Rig | None, *, rrd: str | Path | Non
     cannot start is one `MonitorError` line."""
     if not (rrd or connect or rotation):
         return None
-    # rerun-sdk (0.5 s of a start, with pandas, which its first archetype imports) only for
-    # a monitor that records
+    load_recording()
     from monitor.sinks.rerun import RerunSink
     from monitor.sinks.rotation import RotatingRerunSink
 

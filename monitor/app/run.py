@@ -39,11 +39,12 @@ from monitor.pipeline import counters as C
 from monitor.pipeline.counters import DecodeWatch
 from monitor.pipeline.feed import TICK_S
 from monitor.rig import Rig
-from monitor.runtime.canbus import BusError, open_bus, receive_batch, send_frame
+from monitor.runtime.canbus import BusError, frames_waiting, open_bus, receive_batch, send_frame
 from monitor.runtime.freshness import FreshnessSaver
 from monitor.runtime.notify import Notifier
 from monitor.runtime.paths import Output, check_directory, check_outputs, monitor_inputs
 from monitor.runtime.signals import StopOnSignals
+from monitor.setup import load_recording
 from monitor.sinks.base import FanOut, Sink
 from monitor.sinks.journal import JournalSink, journal_available
 from monitor.sinks.log import LogSink
@@ -154,9 +155,12 @@ def run_live(args: argparse.Namespace) -> int:
     cfg = options.monitor_config(args, rig)
     outputs.record_flush_s(args)  # its mistakes before anything opens
     with StopOnSignals() as stop:
-        # Load the compiled estimator before the socket opens: frames arriving meanwhile
-        # would pile up in the kernel's buffer and be dropped.
+        # Load the compiled estimator, and the recording's library when it records, before
+        # the socket opens: frames arriving meanwhile would pile up in the kernel's buffer
+        # and be dropped.
         MonitorPipeline(db, cfg)
+        if args.rrd or args.connect or args.record_dir:
+            load_recording()
         live = _LiveBus(args)
         try:
             raw = _raw_log(args)
@@ -244,7 +248,11 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: _Li
                     # Timeouts are judged where the reading is: while a backlog waits in the
                     # socket (a daemon held up for a moment), the time is that of the newest
                     # frame read, so the daemon's own lag never looks like a silent node.
-                    last_clock = now if drained else max(newest, last_clock)
+                    # Drained at the last receive is not enough: a daemon held up since (a busy
+                    # CPU, a long batch) has frames waiting, and the wall clock would find
+                    # their node silent. The socket is asked again, without waiting.
+                    waiting = live.bus is not None and frames_waiting(live.bus)
+                    last_clock = now if drained and not waiting else max(newest, last_clock)
                     pipe.tick(last_clock)
                     # nothing decoded since the silence timeout: said once (and a metric)
                     said = watch.check(mono, pipe.counters,

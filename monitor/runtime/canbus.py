@@ -33,8 +33,8 @@ from can.interfaces.socketcan.socketcan import SocketcanBus, build_can_frame, ca
 
 from monitor.errors import MonitorError, one_line
 
-__all__ = ["CANFD_MTU", "CAN_MTU", "BusError", "interface_mtu", "open_bus", "receive_batch",
-           "send_frame"]
+__all__ = ["CANFD_MTU", "CAN_MTU", "BusError", "frames_waiting", "interface_mtu", "open_bus",
+           "receive_batch", "send_frame"]
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +170,19 @@ def _raw_socket(bus: can.BusABC) -> tuple[socket.socket, str] | None:
         return None
     sock = bus.socket
     return (sock, str(bus.channel)) if isinstance(sock, socket.socket) else None
+
+
+def frames_waiting(bus: can.BusABC) -> bool:
+    """Whether a SocketCAN socket holds a frame not yet read (a select without waiting);
+    False where that cannot be asked (another interface, a failed select)."""
+    raw = _raw_socket(bus)
+    if raw is None:
+        return False
+    try:
+        ready, _, _ = select.select([raw[0]], [], [], 0.0)
+    except (OSError, ValueError):  # ValueError: a socket closed under us
+        return False
+    return bool(ready)
 
 
 def receive_batch(bus: can.BusABC, timeout: float, limit: int, into: list[can.Message]) -> None:
