@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from monitor.rig import Rig
 
 __all__ = ["MAX_UNBACKED_FLUSH_S", "count_compactions", "event_lines", "fault_unit",
-           "plant_signals", "record_flush_s", "rerun_sink", "samples_sink"]
+           "plant_signals", "record_flush_s", "records", "rerun_sink", "samples_sink"]
 
 MAX_UNBACKED_FLUSH_S = 0.25
 """The longest recording flush interval without the raw bus log: what a SIGKILL may lose."""
@@ -63,6 +63,12 @@ def count_compactions(recording: Sink | None, counters: MutableMapping[str, int]
             counters[name] = value
 
 
+def records(args: argparse.Namespace) -> bool:
+    """Whether the options ask for a recording: one file (--rrd), rotating files
+    (--record-dir, the daemon's) or a live viewer (--connect)."""
+    return bool(args.rrd or args.connect or getattr(args, "record_dir", None))
+
+
 def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig, *,
                replay: bool = False, rig: Rig | None = None) -> Sink | None:
     """Rotating files (--record-dir), one file (--rrd) and/or a live viewer (--connect), or
@@ -72,7 +78,7 @@ def rerun_sink(args: argparse.Namespace, cfg: MonitorConfig, *,
     if args.rrd and record_dir:
         raise UsageError("--rrd and --record-dir exclude each other (one file, or rotating files)")
     flush_interval_s = record_flush_s(args)
-    if not (args.rrd or args.connect or record_dir):
+    if not records(args):
         return None
     if args.rrd:
         parent = Path(args.rrd).parent

@@ -159,7 +159,7 @@ def run_live(args: argparse.Namespace) -> int:
         # the socket opens: frames arriving meanwhile would pile up in the kernel's buffer
         # and be dropped.
         MonitorPipeline(db, cfg)
-        if args.rrd or args.connect or args.record_dir:
+        if outputs.records(args):
             load_recording()
         live = _LiveBus(args)
         try:
