@@ -1,6 +1,7 @@
-"""Command-line options shared by the commands: the options every monitoring command has,
-and what they build (the rig, the database, the configuration: `monitor.setup` from the
-options' values). The argument types live in `monitor.runtime.argtypes`."""
+"""What the commands' shared options build: the rig, the frame decoder, the monitor's
+configuration (`monitor.setup` from the options' values). The options themselves and their
+argument types live in `monitor.runtime.argtypes`, which imports nothing heavy: the daemon
+parses its command line and opens its socket before it loads the estimator."""
 
 from __future__ import annotations
 
@@ -21,28 +22,11 @@ from monitor.runtime.argtypes import (
     rate,
 )
 
-__all__ = ["OneLineParser", "add_monitor_options", "add_rig_option", "database",
-           "monitor_config", "nodes", "positive_float", "positive_int", "rate", "rig",
-           "settings"]
+__all__ = ["OneLineParser", "add_rig_option", "database", "monitor_config", "nodes",
+           "positive_float", "positive_int", "rate", "rig", "settings"]
 
 Options = argparse.Namespace
 """The parsed command line."""
-
-
-def add_monitor_options(p: argparse.ArgumentParser) -> None:
-    """The options of every command that monitors frames (run, replay)."""
-    add_rig_option(p)
-    p.add_argument("--dbc", default=None, help="DBC file (default: the rig's)")
-    p.add_argument("--nodes", type=nodes, default=None,
-                   help="nodes to monitor, e.g. 0,3 (default: the rig's, else all that send)")
-    p.add_argument("--rate", type=rate, default=None,
-                   help="the output message's nominal rate, Hz (default: the rig's)")
-    p.add_argument("--thresholds", default=None, help="thresholds TOML (motor-monitor calibrate)")
-    p.add_argument("--key", default=None, metavar="FILE",
-                   help="SecOC key (32 or 64 hex digits, mode 0600): reject unauthenticated frames")
-    p.add_argument("--rrd", default=None, help="record to this .rrd file")
-    p.add_argument("--connect", default=None, metavar="URL",
-                   help="stream to a Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy")
 
 
 def settings(args: Options) -> setup.MonitorSettings:

@@ -41,6 +41,7 @@ from monitor.errors import ERROR_LINE_LIMIT, UsageError, one_line
 from monitor.files import shown_path
 from monitor.pipeline import counters as C
 from monitor.rig import Rig
+from monitor.runtime.argtypes import add_monitor_options
 from monitor.runtime.paths import Kind, Output, check_directory, check_outputs, monitor_inputs
 from monitor.setup import monitor_setup
 from monitor.sinks.base import Sink
@@ -214,7 +215,7 @@ def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     p.add_argument("--cluster", default=None, metavar="ADDRESS",
                    help="replay on the Dask cluster whose scheduler is at ADDRESS, e.g. "
                    "tcp://10.0.0.5:8786 (the archive extra; workers share the paths)")
-    options.add_monitor_options(p)
+    add_monitor_options(p)
     # replaces the option's file-only form: with --out, a bare --rrd records every log
     p.add_argument("--rrd", nargs="?", const=True, default=None, metavar="FILE",
                    help="one log: record to this .rrd file; with --out: --rrd alone records "

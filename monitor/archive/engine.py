@@ -71,7 +71,7 @@ FrameProgress = Callable[[int], None]
 
 
 class ReplaySettings(MonitorSettings):
-    """The monitor options of `replay` (`monitor.app.options.add_monitor_options`) that
+    """The monitor options of `replay` (`monitor.runtime.argtypes.add_monitor_options`) that
     configure the monitor, as plain values a worker process rebuilds the monitor from
     (`monitor_setup`)."""
 

@@ -9,7 +9,8 @@ import argparse
 import math
 from typing import NoReturn, TypeVar
 
-__all__ = ["OneLineParser", "add_rig_option", "nodes", "positive_float", "positive_int", "rate"]
+__all__ = ["OneLineParser", "add_monitor_options", "add_rig_option", "nodes", "positive_float",
+           "positive_int", "rate"]
 
 N = TypeVar("N", int, float)
 
@@ -74,3 +75,19 @@ def nodes(text: str) -> tuple[int, ...] | None:
     if not found or any(not 0 <= n <= 15 for n in found):
         raise argparse.ArgumentTypeError(f"node numbers must lie in 0..15: {text!r}")
     return found
+
+
+def add_monitor_options(p: argparse.ArgumentParser) -> None:
+    """The options of every command that monitors frames (run, replay)."""
+    add_rig_option(p)
+    p.add_argument("--dbc", default=None, help="DBC file (default: the rig's)")
+    p.add_argument("--nodes", type=nodes, default=None,
+                   help="nodes to monitor, e.g. 0,3 (default: the rig's, else all that send)")
+    p.add_argument("--rate", type=rate, default=None,
+                   help="the output message's nominal rate, Hz (default: the rig's)")
+    p.add_argument("--thresholds", default=None, help="thresholds TOML (motor-monitor calibrate)")
+    p.add_argument("--key", default=None, metavar="FILE",
+                   help="SecOC key (32 or 64 hex digits, mode 0600): reject unauthenticated frames")
+    p.add_argument("--rrd", default=None, help="record to this .rrd file")
+    p.add_argument("--connect", default=None, metavar="URL",
+                   help="stream to a Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy")

@@ -46,7 +46,7 @@ from pathlib import Path
 import can
 import numpy as np
 
-from monitor.app.run import RECEIVE_BATCH
+from monitor.app.daemon import RECEIVE_BATCH
 from monitor.bus.codec import MotorDatabase, load_database
 from monitor.columnar import read_chunks, replay_file
 from monitor.columnar.live import BacklogFeed

@@ -63,8 +63,8 @@ def test_every_module_imports_alone() -> None:
 
 
 def test_the_daemon_imports_no_simulation_experiments_or_plotting() -> None:
-    loaded = _modules_after("monitor.app.cli, monitor.app.run, monitor.app.replay, "
-                            "monitor.app.identify, monitor.app.calibrate")
+    loaded = _modules_after("monitor.app.cli, monitor.app.run, monitor.app.daemon, "
+                            "monitor.app.replay, monitor.app.identify, monitor.app.calibrate")
     for forbidden in ("sim_ecu", "experiments", "matplotlib"):
         assert not [m for m in loaded if m.split(".")[0] == forbidden], forbidden
 

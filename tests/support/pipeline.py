@@ -62,7 +62,7 @@ def pipeline(db: FrameDecoder, cfg: MonitorConfig | None = None, *,
     counters = Counters()
     sinks: list[Sink] = [] if sink is None else [sink]
     if sent is not None:
-        # MonitorDiagnosis frames exist on our own bus only, as in `monitor.app.run`
+        # MonitorDiagnosis frames exist on our own bus only, as in `monitor.app.daemon`
         assert isinstance(db, MotorDatabase), "frames to `sent` need our own bus's database"
         sinks.append(BusPublisher(db, sent.append, counters))
     if events is not None:

@@ -1,0 +1,86 @@
+"""The daemon's early receiver on python-can's virtual interface: what it received while the
+daemon loaded is handed over whole and in order, a failure with the frames before it, and a
+bus that cannot be opened yet is left for later (the SocketCAN path runs in every daemon of
+the vcan tests)."""
+
+from __future__ import annotations
+
+import time
+import uuid
+
+import can
+import pytest
+
+from monitor.runtime import livebus
+from monitor.runtime.livebus import EarlyReceiver, LiveBus, open_early
+
+
+def _frames(n: int) -> list[can.Message]:
+    return [can.Message(arbitration_id=0x100 + i % 7, data=i.to_bytes(4, "little"),
+                        is_extended_id=False) for i in range(n)]
+
+
+def _numbers(msgs: list[can.Message]) -> list[int]:
+    return [int.from_bytes(m.data, "little") for m in msgs]
+
+
+def test_frames_received_while_loading_are_handed_over_in_order() -> None:
+    channel = f"early-{uuid.uuid4().hex}"
+    live, early = open_early("virtual", channel, None, None)
+    assert live is not None and early is not None
+    sender = can.Bus(interface="virtual", channel=channel)
+    try:
+        for msg in _frames(3000):
+            sender.send(msg)
+        time.sleep(0.3)  # the thread takes them off the bus meanwhile
+        frames, failure = early.handover()
+        assert failure is None
+        assert _numbers(frames) == list(range(3000))
+        assert early.handover() == ([], None)  # once
+        # the daemon's loop goes on reading the same bus: nothing is taken after handover
+        sender.send(_frames(1)[0])
+        assert live.bus is not None and live.bus.recv(timeout=1.0) is not None
+    finally:
+        sender.shutdown()
+        live.drop()
+
+
+def test_a_failed_receive_ends_it_with_the_frames_before() -> None:
+    channel = f"early-{uuid.uuid4().hex}"
+    live = LiveBus("virtual", channel, None)
+    sender = can.Bus(interface="virtual", channel=channel)
+    try:
+        for msg in _frames(10):
+            sender.send(msg)
+        early = EarlyReceiver(live)
+        time.sleep(0.2)
+        assert live.bus is not None
+        live.bus.shutdown()  # the interface goes away under the receiver
+        time.sleep(0.2)  # its next receive fails
+        frames, failure = early.handover()
+        assert _numbers(frames) == list(range(10))
+        assert isinstance(failure, can.CanError | OSError)
+    finally:
+        sender.shutdown()
+
+
+def test_it_keeps_at_most_its_limit(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(livebus, "MAX_EARLY_FRAMES", 100)
+    channel = f"early-{uuid.uuid4().hex}"
+    live, early = open_early("virtual", channel, None, None)
+    assert live is not None and early is not None
+    sender = can.Bus(interface="virtual", channel=channel)
+    try:
+        for msg in _frames(250):
+            sender.send(msg)
+        time.sleep(0.3)
+        frames, _ = early.handover()
+        assert _numbers(frames) == list(range(100))  # the first, not a random hundred
+        assert live.bus is not None and live.bus.recv(timeout=1.0) is not None  # left queued
+    finally:
+        sender.shutdown()
+        live.drop()
+
+
+def test_a_bus_that_cannot_open_yet_is_left_for_later() -> None:
+    assert open_early("no-such-interface", "x", None, None) == (None, None)
