@@ -2,7 +2,8 @@
 # System packages for the test suite on Debian 12 (bookworm):
 #   user-mode-linux  /usr/bin/linux.uml, a real Linux kernel (with vcan modules) run as a
 #                    process, for the vcan tests on hosts whose kernel has no SocketCAN
-#                    (see tests/support/vcan_harness.py and /work/shared/VCAN.md)
+#                    (see tests/support/vcan_harness.py and /work/shared/VCAN.md); where it
+#                    cannot boot (a CPU with AMX) .ci/install-uml.sh unpacks a newer one
 #   kmod             insmod, used inside the User-Mode Linux guest
 #   can-utils        candump, cansend, cangen, canplayer
 #   iproute2         ip link add/set/del
@@ -60,4 +61,6 @@ for tool in insmod ip candump cansend systemd-analyze mmdebstrap; do
     command -v "$tool" >/dev/null \
         || { echo "install-system.sh: $tool missing" >&2; exit 1; }
 done
+# A UML kernel that boots here (Debian 12's cannot on a CPU with AMX): .ci/install-uml.sh
+"${SUDO[@]}" bash "$(dirname "$0")/install-uml.sh"
 echo "install-system.sh: ok (User-Mode Linux ${uml_version})"

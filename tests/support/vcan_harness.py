@@ -49,8 +49,12 @@ __all__ = [
     "vcan_unavailable_reason",
 ]
 
-UML_KERNEL = "/usr/bin/linux.uml"
-UML_MODULES_ROOT = Path("/usr/lib/uml/modules")
+#: Where `.ci/install-uml.sh` unpacks a newer User-Mode Linux on a host whose CPU Debian 12's
+#: kernel cannot run a process on (Intel AMX); absent elsewhere.
+UML_PREFIX = Path(os.environ.get("UML_PREFIX", "/opt/motor-monitor-uml"))
+_UML_ROOT = UML_PREFIX if os.access(UML_PREFIX / "usr/bin/linux.uml", os.X_OK) else Path("/")
+UML_KERNEL = str(_UML_ROOT / "usr/bin/linux.uml")
+UML_MODULES_ROOT = _UML_ROOT / "usr/lib/uml/modules"
 #: Load order matters: can-raw, can-bcm and can-dev need can.ko; vcan needs can-dev.
 UML_MODULES = (
     "net/can/can.ko",
