@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 import uuid
+from collections.abc import Iterator
 
 import can
 import pytest
@@ -24,61 +25,61 @@ def _numbers(msgs: list[can.Message]) -> list[int]:
     return [int.from_bytes(m.data, "little") for m in msgs]
 
 
-def test_frames_received_while_loading_are_handed_over_in_order() -> None:
-    channel = f"early-{uuid.uuid4().hex}"
-    live, early = open_early("virtual", channel, None, None)
+@pytest.fixture
+def channel() -> Iterator[tuple[str, can.BusABC]]:
+    """A virtual channel of its own and a sender on it."""
+    name = f"early-{uuid.uuid4().hex}"
+    sender = can.Bus(interface="virtual", channel=name)
+    yield name, sender
+    sender.shutdown()
+
+
+def _sent_while_loading(channel: tuple[str, can.BusABC], n: int
+                        ) -> tuple[LiveBus, EarlyReceiver]:
+    """A bus opened early on `channel`, then `n` numbered frames sent on it."""
+    live, early = open_early("virtual", channel[0], None, None)
     assert live is not None and early is not None
-    sender = can.Bus(interface="virtual", channel=channel)
+    for msg in _frames(n):
+        channel[1].send(msg)
+    time.sleep(0.3)  # the thread takes them off the bus meanwhile
+    return live, early
+
+
+def test_frames_received_while_loading_are_handed_over_in_order(
+        channel: tuple[str, can.BusABC]) -> None:
+    live, early = _sent_while_loading(channel, 3000)
     try:
-        for msg in _frames(3000):
-            sender.send(msg)
-        time.sleep(0.3)  # the thread takes them off the bus meanwhile
         frames, failure = early.handover()
         assert failure is None
         assert _numbers(frames) == list(range(3000))
         assert early.handover() == ([], None)  # once
         # the daemon's loop goes on reading the same bus: nothing is taken after handover
-        sender.send(_frames(1)[0])
+        channel[1].send(_frames(1)[0])
         assert live.bus is not None and live.bus.recv(timeout=1.0) is not None
     finally:
-        sender.shutdown()
         live.drop()
 
 
-def test_a_failed_receive_ends_it_with_the_frames_before() -> None:
-    channel = f"early-{uuid.uuid4().hex}"
-    live = LiveBus("virtual", channel, None)
-    sender = can.Bus(interface="virtual", channel=channel)
-    try:
-        for msg in _frames(10):
-            sender.send(msg)
-        early = EarlyReceiver(live)
-        time.sleep(0.2)
-        assert live.bus is not None
-        live.bus.shutdown()  # the interface goes away under the receiver
-        time.sleep(0.2)  # its next receive fails
-        frames, failure = early.handover()
-        assert _numbers(frames) == list(range(10))
-        assert isinstance(failure, can.CanError | OSError)
-    finally:
-        sender.shutdown()
+def test_a_failed_receive_ends_it_with_the_frames_before(
+        channel: tuple[str, can.BusABC]) -> None:
+    live, early = _sent_while_loading(channel, 10)
+    assert live.bus is not None
+    live.bus.shutdown()  # the interface goes away under the receiver
+    time.sleep(0.2)  # its next receive fails
+    frames, failure = early.handover()
+    assert _numbers(frames) == list(range(10))
+    assert isinstance(failure, can.CanError | OSError)
 
 
-def test_it_keeps_at_most_its_limit(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_it_keeps_at_most_its_limit(monkeypatch: pytest.MonkeyPatch,
+                                    channel: tuple[str, can.BusABC]) -> None:
     monkeypatch.setattr(livebus, "MAX_EARLY_FRAMES", 100)
-    channel = f"early-{uuid.uuid4().hex}"
-    live, early = open_early("virtual", channel, None, None)
-    assert live is not None and early is not None
-    sender = can.Bus(interface="virtual", channel=channel)
+    live, early = _sent_while_loading(channel, 250)
     try:
-        for msg in _frames(250):
-            sender.send(msg)
-        time.sleep(0.3)
         frames, _ = early.handover()
         assert _numbers(frames) == list(range(100))  # the first, not a random hundred
         assert live.bus is not None and live.bus.recv(timeout=1.0) is not None  # left queued
     finally:
-        sender.shutdown()
         live.drop()
 
 
