@@ -10,7 +10,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, Final, TypedDict
 
 import numpy as np
 import rerun as rr
@@ -36,7 +36,7 @@ from monitor.sinks.blueprint import (
 from monitor.sinks.outlet import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet
 from monitor.sinks.runs import EXACT_LINE, RUNS
 
-__all__ = ["DEFAULT_FLUSH_INTERVAL_S", "TIMELINE", "RecordingSink"]
+__all__ = ["DEFAULT_FLUSH_INTERVAL_S", "TIMELINE", "RecordingOptions", "RecordingSink"]
 
 _log = logging.getLogger(__name__)
 
@@ -60,6 +60,23 @@ _LEVELS: Final[Mapping[str, str]] = {
     "DEBUG": "DEBUG",
     "TRACE": "TRACE",
 }
+
+
+class RecordingOptions(TypedDict, total=False):
+    """The settings of a recording: `RecordingSink`'s keyword arguments other than where it
+    goes (``rrd_path``, ``connect_url``, ``write_footer``), whose defaults are there. A sink
+    that writes one recording into several `RecordingSink` (`RotatingRerunSink`) takes them
+    as these and passes them on to each, so they are declared here and there only, and mypy
+    holds the two together."""
+
+    application_id: str
+    recording_id: str | None
+    nodes: Sequence[int]
+    f1: float
+    f2: float
+    batch_size: int
+    flush_interval_s: float
+    signals: PlantSignals | None
 
 
 class RecordingSink(RecordingOutlet):

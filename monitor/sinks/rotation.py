@@ -9,18 +9,16 @@ import glob
 import logging
 import time
 import uuid
-from collections.abc import Sequence
 from contextlib import suppress
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, Final, Unpack
 
 import rerun as rr
 
 from monitor.files import FileSeries
-from monitor.pipeline.events import PlantSignals
 from monitor.sinks.compact import Compactor, sweep
 from monitor.sinks.outlet import RecordingOutlet
-from monitor.sinks.recording import DEFAULT_FLUSH_INTERVAL_S, RecordingSink
+from monitor.sinks.recording import RecordingOptions, RecordingSink
 
 __all__ = ["RerunSink", "RotatingRerunSink", "recording_parts"]
 
@@ -157,7 +155,9 @@ class RotatingRerunSink(RecordingOutlet):
     ``run --raw-dir``), a longer interval writes larger chunks (a few times smaller files
     before compaction).
 
-    ``signals`` names the inputs and outputs, as `RerunSink`'s.
+    The recording's settings (``nodes``, ``f1``/``f2``, ``batch_size``, ``flush_interval_s``,
+    ``signals``, ...) are `RecordingOptions`, passed on to every file's `RecordingSink` and to
+    the live stream's, with their defaults there.
     """
 
     def __init__(
@@ -170,16 +170,9 @@ class RotatingRerunSink(RecordingOutlet):
         max_total_bytes: int | None = None,
         prefix: str = "monitor",
         connect_url: str | None = None,
-        application_id: str = "motor-monitor",
-        recording_id: str | None = None,
-        nodes: Sequence[int] = (0,),
-        f1: float = 0.15,
-        f2: float = 0.85,
-        batch_size: int = 2048,
-        flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
         compactor: Compactor | None = None,
         compact_wait_s: float = 20.0,
-        signals: PlantSignals | None = None,
+        **recording: Unpack[RecordingOptions],
     ) -> None:
         if max_bytes is not None and max_bytes < 1:
             raise ValueError("max_bytes must be >= 1 (or None)")
@@ -191,10 +184,10 @@ class RotatingRerunSink(RecordingOutlet):
         self.keep = keep
         self.max_total_bytes = max_total_bytes
         self.prefix = prefix
+        recording_id = recording.get("recording_id")
         self.recording_id = recording_id if recording_id is not None else uuid.uuid4().hex
         self.rotations = 0
         """Files closed by rotation so far."""
-        self._flush_interval_s = float(flush_interval_s)
         self._closed = False
         self._last_flush = time.monotonic()
         self._retry_at = 0.0
@@ -207,12 +200,9 @@ class RotatingRerunSink(RecordingOutlet):
                                   max_total_bytes=max_total_bytes, max_bytes=max_bytes,
                                   label="rerun sink")
         path = self._series.next_path()
-        common: dict[str, Any] = {
-            "application_id": application_id, "recording_id": self.recording_id,
-            "nodes": nodes, "f1": f1, "f2": f2, "batch_size": batch_size,
-            "flush_interval_s": flush_interval_s, "signals": signals,
-        }
+        common: RecordingOptions = {**recording, "recording_id": self.recording_id}
         self._file = RecordingSink(rrd_path=path, **common)
+        self._flush_interval_s = self._file.flush_interval_s
         self._path = path
         self._opened = time.monotonic()
         # RERUN=off in the environment: no file is written, nothing to rotate
