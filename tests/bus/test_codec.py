@@ -30,7 +30,7 @@ from monitor.bus.codec import (
     load_database,
 )
 from monitor.bus.counters import CounterCheck, CounterOutcome, CounterTracker
-from tests.support.dbc import REPO_DBC, edited_dbc
+from tests.support.dbc import REPO_DBC, decode_frame, edited_dbc
 
 E2E_KINDS: tuple[Kind, ...] = ("current", "voltage", "diagnosis")
 
@@ -38,10 +38,6 @@ E2E_KINDS: tuple[Kind, ...] = ("current", "voltage", "diagnosis")
 @pytest.fixture(scope="module")
 def mdb() -> MotorDatabase:
     return load_database()
-
-
-def _decode(mdb: MotorDatabase, fid: int, data: bytes, ts: float = 0.0) -> Decoded | Rejected:
-    return mdb.decode(fid, data, False, False, False, ts)
 
 
 def _valid(mdb: MotorDatabase, kind: Kind, node: int, counter: int = 3) -> bytes:
@@ -192,17 +188,17 @@ def test_frame_ids_and_data_ids(mdb: MotorDatabase) -> None:
 @pytest.mark.parametrize("counter", range(16))
 def test_roundtrip_all_kinds(mdb: MotorDatabase, node: int, counter: int) -> None:
     ts = 1700000000.25
-    d = _decode(mdb, 0x110 + node, mdb.encode_current(node, -123.45, counter), ts)
+    d = decode_frame(mdb, 0x110 + node, mdb.encode_current(node, -123.45, counter), ts)
     assert isinstance(d, Decoded)
     assert (d.kind, d.node, d.counter, d.timestamp) == ("current", node, counter, ts)
     assert d.value == pytest.approx(-123.45)
 
-    d = _decode(mdb, 0x120 + node, mdb.encode_voltage(node, 399.99, counter), ts)
+    d = decode_frame(mdb, 0x120 + node, mdb.encode_voltage(node, 399.99, counter), ts)
     assert isinstance(d, Decoded)
     assert (d.kind, d.node, d.counter) == ("voltage", node, counter)
     assert d.value == pytest.approx(399.99)
 
-    d = _decode(mdb, 0x7E0 + node, mdb.encode_truth(node, 0.1234, 250.0, -2999.5), ts)
+    d = decode_frame(mdb, 0x7E0 + node, mdb.encode_truth(node, 0.1234, 250.0, -2999.5), ts)
     assert isinstance(d, Decoded)
     assert (d.kind, d.node, d.counter) == ("truth", node, None)
     assert d.value == pytest.approx(0.1234)
@@ -210,7 +206,7 @@ def test_roundtrip_all_kinds(mdb: MotorDatabase, node: int, counter: int) -> Non
     assert d.raw["TrueSpeed"] == pytest.approx(-2999.5)
 
     state = HEALTH_STATES[counter % 4]
-    d = _decode(mdb, 0x180 + node, mdb.encode_diagnosis(node, state, -0.012, -600.5, 255,
+    d = decode_frame(mdb, 0x180 + node, mdb.encode_diagnosis(node, state, -0.012, -600.5, 255,
                                                         counter), ts)
     assert isinstance(d, Decoded)
     assert (d.kind, d.node, d.counter) == ("diagnosis", node, counter)
@@ -224,7 +220,7 @@ def test_counter_wraparound_sequence(mdb: MotorDatabase) -> None:
     tracker = CounterTracker()
     checks: list[CounterCheck] = []
     for i in range(40):  # 2.5 laps: 15 -> 0 must be an ordinary step
-        d = _decode(mdb, 0x115, mdb.encode_current(5, float(i), i % 16))
+        d = decode_frame(mdb, 0x115, mdb.encode_current(5, float(i), i % 16))
         assert isinstance(d, Decoded) and d.counter == i % 16
         check = tracker.observe(d)
         assert check is not None and check.outcome is CounterOutcome.OK
@@ -238,7 +234,7 @@ def test_health_state_by_index_and_name(mdb: MotorDatabase) -> None:
 
 
 def test_decoded_is_frozen(mdb: MotorDatabase) -> None:
-    d = _decode(mdb, 0x110, mdb.encode_current(0, 1.0, 0))
+    d = decode_frame(mdb, 0x110, mdb.encode_current(0, 1.0, 0))
     assert isinstance(d, Decoded)
     with pytest.raises(dataclasses.FrozenInstanceError):
         d.value = 2.0  # type: ignore[misc]
@@ -276,7 +272,7 @@ def test_every_single_bit_flip_is_bad_crc(mdb: MotorDatabase, kind: Kind) -> Non
     for bit in range(64):
         flipped = bytearray(payload)
         flipped[bit // 8] ^= 1 << (bit % 8)
-        r = _decode(mdb, frame_id(kind, 4), bytes(flipped))
+        r = decode_frame(mdb, frame_id(kind, 4), bytes(flipped))
         assert isinstance(r, Rejected), bit
         assert r.reason is RejectReason.BAD_CRC, bit
         assert (r.kind, r.node) == (kind, 4)
@@ -286,7 +282,7 @@ def test_masquerade_is_bad_crc(mdb: MotorDatabase) -> None:
     for counter in range(16):
         payload = mdb.encode_current(1, 10.0, counter)
         for fid in (0x112, 0x121, 0x181):  # another node, another kind
-            r = _decode(mdb, fid, payload)
+            r = decode_frame(mdb, fid, payload)
             assert isinstance(r, Rejected) and r.reason is RejectReason.BAD_CRC
 
 
@@ -301,23 +297,23 @@ def test_every_reject_reason_has_a_concrete_frame(mdb: MotorDatabase) -> None:
     assert protected is not None
     keyed = mdb.with_secoc_key(bytes(range(16)))
     sender = mdb.with_secoc_key(bytes(range(16)))
-    unsynced = _decode(keyed, 0x113, good)  # nothing to verify against before a sync
-    assert isinstance(_decode(keyed, 0x1F3, sender.encode_sync(3, "current")), Decoded)
+    unsynced = decode_frame(keyed, 0x113, good)  # nothing to verify against before a sync
+    assert isinstance(decode_frame(keyed, 0x1F3, sender.encode_sync(3, "current")), Decoded)
     signed = sender.encode_current(3, 1.0, 0)
-    assert isinstance(_decode(keyed, 0x113, signed), Decoded)
+    assert isinstance(decode_frame(keyed, 0x113, signed), Decoded)
     cases: dict[RejectReason, Decoded | Rejected] = {
-        RejectReason.UNKNOWN_ID: _decode(mdb, 0x100, good),
-        RejectReason.WRONG_LENGTH: _decode(mdb, 0x113, good[:7]),
-        RejectReason.BAD_CRC: _decode(mdb, 0x113, bytes([good[0] ^ 0xFF]) + good[1:]),
-        RejectReason.OUT_OF_RANGE: _decode(
+        RejectReason.UNKNOWN_ID: decode_frame(mdb, 0x100, good),
+        RejectReason.WRONG_LENGTH: decode_frame(mdb, 0x113, good[:7]),
+        RejectReason.BAD_CRC: decode_frame(mdb, 0x113, bytes([good[0] ^ 0xFF]) + good[1:]),
+        RejectReason.OUT_OF_RANGE: decode_frame(
             mdb, 0x113, _raw_frame(mdb, "current", 3,
                                    {"CRC": 0, "Counter": 1, "ArmatureCurrent": 30001})),
-        RejectReason.MALFORMED: _decode(mdb, 0x113, bytes(protected)),
+        RejectReason.MALFORMED: decode_frame(mdb, 0x113, bytes(protected)),
         RejectReason.REMOTE_FRAME: mdb.decode(0x113, b"", False, True, False, 0.0),
         RejectReason.ERROR_FRAME: mdb.decode(0x20000004, bytes(8), True, False, True, 0.0),
         RejectReason.EXTENDED_ID: mdb.decode(0x113, good, True, False, False, 0.0),
-        RejectReason.BAD_MAC: _decode(keyed, 0x113, good),  # unsigned frame, keyed monitor
-        RejectReason.STALE_FRESHNESS: _decode(keyed, 0x113, signed),  # replayed
+        RejectReason.BAD_MAC: decode_frame(keyed, 0x113, good),  # unsigned frame, keyed monitor
+        RejectReason.STALE_FRESHNESS: decode_frame(keyed, 0x113, signed),  # replayed
         RejectReason.UNSYNCED: unsynced,
         RejectReason.FD_FRAME: mdb.decode(0x113, good, False, False, False, 0.0, True),
     }
@@ -359,14 +355,14 @@ def test_reject_reason_values() -> None:
 def test_out_of_range_per_signal(
     mdb: MotorDatabase, kind: Kind, raw: dict[str, int], signal: str
 ) -> None:
-    r = _decode(mdb, frame_id(kind, 9), _raw_frame(mdb, kind, 9, raw))
+    r = decode_frame(mdb, frame_id(kind, 9), _raw_frame(mdb, kind, 9, raw))
     assert isinstance(r, Rejected)
     assert r.reason is RejectReason.OUT_OF_RANGE
     assert signal in r.detail
 
 
 def test_wrong_length_longer_frame(mdb: MotorDatabase) -> None:
-    r = _decode(mdb, 0x7E2, _valid(mdb, "truth", 2) + b"\0")
+    r = decode_frame(mdb, 0x7E2, _valid(mdb, "truth", 2) + b"\0")
     assert isinstance(r, Rejected) and r.reason is RejectReason.WRONG_LENGTH
 
 
@@ -436,7 +432,7 @@ def test_decode_never_raises(
                                                                              max_size=8))
 def test_random_payload_on_known_ids(mdb: MotorDatabase, kind: Kind, node: int,
                                      data: bytes) -> None:
-    result = _decode(mdb, frame_id(kind, node), data)
+    result = decode_frame(mdb, frame_id(kind, node), data)
     if isinstance(result, Decoded):
         lo_hi = {s.name: (s.minimum, s.maximum) for s in mdb.message(kind, node).signals}
         for name, value in result.raw.items():
@@ -466,7 +462,7 @@ def test_roundtrip_property(
     speed: float, gamma_hat: float, fault: float, state: str, rules: int,
 ) -> None:
     def back(fid: int, data: bytes) -> Decoded:
-        d = _decode(mdb, fid, data)
+        d = decode_frame(mdb, fid, data)
         assert isinstance(d, Decoded), d
         return d
 
@@ -518,7 +514,7 @@ def test_counter_tracker_jump_by_three_and_a_fresh_stream() -> None:
 
 
 def test_counter_tracker_ignores_truth(mdb: MotorDatabase) -> None:
-    d = _decode(mdb, 0x7E0, mdb.encode_truth(0, 0.0, 0.0, 0.0))
+    d = decode_frame(mdb, 0x7E0, mdb.encode_truth(0, 0.0, 0.0, 0.0))
     assert isinstance(d, Decoded)
     assert CounterTracker().observe(d) is None
 

@@ -48,7 +48,7 @@ from monitor.bus.secoc import (
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from sim_ecu.ecu import ECUError, VirtualECU
 from sim_ecu.scenario import load_scenario
-from tests.support.dbc import REPO_DBC, edited_dbc
+from tests.support.dbc import REPO_DBC, decode_frame, edited_dbc
 from tests.support.pipeline import feed_all
 
 KEY = bytes.fromhex("000102030405060708090a0b0c0d0e0f")
@@ -79,10 +79,6 @@ AES256_VECTORS = [
 ]
 
 
-def _decode(db: MotorDatabase, fid: int, data: bytes, ts: float = 0.0) -> Decoded | Rejected:
-    return db.decode(fid, data, False, False, False, ts)
-
-
 def _encode(db: MotorDatabase, kind: Kind, node: int, value: float, counter: int) -> bytes:
     if kind == "current":
         return db.encode_current(node, value, counter)
@@ -97,7 +93,7 @@ def _sync_all(tx: MotorDatabase, rx: MotorDatabase) -> None:
     """Every stream of `rx` synchronised to `tx` by real sync frames (as at an ECU's start)."""
     for node in range(N_NODES):
         for kind in SECOC_KINDS:
-            d = _decode(rx, frame_id("sync", node), tx.encode_sync(node, kind))
+            d = decode_frame(rx, frame_id("sync", node), tx.encode_sync(node, kind))
             assert isinstance(d, Decoded) and d.kind == "sync", d
 
 
@@ -258,7 +254,7 @@ def test_sign_verify_every_node(pair: tuple[MotorDatabase, MotorDatabase], kind:
     for node in range(N_NODES):
         for k in range(40):  # 40 frames: the 4-bit and 8-bit sent values wrap or not
             frame = _encode(tx, kind, node, 10.0 + k, k % 16)
-            d = _decode(rx, frame_id(kind, node), frame, T0 + k)
+            d = decode_frame(rx, frame_id(kind, node), frame, T0 + k)
             assert isinstance(d, Decoded), (node, k, d)
             assert (d.kind, d.node, d.counter) == (kind, node, k % 16)
             assert d.value == pytest.approx(10.0 + k)
@@ -273,15 +269,15 @@ def test_streams_and_keys_are_separate(pair: tuple[MotorDatabase, MotorDatabase]
     sync = tx.encode_sync(2, "current")
     # another key: bad MAC (not even the sync verifies: that stream stays unsynced)
     other = load_database(secoc_key=OTHER_KEY)
-    assert _reason(_decode(other, 0x1F2, sync)) is RejectReason.BAD_MAC
-    assert _reason(_decode(other, 0x112, frame)) is RejectReason.UNSYNCED
-    assert _reason(_decode(_synced(other), 0x112, frame)) is RejectReason.BAD_MAC
+    assert _reason(decode_frame(other, 0x1F2, sync)) is RejectReason.BAD_MAC
+    assert _reason(decode_frame(other, 0x112, frame)) is RejectReason.UNSYNCED
+    assert _reason(decode_frame(_synced(other), 0x112, frame)) is RejectReason.BAD_MAC
     # the same key, AES-256 length: another key too
-    assert _reason(_decode(_synced(load_database(secoc_key=KEY + KEY)), 0x112, frame)) is \
+    assert _reason(decode_frame(_synced(load_database(secoc_key=KEY + KEY)), 0x112, frame)) is \
         RejectReason.BAD_MAC
     # a frame of node 2 is not valid for node 3 (data ID in the MAC; CRC also catches it)
-    assert _reason(_decode(rx, 0x113, frame)) is RejectReason.BAD_CRC
-    assert isinstance(_decode(rx, 0x112, frame), Decoded)
+    assert _reason(decode_frame(rx, 0x113, frame)) is RejectReason.BAD_CRC
+    assert isinstance(decode_frame(rx, 0x112, frame), Decoded)
     assert rx.secoc is not None and rx.secoc.rx_freshness(("current", 3)) == 0
 
 
@@ -291,7 +287,7 @@ def test_keyless_monitor_decodes_signed_frames_and_unsigned_are_the_old_frames()
     assert not plain.secoc_enabled and plain.secoc is None
     frame = tx.encode_voltage(1, 100.0, 3)
     for _ in range(3):  # no key, no freshness state: replays are left to the counters
-        d = _decode(plain, 0x121, frame)
+        d = decode_frame(plain, 0x121, frame)
         assert isinstance(d, Decoded) and d.value == 100.0
     unsigned = plain.encode_current(1, -7.5, 2)
     assert unsigned[4:] == bytes(4)
@@ -302,16 +298,16 @@ def test_keyed_monitor_rejects_unsigned_frames() -> None:
     rx = load_database(secoc_key=KEY)
     plain = load_database()
     for kind in SECOC_KINDS:  # not synchronised yet: nothing to verify against
-        r = _decode(rx, frame_id(kind, 0), _encode(plain, kind, 0, 1.0, 0))
+        r = decode_frame(rx, frame_id(kind, 0), _encode(plain, kind, 0, 1.0, 0))
         assert isinstance(r, Rejected) and r.reason is RejectReason.UNSYNCED
     _synced(rx)
     for kind in SECOC_KINDS:
-        r = _decode(rx, frame_id(kind, 0), _encode(plain, kind, 0, 1.0, 0))
+        r = decode_frame(rx, frame_id(kind, 0), _encode(plain, kind, 0, 1.0, 0))
         assert isinstance(r, Rejected) and r.reason is RejectReason.BAD_MAC
         assert (r.kind, r.node) == (kind, 0) and "\n" not in r.detail
     # frames SecOC does not cover still decode
-    assert isinstance(_decode(rx, 0x7E0, plain.encode_truth(0, 0.5, 1.0, 2.0)), Decoded)
-    assert isinstance(_decode(rx, 0x180, plain.encode_diagnosis(0, 1, 0.5, 10.0, 3, 0)),
+    assert isinstance(decode_frame(rx, 0x7E0, plain.encode_truth(0, 0.5, 1.0, 2.0)), Decoded)
+    assert isinstance(decode_frame(rx, 0x180, plain.encode_diagnosis(0, 1, 0.5, 10.0, 3, 0)),
                       Decoded)
 
 
@@ -323,7 +319,7 @@ def test_forged_frame_is_bad_mac(pair: tuple[MotorDatabase, MotorDatabase], kind
     tx, rx = pair
     fid = frame_id(kind, 6)
     for k in range(3):
-        assert isinstance(_decode(rx, fid, _encode(tx, kind, 6, 20.0, k)), Decoded)
+        assert isinstance(decode_frame(rx, fid, _encode(tx, kind, 6, 20.0, k)), Decoded)
     genuine = _encode(tx, kind, 6, 20.0, 3)  # the attacker sees it and races it
     rng = os.urandom
     forged = [
@@ -335,11 +331,11 @@ def test_forged_frame_is_bad_mac(pair: tuple[MotorDatabase, MotorDatabase], kind
     for frame in forged:
         if frame[5:8] == genuine[5:8] and frame[2:5] == genuine[2:5]:
             continue  # 2^-24: the random MAC happened to be right
-        r = _decode(rx, fid, frame)
+        r = decode_frame(rx, fid, frame)
         assert isinstance(r, Rejected), frame.hex()
         assert r.reason is RejectReason.BAD_MAC, r
     assert rx.secoc is not None and rx.secoc.rx_freshness((kind, 6)) == 3
-    d = _decode(rx, fid, genuine)  # the forgeries consumed nothing
+    d = decode_frame(rx, fid, genuine)  # the forgeries consumed nothing
     assert isinstance(d, Decoded) and d.value == 20.0
 
 
@@ -350,19 +346,19 @@ def test_replayed_frame_is_stale_freshness(pair: tuple[MotorDatabase, MotorDatab
     fid = frame_id(kind, 11)
     sent = [_encode(tx, kind, 11, float(k), k % 16) for k in range(80)]
     for frame in sent[:70]:
-        assert isinstance(_decode(rx, fid, frame), Decoded)
+        assert isinstance(decode_frame(rx, fid, frame), Decoded)
     # the last one again, and older ones within the window: authentic but not fresh
     for old in (69, 68, 60, 50, 7):
-        r = _decode(rx, fid, sent[old])
+        r = decode_frame(rx, fid, sent[old])
         assert isinstance(r, Rejected), old
         assert r.reason is RejectReason.STALE_FRESHNESS, (old, r)
         assert "replay" in r.detail
     # a replay from too long ago cannot even be placed: it does not verify at all
-    r = _decode(rx, fid, sent[2])
+    r = decode_frame(rx, fid, sent[2])
     assert isinstance(r, Rejected) and r.reason is RejectReason.BAD_MAC
     # the stream goes on
     for frame in sent[70:]:
-        assert isinstance(_decode(rx, fid, frame), Decoded)
+        assert isinstance(decode_frame(rx, fid, frame), Decoded)
 
 
 @pytest.mark.parametrize("kind", SECOC_KINDS)
@@ -370,12 +366,12 @@ def test_gaps_within_the_window_are_accepted(pair: tuple[MotorDatabase, MotorDat
                                              kind: Kind) -> None:
     tx, rx = pair
     fid = frame_id(kind, 4)
-    assert isinstance(_decode(rx, fid, _encode(tx, kind, 4, 1.0, 0)), Decoded)
+    assert isinstance(decode_frame(rx, fid, _encode(tx, kind, 4, 1.0, 0)), Decoded)
     for gap in (1, 15, 16, 17, 31, 32, 33, DEFAULT_WINDOW - 1):  # frames lost in between
         for _ in range(gap):
             _encode(tx, kind, 4, 1.0, 0)
         before = rx.secoc.rx_freshness((kind, 4))  # type: ignore[union-attr]
-        d = _decode(rx, fid, _encode(tx, kind, 4, 2.0, 0))
+        d = decode_frame(rx, fid, _encode(tx, kind, 4, 2.0, 0))
         assert isinstance(d, Decoded), (gap, d)
         assert rx.secoc.rx_freshness((kind, 4)) == before + gap + 1  # type: ignore[union-attr]
 
@@ -385,11 +381,11 @@ def test_freshness_beyond_the_window_is_rejected(pair: tuple[MotorDatabase, Moto
                                                  kind: Kind) -> None:
     tx, rx = pair
     fid = frame_id(kind, 8)
-    assert isinstance(_decode(rx, fid, _encode(tx, kind, 8, 1.0, 0)), Decoded)  # fresh 1
+    assert isinstance(decode_frame(rx, fid, _encode(tx, kind, 8, 1.0, 0)), Decoded)  # fresh 1
     for _ in range(DEFAULT_WINDOW):  # 64 lost: the next one is 65 ahead
         _encode(tx, kind, 8, 1.0, 0)
     frame = _encode(tx, kind, 8, 1.0, 0)
-    r = _decode(rx, fid, frame)
+    r = decode_frame(rx, fid, frame)
     assert isinstance(r, Rejected)
     assert r.reason in (RejectReason.STALE_FRESHNESS, RejectReason.BAD_MAC)
     if kind == "current":  # 8 bits place it exactly: authentic, but too far ahead
@@ -399,12 +395,12 @@ def test_freshness_beyond_the_window_is_rejected(pair: tuple[MotorDatabase, Moto
     assert tx.secoc is not None and rx.secoc is not None
     tx.secoc.set_tx_freshness((kind, 8), 5000)
     far = _encode(tx, kind, 8, 1.0, 0)
-    assert isinstance(_decode(rx, fid, far), Rejected)
+    assert isinstance(decode_frame(rx, fid, far), Rejected)
     assert rx.secoc.rx_freshness((kind, 8)) == 1
     # resynchronised (e.g. from a freshness manager), it is accepted again
     rx.secoc.set_rx_freshness((kind, 8), 5000)
-    assert _reason(_decode(rx, fid, far)) is None
-    assert _reason(_decode(rx, fid, far)) is RejectReason.STALE_FRESHNESS
+    assert _reason(decode_frame(rx, fid, far)) is None
+    assert _reason(decode_frame(rx, fid, far)) is RejectReason.STALE_FRESHNESS
 
 
 @pytest.mark.parametrize("kind", SECOC_KINDS)
@@ -420,7 +416,7 @@ def test_truncated_freshness_wraps(pair: tuple[MotorDatabase, MotorDatabase], ki
     modulus = 256 if kind == "current" else 16
     sent_bits = []
     for k in range(40):  # across at least one 8-bit and two 4-bit wraps
-        d = _decode(rx, fid, _encode(tx, kind, 13, 3.0, k % 16))
+        d = decode_frame(rx, fid, _encode(tx, kind, 13, 3.0, k % 16))
         assert isinstance(d, Decoded), (k, d)
         sent_bits.append(int(d.raw["FreshnessValue"]))
     assert sent_bits == [(start + 1 + k) % modulus for k in range(40)]
@@ -429,7 +425,7 @@ def test_truncated_freshness_wraps(pair: tuple[MotorDatabase, MotorDatabase], ki
     # a gap across the wrap, too
     for _ in range(20):
         _encode(tx, kind, 13, 3.0, 0)
-    assert isinstance(_decode(rx, fid, _encode(tx, kind, 13, 3.0, 0)), Decoded)
+    assert isinstance(decode_frame(rx, fid, _encode(tx, kind, 13, 3.0, 0)), Decoded)
     assert rx.secoc.rx_freshness(stream) == start + 61
 
 
@@ -456,7 +452,7 @@ def test_random_frames_never_verify(kind: Kind, node: int, data: bytes) -> None:
     msg = rx.message(kind, node)
     protected = apply_profile2_crc(bytes(payload), msg)
     assert protected is not None
-    r = _decode(rx, frame_id(kind, node), bytes(protected))
+    r = decode_frame(rx, frame_id(kind, node), bytes(protected))
     assert isinstance(r, Rejected)
     assert r.reason is RejectReason.BAD_MAC
 
@@ -471,7 +467,7 @@ def test_changed_payload_with_any_mac_never_verifies(kind: Kind, node: int, valu
     forged = _forge(tx, kind, node, genuine, mac, value=value)
     if forged[2:5] == genuine[2:5] and mac == genuine[5:8]:
         return  # the genuine frame itself
-    assert _reason(_decode(rx, frame_id(kind, node), forged)) is RejectReason.BAD_MAC
+    assert _reason(decode_frame(rx, frame_id(kind, node), forged)) is RejectReason.BAD_MAC
 
 
 # ----------------------------------------------------------------------------- keys
@@ -632,7 +628,7 @@ def test_virtual_ecu_with_a_key_signs_and_continues_its_counters() -> None:
     assert ecu.db.secoc is not None
     assert ecu.db.secoc.tx_freshness(("current", 3)) == 100
     assert ecu.db.secoc.tx_freshness(("voltage", 3)) == 20
-    assert all(isinstance(_decode(rx, m.arbitration_id, bytes(m.data)), Rejected)
+    assert all(isinstance(decode_frame(rx, m.arbitration_id, bytes(m.data)), Rejected)
                for m in first if m.arbitration_id != 0x7E3)  # replays of the first run
     assert not any(m.arbitration_id == 0x1F3 for m in unsigned)  # no key, no syncs
 
@@ -768,7 +764,7 @@ def test_sync_frame_bytes_by_hand() -> None:
     with pytest.raises(CodecError, match="not 'truth'"):
         tx.encode_sync(9, "truth")
     # without a key a sync frame is a plain sample, ignored by the pipeline
-    d = _decode(load_database(), 0x1F9, frame)
+    d = decode_frame(load_database(), 0x1F9, frame)
     assert isinstance(d, Decoded) and (d.kind, d.node, d.counter) == ("sync", 9, None)
     assert d.value == 0x2345_6789 and d.raw["SyncKind"] == 1
 
@@ -780,22 +776,22 @@ def test_sync_sets_freshness_and_never_moves_it_back() -> None:
     for _ in range(1000):  # the ECU ran before the monitor started
         tx.encode_current(2, 1.0, 0)
     late = tx.encode_current(2, 1.0, 0)
-    r = _decode(rx, 0x112, late)
+    r = decode_frame(rx, 0x112, late)
     assert isinstance(r, Rejected) and r.reason is RejectReason.UNSYNCED
     assert "\n" not in r.detail and not rx.secoc.is_synchronised(stream)
     sync = tx.encode_sync(2, "current")  # freshness 1001
-    assert isinstance(_decode(rx, 0x1F2, sync), Decoded)
+    assert isinstance(decode_frame(rx, 0x1F2, sync), Decoded)
     assert rx.secoc.rx_freshness(stream) == 1001 and rx.secoc.is_synchronised(stream)
-    assert _reason(_decode(rx, 0x112, late)) is RejectReason.STALE_FRESHNESS  # 1001 itself
-    assert _reason(_decode(rx, 0x112, tx.encode_current(2, 2.0, 1))) is None  # 1002
-    assert _reason(_decode(rx, 0x1F2, sync)) is RejectReason.STALE_FRESHNESS  # replayed sync
+    assert _reason(decode_frame(rx, 0x112, late)) is RejectReason.STALE_FRESHNESS  # 1001 itself
+    assert _reason(decode_frame(rx, 0x112, tx.encode_current(2, 2.0, 1))) is None  # 1002
+    assert _reason(decode_frame(rx, 0x1F2, sync)) is RejectReason.STALE_FRESHNESS  # replayed sync
     assert rx.secoc.rx_freshness(stream) == 1002
     now = tx.encode_sync(2, "current")
-    assert _reason(_decode(rx, 0x1F2, now)) is None  # equal: accepted, changes nothing
-    assert _reason(_decode(rx, 0x1F2, now)) is None
+    assert _reason(decode_frame(rx, 0x1F2, now)) is None  # equal: accepted, changes nothing
+    assert _reason(decode_frame(rx, 0x1F2, now)) is None
     assert rx.secoc.rx_freshness(stream) == 1002
     # the other stream of the node is still unsynchronised
-    assert _reason(_decode(rx, 0x122, tx.encode_voltage(2, 1.0, 0))) is RejectReason.UNSYNCED
+    assert _reason(decode_frame(rx, 0x122, tx.encode_voltage(2, 1.0, 0))) is RejectReason.UNSYNCED
 
 
 def test_forged_syncs_are_bad_mac() -> None:
@@ -804,7 +800,7 @@ def test_forged_syncs_are_bad_mac() -> None:
     for _ in range(10):
         tx.encode_current(4, 1.0, 0)
     genuine = tx.encode_sync(4, "current")
-    assert _reason(_decode(rx, 0x1F4, genuine)) is None
+    assert _reason(decode_frame(rx, 0x1F4, genuine)) is None
     msg = rx.message("sync", 4)
 
     def forge(kind: int, fresh: int, mac: bytes) -> bytes:
@@ -821,18 +817,18 @@ def test_forged_syncs_are_bad_mac() -> None:
         genuine[:5] + data_frame[5:8],  # a data frame's MAC
     ]
     for frame in forged:
-        r = _decode(rx, 0x1F4, frame)
+        r = decode_frame(rx, 0x1F4, frame)
         assert isinstance(r, Rejected) and r.reason is RejectReason.BAD_MAC, frame.hex()
         assert (r.kind, r.node) == ("sync", 4) and "\n" not in r.detail
     # a sync of node 4 on node 5's id: the data ID is in the MAC
-    assert _reason(_decode(rx, 0x1F5, genuine)) is RejectReason.BAD_MAC
+    assert _reason(decode_frame(rx, 0x1F5, genuine)) is RejectReason.BAD_MAC
     assert rx.secoc.rx_freshness(("current", 4)) == 10  # nothing moved
     assert rx.secoc.rx_freshness(("voltage", 4)) == 0
     assert not rx.secoc.is_synchronised(("voltage", 4))
     # a SyncKind no stream has: out of range, nothing verified; a reserved bit: malformed
-    assert _reason(_decode(rx, 0x1F4, bytes([2]) + genuine[1:])) is RejectReason.OUT_OF_RANGE
-    assert _reason(_decode(rx, 0x1F4, bytes([0x10]) + genuine[1:])) is RejectReason.MALFORMED
-    assert _reason(_decode(rx, 0x114, data_frame)) is None  # the stream goes on
+    assert _reason(decode_frame(rx, 0x1F4, bytes([2]) + genuine[1:])) is RejectReason.OUT_OF_RANGE
+    assert _reason(decode_frame(rx, 0x1F4, bytes([0x10]) + genuine[1:])) is RejectReason.MALFORMED
+    assert _reason(decode_frame(rx, 0x114, data_frame)) is None  # the stream goes on
 
 
 @pytest.mark.parametrize("kind", SECOC_KINDS)
@@ -841,17 +837,17 @@ def test_sync_low_bits_wrap(kind: Kind) -> None:
     assert tx.secoc is not None and rx.secoc is not None
     stream, fid, sid = (kind, 6), frame_id(kind, 6), frame_id("sync", 6)
     tx.secoc.set_tx_freshness(stream, 2**32 - 3)
-    assert _reason(_decode(rx, sid, tx.encode_sync(6, kind))) is None  # fresh: high part 0
+    assert _reason(decode_frame(rx, sid, tx.encode_sync(6, kind))) is None  # fresh: high part 0
     assert rx.secoc.rx_freshness(stream) == 2**32 - 3
     old = tx.encode_sync(6, kind)
     for _ in range(500):  # low 32 bits wrap to 497
         _encode(tx, kind, 6, 1.0, 0)
     wrapped = tx.encode_sync(6, kind)
     assert int.from_bytes(wrapped[1:5], "little") == 497
-    assert _reason(_decode(rx, sid, wrapped)) is None  # 497 < low part: one more on top
+    assert _reason(decode_frame(rx, sid, wrapped)) is None  # 497 < low part: one more on top
     assert rx.secoc.rx_freshness(stream) == 2**32 + 497
-    assert isinstance(_decode(rx, fid, _encode(tx, kind, 6, 2.0, 0)), Decoded)
-    r = _decode(rx, sid, old)  # from before the wrap: resolves into the past, a replay
+    assert isinstance(decode_frame(rx, fid, _encode(tx, kind, 6, 2.0, 0)), Decoded)
+    r = decode_frame(rx, sid, old)  # from before the wrap: resolves into the past, a replay
     assert isinstance(r, Rejected) and r.reason is RejectReason.STALE_FRESHNESS
     assert str(2**32 - 3) in r.detail
 
@@ -1004,9 +1000,9 @@ def test_state_round_trip_and_file_mode(tmp_path: Path) -> None:
     assert tx.secoc is not None and rx.secoc is not None
     _sync_all(tx, rx)
     for k in range(70):
-        _decode(rx, 0x113, tx.encode_current(3, 1.0, k % 16))
+        decode_frame(rx, 0x113, tx.encode_current(3, 1.0, k % 16))
     for k in range(5):
-        _decode(rx, 0x12F, tx.encode_voltage(15, 1.0, k % 16))
+        decode_frame(rx, 0x12F, tx.encode_voltage(15, 1.0, k % 16))
     state = rx.secoc.export_state()
     assert state["rx/current/3"] == 70 and state["rx/voltage/15"] == 5
     assert state["rx/current/0"] == 0 and len(state) == 2 * N_NODES
@@ -1034,9 +1030,9 @@ def test_state_round_trip_and_file_mode(tmp_path: Path) -> None:
     assert sender.secoc.load_state(tmp_path / "tx", tx_margin=1000) == 2
     assert sender.secoc.tx_freshness(("current", 3)) == 1070
     frame = sender.encode_current(3, 1.0, 0)  # 1071: beyond the window...
-    assert _reason(_decode(rx, 0x113, frame)) is RejectReason.BAD_MAC  # (8 bits can't tell)
-    assert _reason(_decode(rx, 0x1F3, sender.encode_sync(3, "current"))) is None  # ...synced
-    assert _reason(_decode(rx, 0x113, sender.encode_current(3, 1.0, 1))) is None
+    assert _reason(decode_frame(rx, 0x113, frame)) is RejectReason.BAD_MAC  # (8 bits can't tell)
+    assert _reason(decode_frame(rx, 0x1F3, sender.encode_sync(3, "current"))) is None  # ...synced
+    assert _reason(decode_frame(rx, 0x113, sender.encode_current(3, 1.0, 1))) is None
 
 
 def test_import_state_only_moves_forward() -> None:
