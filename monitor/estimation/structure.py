@@ -70,6 +70,20 @@ _A, _B, _C, _D = (MODEL.at(f) for f in ("A", "B", "C", "D"))
 
 
 @njit
+def _product_less(out: Array, block: Array, at: int, X: Array, less: Array) -> None:
+    """out = F X - less, with F the out.shape[0] x X.shape[0] matrix stored row by row in
+    block[at:] (a model block's A or C): the signature's two steps W <- A W - B_F u and
+    M = C W - D_F u of `onset_glr`."""
+    inner = X.shape[0]
+    for r in range(out.shape[0]):
+        for a in range(out.shape[1]):
+            acc = -less[r, a]
+            for q in range(inner):
+                acc += block[at + r * inner + q] * X[q, a]
+            out[r, a] = acc
+
+
+@njit
 def onset_glr(
     blocks: Array, bidx: IntArray, ring: Array, first: int, count: int, ring_len: int,
     lay: IntArray, faulty: IntArray, n: int, m: int, p: int, cands: IntArray, g: Array,
@@ -113,18 +127,8 @@ def onset_glr(
             if cands[c] > t:
                 break  # sorted: no later candidate has started yet
             Wc = W[c]
-            for r in range(n):
-                for a in range(f):
-                    acc = -Bu[r, a]
-                    for q in range(n):
-                        acc += mdl[oA + r * n + q] * Wc[q, a]
-                    Wm[r, a] = acc
-            for r in range(p):
-                for a in range(f):
-                    acc = -Du[r, a]
-                    for q in range(n):
-                        acc += mdl[oC + r * n + q] * Wm[q, a]
-                    Mi[r, a] = acc
+            _product_less(Wm, mdl, oA, Wc, Bu)
+            _product_less(Mi, mdl, oC, Wm, Du)
             for r in range(p):
                 for a in range(f):
                     acc = 0.0
