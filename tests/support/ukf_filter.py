@@ -7,9 +7,12 @@ small object instead.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 from numpy.typing import NDArray
 
+from monitor.estimation.layout import UKF_SCRATCH, Table
 from monitor.estimation.ukf import sigma_weights, ukf_predict, ukf_update
 
 Array = NDArray[np.float64]
@@ -17,24 +20,8 @@ Array = NDArray[np.float64]
 __all__ = ["UnscentedKalmanFilter"]
 
 
-class _Work:
-    """Preallocated work arrays for one filter of state size n and p outputs."""
-
-    def __init__(self, n: int, p: int) -> None:
-        self.L = np.zeros((n, n))
-        self.Ls = np.zeros((p, p))
-        self.d = np.zeros(n)
-        self.s = np.zeros(n)
-        self.dy = np.zeros(p)
-        self.Pyy = np.zeros((p, p))
-        self.Pyy_inv = np.zeros((p, p))
-        self.Pxy = np.zeros((n, p))
-        self.K = np.zeros((n, p))
-        self.nu = np.zeros(p)
-        self.IKC = np.zeros((n, n))
-        self.T1 = np.zeros((n, n))
-        self.xp = np.zeros(n)
-        self.Pp = np.zeros((n, n))
+_WORK = Table("UKF", (*UKF_SCRATCH, ("nu", "p")), 0)
+"""The kernels' scratch arrays and the innovation, in one buffer (n states, p outputs)."""
 
 
 class UnscentedKalmanFilter:
@@ -43,8 +30,7 @@ class UnscentedKalmanFilter:
     >>> f = UnscentedKalmanFilter(x0, P0, alpha=1e-4, beta=2.0)
     >>> f.predict(A, b, Q); f.update(C, yoff, R, y)
 
-    `x`, `P` hold the posterior; `x_prior`, `P_prior` the prior; `nu`, `S` the last
-    innovation and its covariance; `repairs` counts clamped Cholesky pivots.
+    `x`, `P` hold the posterior; `repairs` counts clamped Cholesky pivots.
     """
 
     def __init__(self, x0: Array, P0: Array, *, alpha: float = 1e-4, beta: float = 2.0,
@@ -55,28 +41,10 @@ class UnscentedKalmanFilter:
         if self.P.shape != (n, n):
             raise ValueError(f"P0 must be {n}x{n}")
         self.weights = sigma_weights(n, alpha, beta)
-        self._w = _Work(n, outputs)
+        work = np.zeros(_WORK.size(n, 0, outputs))
+        self._w = SimpleNamespace(**{f: _WORK.view(work, f, n, 0, outputs)
+                                     for f in _WORK.names})
         self.repairs = 0
-
-    @property
-    def x_prior(self) -> Array:
-        return self._w.xp
-
-    @property
-    def P_prior(self) -> Array:
-        return self._w.Pp
-
-    @property
-    def nu(self) -> Array:
-        return self._w.nu
-
-    @property
-    def S(self) -> Array:
-        return self._w.Pyy
-
-    @property
-    def K(self) -> Array:
-        return self._w.K
 
     def predict(self, A: Array, b: Array, Q: Array) -> None:
         w = self._w
