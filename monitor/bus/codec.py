@@ -54,7 +54,7 @@ from enum import StrEnum
 from functools import partial
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Final, NamedTuple, cast
+from typing import TYPE_CHECKING, Final, NamedTuple, TypeVar, cast
 
 import cantools.database
 from cantools.autosar.end_to_end import apply_profile2_crc, check_profile2_crc
@@ -111,6 +111,7 @@ __all__ = [
     "frame_id",
     "load_database",
     "load_dbcs",
+    "screen_frame",
 ]
 
 DEFAULT_DBC_NAME: Final = "motor.dbc"
@@ -152,11 +153,12 @@ CHECK_ORDER: Final[tuple[RejectReason, ...]] = (
     RejectReason.OUT_OF_RANGE,
 )
 """The one order of a frame's checks: a frame failing several gets the first failed one's
-reason, from every codec's ``decode`` (flags and ID there, the payload in `check_payload`)
-and from the column decoder (`monitor.columnar.decode.RouteTable`). A payload that is no
-bytes, or that cantools cannot decode, is ``malformed`` where that is found (before the
-frame format, after SecOC); columns meet neither. Every check of the payload needs the
-frame format and length checked first, so they stay ahead of the content checks."""
+reason, from every codec's ``decode`` (the ID there, the flags and the payload in
+`screen_frame`) and from the column decoder (`monitor.columnar.decode.RouteTable`). A
+payload that is no bytes, or that cantools cannot decode, is ``malformed`` where that is
+found (before the frame format, after SecOC); columns meet neither. Every check of the
+payload needs the frame format and length checked first, so they stay ahead of the content
+checks."""
 
 VERDICT_REASON: Final[Mapping[Verdict, RejectReason]] = {  # SecOC's verdicts as outcomes
     Verdict.BAD_MAC: RejectReason.BAD_MAC,
@@ -290,6 +292,31 @@ def check_payload(check: PayloadCheck, arbitration_id: int, data: object, is_fd:
             return Rejected(RejectReason.OUT_OF_RANGE, arbitration_id, timestamp, node, kind,
                             f"{name}={v} not in [{lo}, {hi}]")
     return signals
+
+
+_R = TypeVar("_R")
+
+
+def screen_frame(hit: tuple[PayloadCheck, _R] | None, arbitration_id: int, data: object,
+                 is_remote: bool, is_error: bool, timestamp: float,
+                 is_fd: bool) -> tuple[dict[str, float], _R] | Rejected | None:
+    """Every codec's ``decode`` in `CHECK_ORDER` but for the ID: an error frame (whose "id"
+    carries error class bits, so it is never taken for an unknown ID), a remote frame, then,
+    for the route `hit` the codec looked the ID up to (its `check_payload` check, and what
+    the codec reads the signals by), the payload. None: no route, the codec says why (an
+    extended or unknown ID); else the decoded signals and the route's reading, or why not."""
+    if is_error:
+        return Rejected(RejectReason.ERROR_FRAME, arbitration_id, timestamp)
+    if is_remote:
+        return Rejected(RejectReason.REMOTE_FRAME, arbitration_id, timestamp,
+                        detail="remote frames carry no data")
+    if hit is None:
+        return None
+    check, reading = hit
+    signals = check_payload(check, arbitration_id, data, is_fd, timestamp)
+    if isinstance(signals, Rejected):
+        return signals
+    return signals, reading
 
 
 # ----------------------------------------------------------------------------- database
@@ -525,22 +552,17 @@ class MotorDatabase(SecOCHolder):
         Flags are checked before the id so that an error frame, whose "id" carries error
         class bits, is never misreported as an unknown id.
         """
-        if is_error:
-            return Rejected(RejectReason.ERROR_FRAME, arbitration_id, timestamp)
-        if is_remote:
-            return Rejected(RejectReason.REMOTE_FRAME, arbitration_id, timestamp,
-                            detail="remote frames carry no data")
-        if is_extended:
-            return Rejected(RejectReason.EXTENDED_ID, arbitration_id, timestamp,
-                            detail=f"29-bit id 0x{arbitration_id:08X}")
-        hit = self._checks.get(arbitration_id)
-        if hit is None:
+        found = screen_frame(None if is_extended else self._checks.get(arbitration_id),
+                             arbitration_id, data, is_remote, is_error, timestamp, is_fd)
+        if found is None:
+            if is_extended:
+                return Rejected(RejectReason.EXTENDED_ID, arbitration_id, timestamp,
+                                detail=f"29-bit id 0x{arbitration_id:08X}")
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not in {self.source}")
-        check, reading = hit
-        signals = check_payload(check, arbitration_id, data, is_fd, timestamp)
-        if isinstance(signals, Rejected):
-            return signals
+        if isinstance(found, Rejected):
+            return found
+        signals, reading = found
         kind, node, signal, counter, as_input, as_output, as_truth = reading
         value = float(signals[signal])
         return Decoded(

@@ -48,8 +48,8 @@ from monitor.bus.codec import (
     PayloadCheck,
     Rejected,
     RejectReason,
-    check_payload,
     load_dbcs,
+    screen_frame,
 )
 from monitor.bus.errors import CodecError, SecOCError
 from monitor.bus.route import Limit, Route
@@ -330,22 +330,17 @@ class RigCodec(SecOCHolder):
     def decode(self, arbitration_id: int, data: bytes, is_extended: bool, is_remote: bool,
                is_error: bool, timestamp: float, is_fd: bool = False) -> Decoded | Rejected:
         """Classify one received frame; never raises."""
-        if is_error:
-            return Rejected(RejectReason.ERROR_FRAME, arbitration_id, timestamp)
-        if is_remote:
-            return Rejected(RejectReason.REMOTE_FRAME, arbitration_id, timestamp,
-                            detail="remote frames carry no data")
-        hit = self._checks.get((arbitration_id, is_extended))
-        if hit is None:
+        found = screen_frame(self._checks.get((arbitration_id, is_extended)), arbitration_id,
+                             data, is_remote, is_error, timestamp, is_fd)
+        if found is None:
             if (arbitration_id, not is_extended) in self._by_key:
                 return Rejected(RejectReason.EXTENDED_ID, arbitration_id, timestamp,
                                 detail="the DBC defines this ID with the other ID length")
             return Rejected(RejectReason.UNKNOWN_ID, arbitration_id, timestamp,
                             detail=f"not a rig message in {self.source}")
-        check, route = hit
-        signals = check_payload(check, arbitration_id, data, is_fd, timestamp)
-        if isinstance(signals, Rejected):
-            return signals
+        if isinstance(found, Rejected):
+            return found
+        signals, route = found
         inputs = tuple((i, float(signals[s]) * f) for i, s, f in route.inputs)
         outputs = tuple(float(signals[s]) * f for s, f in route.outputs)
         truth = None if route.truth is None else float(signals[route.truth])
