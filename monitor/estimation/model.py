@@ -56,7 +56,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Literal, NamedTuple, cast
+from typing import Literal, cast
 
 import numpy as np
 import scipy.linalg
@@ -277,27 +277,14 @@ def _check_regular(E: Array, A: Array) -> None:
         raise ModelError("singular pencil: det(sE - A) vanishes for every s (no solution)")
 
 
-class _Parts(NamedTuple):
-    E: Array
-    A: Array
-    B: Array
-    C: Array
-    D: Array
-    Q: Array
-    R: Array
-    state_names: tuple[str, ...]
-    input_names: tuple[str, ...]
-    output_names: tuple[str, ...]
-    fault_inputs: tuple[int, ...]
-
-
-def _validate(E: object, A: object, B: object, C: object, D: object, Q: object, R: object,
-              state_names: Sequence[str], input_names: Sequence[str],
-              output_names: Sequence[str], fault_inputs: FaultInputs) -> _Parts:
-    """Shapes, finiteness, noise covariances, names and fault actuators of (E, A, B, C, D).
+def _validate(model: _Descriptor, Q: object) -> dict[str, object]:
+    """Shapes, finiteness, noise covariances, names and fault actuators of `model`'s
+    (E, A, B, C, D) with the noise covariance `Q`: its fields normalised, by name (``Q``
+    for the noise covariance).
 
     Every message is one line naming the matrix and what it disagrees with.
     """
+    E, A, B, C, D, R = model.E, model.A, model.B, model.C, model.D, model.R
     Aa = _as_matrix("A", A)
     n = Aa.shape[0]
     if Aa.shape != (n, n) or n == 0:
@@ -319,18 +306,19 @@ def _validate(E: object, A: object, B: object, C: object, D: object, Q: object, 
     Ra = _as_matrix("R", R, p, p, outputs, outputs)
     _check_noise("Q", Qa, definite=False)
     _check_noise("R", Ra, definite=True)
-    ins = _names("input", input_names, m, "u", "actuators")
-    faults = _fault_indices(fault_inputs, m, ins)
+    ins = _names("input", model.input_names, m, "u", "actuators")
+    faults = _fault_indices(model.fault_inputs, m, ins)
     if len(faults) > p:
         raise ModelError(
             f"{len(faults)} actuators but only {p} outputs: the losses of effectiveness of "
             "more actuators than outputs cannot be separated (fault_inputs selects the "
             "actuators that can lose effectiveness)"
         )
-    sts = _names("state", state_names, n, "x", "states")
-    outs = _names("output", output_names, p, "y", "outputs")
+    sts = _names("state", model.state_names, n, "x", "states")
+    outs = _names("output", model.output_names, p, "y", "outputs")
     _check_regular(Ea, Aa)
-    return _Parts(Ea, Aa, Ba, Ca, Da, Qa, Ra, sts, ins, outs, faults)
+    return {"E": Ea, "A": Aa, "B": Ba, "C": Ca, "D": Da, "Q": Qa, "R": Ra, "state_names": sts,
+            "input_names": ins, "output_names": outs, "fault_inputs": faults}
 
 
 def van_loan(A: Array, Qc: Array, T: float) -> Array:
@@ -754,10 +742,8 @@ class _Descriptor:
     def _validate_into(self, q_field: str) -> None:
         """Validate the fields and store them normalised (the noise covariance in q_field)."""
         with _numerics("checking the model's matrices"):
-            parts = _validate(self.E, self.A, self.B, self.C, self.D, getattr(self, q_field),
-                              self.R, self.state_names, self.input_names,
-                              self.output_names, self.fault_inputs)
-        for name, value in zip(_Parts._fields, parts, strict=True):
+            parts = _validate(self, getattr(self, q_field))
+        for name, value in parts.items():
             object.__setattr__(self, q_field if name == "Q" else name, value)
 
     @property
