@@ -64,7 +64,6 @@ from monitor.estimation.structure import StructureLearning
 from monitor.estimation.ukf import sigma_weights
 
 Array = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 # the estimator's names, importable from here as the rest of the monitor does
 __all__ = [
