@@ -73,6 +73,7 @@ from monitor.diagnosis.fcm import (
 from monitor.diagnosis.thresholds import (
     DEFAULT_THRESHOLDS,
     DiagnosisError,
+    DiagnosisSpec,
     Thresholds,
     load_thresholds,
     save_thresholds,
@@ -81,6 +82,7 @@ from monitor.diagnosis.thresholds import (
 __all__ = [
     "DEFAULT_THRESHOLDS",
     "DiagnosisError",
+    "DiagnosisSpec",
     "FCMResult",
     "HealthState",
     "MismatchDetector",

@@ -1,4 +1,5 @@
-"""Thresholds F1 < F2 of eq (76) and their TOML file."""
+"""Thresholds F1 < F2 of eq (76) and their TOML file, and the diagnosis' settings a rig file
+gives (`DiagnosisSpec`)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ import numpy as np
 from monitor.errors import MonitorError, one_line
 from monitor.files import KIB, UserFileError, atomic_write_text, read_user_toml, shown_path
 
-__all__ = ["DEFAULT_THRESHOLDS", "THRESHOLDS_HEADER", "DiagnosisError", "Thresholds",
-           "load_thresholds", "save_thresholds"]
+__all__ = ["DEFAULT_THRESHOLDS", "THRESHOLDS_HEADER", "DiagnosisError", "DiagnosisSpec",
+           "Thresholds", "load_thresholds", "save_thresholds"]
 
 
 THRESHOLDS_FILE_LIMIT = 64 * KIB
@@ -84,6 +85,22 @@ every partial fault in that range is reported as a fault and not confused with f
 or outage. The monitor uses calibrated thresholds (`calibrate`, `load_thresholds`) when a
 file is given. The paper's F1 = 0.3, F2 = 1 are in its f^ units and do not apply here.
 """
+
+
+@dataclass(frozen=True)
+class DiagnosisSpec:
+    """Thresholds (76), debouncing and timeouts of the online diagnosis: a rig file's
+    ``[diagnosis]`` (`monitor.rig.spec.Rig.diagnosis`), and with its defaults those of
+    `monitor.pipeline.MonitorConfig`, which takes them from here."""
+
+    f1: float = DEFAULT_THRESHOLDS.f1
+    f2: float = DEFAULT_THRESHOLDS.f2
+    dwell_s: float = 0.03
+    hysteresis: float = 0.02
+    silence_timeout_s: float = 0.5
+    mismatch_window_s: float = 2.0
+    mismatch_dwell_s: float = 3.0
+    withhold_alarms_on_mismatch: bool = False  # `monitor.diagnosis.reported_state`
 
 
 def _toml_string(value: str) -> str:

@@ -67,7 +67,7 @@ from monitor.bus.cia402 import (
 )
 from monitor.bus.codec import Decoded, Rejected, RejectReason
 from monitor.bus.counters import CounterTracker
-from monitor.diagnosis import DEFAULT_THRESHOLDS, HealthState, Thresholds, rules
+from monitor.diagnosis import DEFAULT_THRESHOLDS, DiagnosisSpec, HealthState, Thresholds, rules
 from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import (
     ContinuousDescriptor,
@@ -122,6 +122,10 @@ class FrameDecoder(Protocol):
     def decode_can(self, msg: can.Message) -> Decoded | Rejected: ...
 
 
+_DIAGNOSIS = DiagnosisSpec()
+"""The defaults of the diagnosis' debouncing and timeouts, a rig file's as well."""
+
+
 @dataclass(frozen=True)
 class MonitorConfig:
     """What the monitor watches and how.
@@ -140,9 +144,9 @@ class MonitorConfig:
     nodes: tuple[int, ...] | None = None
     rate: float = 100.0
     thresholds: Thresholds = DEFAULT_THRESHOLDS
-    dwell_s: float = 0.03
-    hysteresis: float = 0.02
-    silence_timeout_s: float = 0.5
+    dwell_s: float = _DIAGNOSIS.dwell_s
+    hysteresis: float = _DIAGNOSIS.hysteresis
+    silence_timeout_s: float = _DIAGNOSIS.silence_timeout_s
     publish_period_s: float = 0.1
     max_gap_s: float = 5.0
     counters_period_s: float = 1.0
@@ -151,9 +155,9 @@ class MonitorConfig:
     current_sigma: float = 0.5
     estimator: FuzzyUKFConfig = field(default_factory=FuzzyUKFConfig)
     model: ContinuousDescriptor | None = None
-    mismatch_window_s: float = 2.0
-    mismatch_dwell_s: float = 3.0
-    withhold_alarms_on_mismatch: bool = False  # see `monitor.diagnosis.reported_state`
+    mismatch_window_s: float = _DIAGNOSIS.mismatch_window_s
+    mismatch_dwell_s: float = _DIAGNOSIS.mismatch_dwell_s
+    withhold_alarms_on_mismatch: bool = _DIAGNOSIS.withhold_alarms_on_mismatch
     jitter_fraction: float = 0.25  # of a period: counted as time/jitter (no counter)
     input_delay: int = 0
 

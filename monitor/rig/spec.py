@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from monitor.diagnosis.thresholds import DiagnosisSpec
 from monitor.rig.errors import NO_MODEL, RigError
 
 __all__ = ["CanopenSpec", "DiagnosisSpec", "LayoutSpec", "ModelSpec", "ObjectScale", "PdoSpec",
@@ -119,20 +120,6 @@ class ModelSpec:
     adaptive_noise: bool = True
     noise_window_s: float = 2.0
     bias: str = "auto"
-
-
-@dataclass(frozen=True)
-class DiagnosisSpec:
-    """Thresholds (76), debouncing and timeouts of the online diagnosis."""
-
-    f1: float = 0.15
-    f2: float = 0.85
-    dwell_s: float = 0.03
-    hysteresis: float = 0.02
-    silence_timeout_s: float = 0.5
-    mismatch_window_s: float = 2.0
-    mismatch_dwell_s: float = 3.0
-    withhold_alarms_on_mismatch: bool = False  # `monitor.diagnosis.reported_state`
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ import numpy as np
 import rerun as rr
 from numpy.typing import NDArray
 
+from monitor.diagnosis.thresholds import DEFAULT_THRESHOLDS
 from monitor.pipeline.events import PlantSignals, SampleColumns
 from monitor.sinks.batch import InputColumns, NodeColumns, fill, put_output_columns, put_outputs
 from monitor.sinks.blueprint import (
@@ -104,8 +105,8 @@ class RecordingSink(RecordingOutlet):
         application_id: str = "motor-monitor",
         recording_id: str | None = None,
         nodes: Sequence[int] = (0,),
-        f1: float = 0.15,
-        f2: float = 0.85,
+        f1: float = DEFAULT_THRESHOLDS.f1,
+        f2: float = DEFAULT_THRESHOLDS.f2,
         batch_size: int = 2048,
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
         write_footer: bool = True,
