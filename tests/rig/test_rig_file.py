@@ -14,10 +14,11 @@ from monitor.bus.rigcodec import RigCodec
 from monitor.rig import build_decoder, build_model, builtin_rig, load_rig
 from tests.support import BIN
 from tests.support.paths import ROOT, TEST_RIGS
-from tests.support.rig_files import rig_refusal
+from tests.support.rig_files import rig_refusal, written_rig
 
 EXAMPLE = ROOT / "rigs" / "motor.toml"
 SERVO = TEST_RIGS / "servo.toml"
+SERVO_DBC = TEST_RIGS / "servo.dbc"
 
 
 def test_example_rig_is_the_builtin_one() -> None:
@@ -42,13 +43,6 @@ def test_foreign_rig_loads_with_its_layout() -> None:
     d = codec.decode(fid, data, ext, False, False, 1.0)
     assert isinstance(d, Decoded), d
     assert d.outputs == pytest.approx((0.25,), rel=1e-6)  # mA in the DBC, A in the model
-
-
-def _write(tmp_path: Path, text: str, name: str = "rig.toml") -> Path:
-    (tmp_path / "servo.dbc").write_text((SERVO.parent / "servo.dbc").read_text())
-    p = tmp_path / name
-    p.write_text(text)
-    return p
 
 
 SERVO_TEXT = SERVO.read_text()
@@ -105,7 +99,7 @@ MISTAKES = [
 
 @pytest.mark.parametrize(("what", "text", "needle"), MISTAKES, ids=[m[0] for m in MISTAKES])
 def test_each_mistake_is_one_line(tmp_path: Path, what: str, text: str, needle: str) -> None:
-    msg = rig_refusal(_write(tmp_path, text))
+    msg = rig_refusal(written_rig(tmp_path, text, SERVO_DBC))
     assert needle in msg, msg
 
 
@@ -114,7 +108,8 @@ def test_each_mistake_is_one_line(tmp_path: Path, what: str, text: str, needle: 
                                  ["sim-ecu", "--node", "1", "--scenario", "healthy",
                                   "--interface", "virtual"]])
 def test_cli_says_it_in_one_line(tmp_path: Path, cmd: list[str]) -> None:
-    path = _write(tmp_path, SERVO_TEXT.replace('signal = "CurrentFb"', 'signal = "Curent"'))
+    path = written_rig(tmp_path, SERVO_TEXT.replace('signal = "CurrentFb"', 'signal = "Curent"'),
+                       SERVO_DBC)
     (tmp_path / "x.log").write_text("")
     res = subprocess.run([str(BIN / cmd[0]), *cmd[1:], "--rig", str(path)], cwd=tmp_path,
                          capture_output=True, text=True, timeout=120)

@@ -30,7 +30,7 @@ from sim_ecu.scenario import load_scenario
 from tests.support import BIN
 from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import pipeline
-from tests.support.rig_files import rig_refusal
+from tests.support.rig_files import rig_refusal, written_rig
 
 RIG = TEST_RIGS / "secure_drive.toml"
 KEY = bytes.fromhex("000102030405060708090a0b0c0d0e0f")
@@ -261,10 +261,7 @@ MISTAKES = [
 @pytest.mark.parametrize(("what", "text", "needle"), MISTAKES, ids=[m[0] for m in MISTAKES])
 def test_each_secoc_mistake_is_one_line(tmp_path: Path, what: str, text: str,
                                         needle: str) -> None:
-    (tmp_path / "secure_drive.dbc").write_text((TEST_RIGS / "secure_drive.dbc").read_text())
-    path = tmp_path / "rig.toml"
-    path.write_text(text)
-    msg = rig_refusal(path)
+    msg = rig_refusal(written_rig(tmp_path, text, TEST_RIGS / "secure_drive.dbc"))
     assert needle in msg, msg
 
 

@@ -25,7 +25,7 @@ from tests.support import BIN
 from tests.support.dbc import REPO_DBC
 from tests.support.paths import ROOT, TEST_RIGS
 from tests.support.pipeline import Recorder
-from tests.support.rig_files import rig_refusal
+from tests.support.rig_files import rig_refusal, written_rig
 
 MOTOR_TEXT = (ROOT / "rigs" / "motor.toml").read_text().replace('"../dbc/motor.dbc"',
                                                                f'"{REPO_DBC}"')
@@ -36,12 +36,6 @@ CURRENT_E2E = ('MotorCurrent = { kind = "e2e_profile2", counter = "Counter", crc
                'data_id = "id_low_byte" }')
 TRUTH_CURRENT = MOTOR_TEXT.replace(CURRENT_E2E, "")  # the output below is not MotorCurrent
 NO_OVERRIDES = argparse.Namespace(nodes=None, rate=None, thresholds=None)
-
-
-def _rig(tmp_path: Path, text: str, name: str = "rig.toml") -> Path:
-    p = tmp_path / name
-    p.write_text(text)
-    return p
 
 
 def _matrix(a: np.ndarray) -> str:
@@ -57,7 +51,8 @@ def _milliamp_rig(tmp_path: Path) -> Path:
     model = (f'[model]\nkind = "state_space"\nrate = 100.0\nE = {_matrix(m.E)}\n'
              f"A = {_matrix(m.A)}\nB = {_matrix(m.B)}\nC = {_matrix(1000.0 * m.C)}\n"
              f"Q = {_matrix(m.Qc)}\nR = {_matrix(1e6 * m.R)}\n\n")
-    return _rig(tmp_path, head + model + tail[tail.index("[diagnosis]"):], "milliamp.toml")
+    return written_rig(tmp_path, head + model + tail[tail.index("[diagnosis]"):],
+                       name="milliamp.toml")
 
 
 # ----------------------------------------------------------------- which decoder reads it
@@ -97,7 +92,7 @@ def test_the_builtin_rig_and_its_equivalents_are_our_bus(tmp_path: Path) -> None
     # the same units spelt otherwise, the default protection written out: the same rig
     same = (MOTOR_TEXT.replace('unit = "A"', 'unit = "ampere"')
             .replace("[protection]\n", '[protection]\nSimTruth = { kind = "none" }\n'))
-    assert isinstance(build_decoder(load_rig(_rig(tmp_path, same))), MotorDatabase)
+    assert isinstance(build_decoder(load_rig(written_rig(tmp_path, same))), MotorDatabase)
 
 
 @pytest.mark.parametrize(("what", "text", "differs"), [
@@ -117,7 +112,7 @@ def test_any_other_rig_on_our_dbc_is_read_by_the_rig_codec(
     """What `MotorDatabase` would not do as the rig says goes to the rig codec, which reads
     every key; that our SecOC and MonitorDiagnosis frames are then not served is logged
     once, and asking for our SecOC with --key is one line naming the key that differs."""
-    path = _rig(tmp_path, text)
+    path = written_rig(tmp_path, text)
     with caplog.at_level(logging.INFO, logger="monitor.rig.check"):
         rig = load_rig(path)
         codec = build_decoder(rig)
@@ -141,14 +136,14 @@ def test_a_rig_on_our_dbc_reads_what_it_says(tmp_path: Path) -> None:
     mdb = load_database()
     fid = mdb.frame_id("current", 3)
     frame = mdb.encode_current(3, 1.25, counter=5)
-    rig = load_rig(_rig(tmp_path, MOTOR_TEXT.replace(
+    rig = load_rig(written_rig(tmp_path, MOTOR_TEXT.replace(
         'crc = "CRC", data_id = "id_low_byte" }\n\n', 'crc = "CRC", data_id = 7 }\n\n')))
     codec = build_decoder(rig)
     assert isinstance(codec, RigCodec)
     assert getattr(codec.decode(fid, frame, False, False, False, 1.0), "reason", None) \
         == "bad_crc"
     frame = mdb.encode_truth(3, 0.5, current=2.5, speed=10.0)
-    rig = load_rig(_rig(tmp_path, TRUTH_CURRENT.replace(
+    rig = load_rig(written_rig(tmp_path, TRUTH_CURRENT.replace(
         CURRENT_LINE, 'outputs = [{ message = "SimTruth", signal = "TrueCurrent", '
                       'unit = "A" }]')))
     codec = build_decoder(rig)
@@ -229,7 +224,7 @@ OUR_MISTAKES = [
 def test_a_key_our_bus_used_to_ignore_is_checked(tmp_path: Path, what: str, text: str,
                                                  needle: str) -> None:
     assert text != MOTOR_TEXT, what
-    path = _rig(tmp_path, text)
+    path = written_rig(tmp_path, text)
     msg = rig_refusal(path)
     assert msg.startswith(f"rig file {path}: {needle}"), msg
 
@@ -239,7 +234,7 @@ def test_a_key_our_bus_used_to_ignore_is_checked(tmp_path: Path, what: str, text
 
 def _twin(tmp_path: Path, rig_text: str, dbc_text: str | None = None) -> Path:
     (tmp_path / "twin.dbc").write_text(dbc_text or (TEST_RIGS / "twin.dbc").read_text())
-    return _rig(tmp_path, rig_text)
+    return written_rig(tmp_path, rig_text)
 
 
 TWIN = (TEST_RIGS / "twin.toml").read_text()
@@ -253,7 +248,7 @@ def _servo(tmp_path: Path, rig_text: str, voltage_unit: str = "V") -> Path:
     assert old in dbc
     (tmp_path / "servo.dbc").write_text(dbc.replace(
         old, f'VoltageCmd : 0|32@1- (1,0) [-50|50] "{voltage_unit}"'))
-    return _rig(tmp_path, rig_text)
+    return written_rig(tmp_path, rig_text)
 
 
 UNIT_MISTAKES = [
@@ -408,7 +403,7 @@ def test_two_files_that_clash_are_refused_naming_both(tmp_path: Path) -> None:
 def test_a_clashing_dbc_is_one_line_on_the_command_line(tmp_path: Path) -> None:
     """cantools' own warnings do not reach the terminal: one error line, exit 2."""
     (tmp_path / "twin.dbc").write_text((TEST_RIGS / "twin.dbc").read_text().replace("1553", "1537"))
-    path = _rig(tmp_path, TWIN)
+    path = written_rig(tmp_path, TWIN)
     (tmp_path / "x.log").write_text("")
     res = subprocess.run([str(BIN / "motor-monitor"), "replay", "x.log", "--rig", str(path)],
                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
