@@ -57,6 +57,11 @@ log = logging.getLogger("motor_monitor")
 FRESHNESS_SAVE_PERIOD_S = 5.0
 RECEIVE_BATCH = 512  # frames per receive at most: the clocks are read between batches
 # (a backlog goes to the columnar engine in one call: 512 frames there take ~5 ms)
+#: Waits between reopens of a failed interface: doubling from the first to the last, which
+#: bounds how long after a link comes back its frames are still missed (a reopen is a socket
+#: and a bind: cheap enough to try four times a second through a long outage).
+REOPEN_FIRST_S = 0.05
+REOPEN_MAX_S = 0.25
 DRAIN_LIMIT_S = 2.0  # at most this long taking a backlog at stop (inside systemd's stop timeout)
 
 
@@ -189,7 +194,7 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: Liv
     drained = True  # the last receive found the socket empty
     newest = last_clock = 0.0  # the newest frame's time stamp; the time last ticked at
     dropped_before = 0  # socket drops of sockets closed before the current one
-    backoff = 0.1
+    backoff = REOPEN_FIRST_S
     down_since: float | None = None
 
     feed = BacklogFeed(pipe)  # a few frames one by one, a backlog in one call
@@ -246,7 +251,7 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: Liv
                 try:
                     live.reopen()
                 except BusError as exc:
-                    backoff = min(2.0, backoff * 2)
+                    backoff = min(REOPEN_MAX_S, backoff * 2)
                     log.debug("still down: %s", exc)
                 continue  # back only once a receive succeeds (a down link binds fine)
             msgs: list[can.Message] = []
@@ -270,14 +275,14 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: Liv
                     pipe.interface_failed(time.time(), str(exc))
                     down_since = time.monotonic()
                 else:  # reopened, but still down (e.g. ENETDOWN on a link set down)
-                    backoff = min(2.0, backoff * 2)
+                    backoff = min(REOPEN_MAX_S, backoff * 2)
                     log.debug("still down: %s", exc)
                 continue
             if down_since is not None:
                 outage = time.monotonic() - down_since
                 log.warning("CAN interface back after %.1f s", outage)
                 pipe.interface_back(time.time(), outage)
-                backoff = 0.1
+                backoff = REOPEN_FIRST_S
                 down_since = None
             drained = len(msgs) < RECEIVE_BATCH
             if msgs:
