@@ -134,6 +134,9 @@ def _ensure_native_iface(name: str) -> str | None:
         )
         if add.returncode != 0 and not _iface_exists(name):
             return f"`ip link add dev {name} type vcan` failed: {add.stderr.strip()}"
+        # CAN FD's MTU, as in the UML guest (`vcan_up` in tests/support/scripts/common.sh)
+        subprocess.run([ip, "link", "set", name, "mtu", "72"], capture_output=True,
+                       check=False)
     up = subprocess.run(
         [ip, "link", "set", "up", name], capture_output=True, text=True, check=False
     )

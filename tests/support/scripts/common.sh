@@ -29,13 +29,13 @@ mark() { echo "mark_$1=$(now)"; }
 # alive: 1 if the daemon ($MON) is still running, else 0
 alive() { if kill -0 "$MON" 2>/dev/null; then echo 1; else echo 0; fi; }
 
-# vcan_up NAME [MTU]: create the vcan interface NAME unless it exists, set its MTU if one is
-# given (an interface must be down for that), and bring it up
+# vcan_up NAME [MTU]: create the vcan interface NAME unless it exists, set its MTU (default
+# 72, CAN FD's: vcan's before Linux 6.2 and a CAN FD controller's; a newer kernel's vcan
+# starts at CAN XL's 2060, on which can-utils 2021 refuses FD frames; an interface must be
+# down for that), and bring it up
 vcan_up() {
   [ -e "/sys/class/net/$1" ] || ip link add dev "$1" type vcan || return 1
-  if [ -n "${2:-}" ]; then
-    ip link set "$1" down && ip link set "$1" mtu "$2" || return 1
-  fi
+  ip link set "$1" down && ip link set "$1" mtu "${2:-72}" || return 1
   ip link set up "$1"
 }
 
