@@ -292,6 +292,8 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: Liv
             # stamps pass the next tick, and every few batches whatever the time stamps say.
             batches += 1
             clock_due = not msgs or newest - last_tick >= TICK_S or batches >= 8
+        if early is not None:  # a stop signal came while the daemon loaded: its frames too
+            take(early.handover()[0])
         if live.bus is not None:
             _drain(live.bus, take, time.time())
     finally:
