@@ -1,9 +1,10 @@
-"""The programs start with what their command uses: `motor-monitor run` parses its command line
-with python-can alone (it opens its bus before it loads anything else), `motor-monitor run`
-and `sim-ecu` without python-can's MF4 support (asammdf: `monitor.runtime.imports`), the daemon without the other
-commands' modules and, until a recording is asked for, without rerun-sdk and pandas; the
-command list is whole where it is asked for. Each case starts the program as its own process
-(``python -X importtime -m ...``: the names it imported, from its stderr)."""
+"""The programs start with what their command uses: `motor-monitor run` parses its command
+line with python-can alone (it opens its bus before it loads anything else); `motor-monitor
+run` and `sim-ecu` start without python-can's MF4 support (asammdf:
+`monitor.runtime.imports`), the daemon without the other commands' modules and, until a
+recording is asked for, without rerun-sdk and pandas; the command list is whole where it is
+asked for. Each case starts the program as its own process (``python -X importtime -m ...``:
+the names it imported, from its stderr)."""
 
 from __future__ import annotations
 
