@@ -428,6 +428,7 @@ def report_checks(report: Mapping[str, Any], replay: ReplayFigures,
     cross = report.get("cross_correlation", {})
     drops = report.get("consistency", {}).get("halves_nrmse_drop_pct", [])
     excitation = report.get("excitation", {})
+    levels = float(min(excitation.get("input_levels") or [math.nan]))
     holdout = min(fit.get("nrmse_holdout_pct") or [math.nan])
     p_floor = 1.0 - V.CONFIDENCE
     structure = _structure_advice(report)
@@ -449,6 +450,13 @@ def report_checks(report: Mapping[str, Any], replay: ReplayFigures,
               bool(excitation.get("hankel_singular_ratio", math.nan) >= V.MIN_PE_RATIO),
               _num(excitation.get("hankel_singular_ratio", math.nan)), V.MIN_PE_RATIO,
               RECORDING_ADVICE, gating=False),
+        Check("input_levels", bool(levels >= V.MIN_INPUT_LEVELS), _num(levels),
+              V.MIN_INPUT_LEVELS,
+              "the input took two levels: the model is checked between them alone, and a gain "
+              "that changes with the level (an actuator or drive that saturates at one of "
+              "them) looks like a smaller gain plus an offset, which runs at other levels "
+              "then meet as model mismatch or false alarms; record steps between several "
+              "levels (random steps or a multi-level PRBS)", gating=False),
         *_replay_checks(replay, structure, faults),
     ]
     # advice is for what failed: a passing check has nothing to do

@@ -68,6 +68,11 @@ SATURATED = 0.05  # share of the capture at the output's extreme value: clipped
 MIN_TIME_CONSTANTS = 10.0
 RESOLVED_SD = 2.0  # a pole this many standard deviations from s = 0 is told from it
 MIN_CHANGES = 10
+#: Fewer distinct input levels than this check the model between them alone: two (a
+#: binary PRBS) cannot tell a gain that changes with the level (an actuator that saturates
+#: at one of them) from a smaller gain plus an offset.
+MIN_INPUT_LEVELS = 3
+LEVEL_RESOLUTION = 1e-3  # of an input's range: values closer than this are one level
 MIN_FIT = 30.0
 CONSISTENCY_DROP = 10.0
 STRUCTURE_DROP = 50.0
@@ -127,7 +132,8 @@ def check_capture(u: Array, y: Array, T: float, holdout: float) -> tuple[Array, 
 
 
 def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, object]:
-    """Refuse an input that cannot identify a model of `order` states; report PE."""
+    """Refuse an input that cannot identify a model of `order` states; report PE and how
+    many distinct levels each input took (`LEVEL_RESOLUTION`)."""
     rms = np.sqrt(np.mean(u**2, axis=0))
     sd = np.std(u, axis=0)
     for j in range(u.shape[1]):
@@ -140,6 +146,9 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
         if changes < MIN_CHANGES:
             raise IdentifyError(
                 f"input '{names[j]}' changes only {changes} times: {RECORDING_ADVICE}")
+    span = np.where(np.ptp(u, axis=0) > 0, np.ptp(u, axis=0), 1.0)
+    levels = [int(np.unique(np.round((u[:, j] - u[:, j].min()) / (LEVEL_RESOLUTION * span[j])
+                                     )).size) for j in range(u.shape[1])]
     L = 2 * order + 1
     uc = (u - u.mean(axis=0)) / sd
     N, m = uc.shape
@@ -151,7 +160,8 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
         raise IdentifyError(
             f"the input is persistently exciting of order {pe // m} only, a {order}-state "
             f"model needs {L} (a sine gives 2): {RECORDING_ADVICE}")
-    return {"persistent_excitation_rows": L, "hankel_singular_ratio": ratio}
+    return {"persistent_excitation_rows": L, "hankel_singular_ratio": ratio,
+            "input_levels": levels}
 
 
 def check_outputs(y: Array, names: Sequence[str]) -> None:

@@ -18,7 +18,8 @@ from tests.support.identify import PRESS, our_capture, press_capture, run_identi
 
 GATING = {"replay_fault_free", "replay_gamma_margin", "replay_model_mismatch", "replay_mean_nis",
           "fault_detection"}
-ADVISORY = {"holdout_fit", "whiteness", "cross_correlation", "consistency", "excitation"}
+ADVISORY = {"holdout_fit", "whiteness", "cross_correlation", "consistency", "excitation",
+            "input_levels"}
 
 
 def _checks(out: Path) -> dict[str, dict[str, object]]:
