@@ -126,6 +126,15 @@ def _start_once(mode: str, interface: str, channel: str, cache: Path,
             first = _first_frame(raw_dir)
             if first is not None:
                 break
+        # the daemon writes its first frames after READY: that datagram may still wait
+        sock.settimeout(0.5)
+        while ready is None:
+            try:
+                got = sock.recv(4096)
+            except TimeoutError:
+                break
+            if b"READY=1" in got:
+                ready = time.time() - t0
     finally:
         _stop(proc, signal.SIGTERM, 60)
         sock.close()
