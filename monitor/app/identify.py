@@ -56,6 +56,7 @@ from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.files import read_user_toml, shown_path
 from monitor.identify import KINDS, Identification, IdentifyError, identify, validate
+from monitor.identify.core import MAX_ORDER
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
 from monitor.pipeline.samples import hold
@@ -333,43 +334,77 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         if rig.model is not None and rig.model.kind == "dc_motor" else DCMotorParameters()
     # the step each output is decoded in: its R is floored at the rounding's variance
     steps = output_quantisation(options.database(args, rig), node)
-    ident = identify(u, y, T, kind=model_kind(rig, args.model), order=args.order,
-                     template=template,
-                     input_names=[r.signal for r in rig.inputs],
-                     output_names=[r.signal for r in rig.outputs],
-                     output_steps=steps if len(steps) == len(rig.outputs) else None)
-    ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
-                               "frames": counts, "period_s": T,
-                               "segment": [seg.start, seg.stop], "samples": int(u.shape[0]),
-                               "non_finite_dropped": dropped}
+    kind = model_kind(rig, args.model)
+
+    def fit(order: int | None) -> Identification:
+        ident = identify(u, y, T, kind=kind, order=order, template=template,
+                         input_names=[r.signal for r in rig.inputs],
+                         output_names=[r.signal for r in rig.outputs],
+                         output_steps=steps if len(steps) == len(rig.outputs) else None)
+        ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
+                                   "frames": counts, "period_s": T,
+                                   "segment": [seg.start, seg.stop],
+                                   "samples": int(u.shape[0]), "non_finite_dropped": dropped}
+        return ident
+
     header = f"{RIG_HEADER} from {', '.join(p.name for p in paths)} (node {node})\n"
-    body = tomli_w.dumps(rig_document(rig, ident, out))
-    failed: list[Check] = []
-    try:
-        with atomic_output("--out", out) as tmp:
-            tmp.write_text(header + body, encoding="utf-8")
-            # the monitor replays the capture with the rig as it loads from this very file
-            learned = _check_rig(tmp, out)
-            figures = replay_capture(learned, paths, node, span)
-            faults = None
-            if figures.samples and not figures.fault_seconds:
-                # a loss is added to a capture that replays fault-free: where it does not,
-                # whether the loss is reported says nothing
-                faults = fault_detection(learned, paths, node, series.t, u, series.where,
-                                         ident.report.get("innovation_std") or [1.0])
-                ident.report["fault_detection"] = faults.as_dict()
-            checks = report_checks(ident.report, figures, faults)
-            ident.report["replay"] = figures.as_dict()
-            ident.report["checks"] = [c.as_dict() for c in checks]
-            failed = gating_failures(checks)
-            if failed and not args.force:
-                raise _NotWritten  # the temporary file goes, RIG_OUT stays as it was
-            if failed:  # the model is the same; the file says what it failed
-                tmp.write_text(header + f"# written with --force though it fails "
-                               f"{', '.join(c.check for c in failed)} (see the "
-                               ".identify.json report beside it)\n" + body, encoding="utf-8")
-    except _NotWritten:
-        pass
+
+    def check_and_write(ident: Identification, keep_failed: bool) -> list[Check]:
+        """Replay the capture with `ident`'s rig; write it where it passes (or where it
+        fails and `keep_failed`, saying so in the file). Returns the failed gating checks."""
+        body = tomli_w.dumps(rig_document(rig, ident, out))
+        failed: list[Check] = []
+        try:
+            with atomic_output("--out", out) as tmp:
+                tmp.write_text(header + body, encoding="utf-8")
+                # the monitor replays the capture with the rig as it loads from this very file
+                learned = _check_rig(tmp, out)
+                figures = replay_capture(learned, paths, node, span)
+                faults = None
+                if figures.samples and not figures.fault_seconds:
+                    # a loss is added to a capture that replays fault-free: where it does
+                    # not, whether the loss is reported says nothing
+                    faults = fault_detection(learned, paths, node, series.t, u, series.where,
+                                             ident.report.get("innovation_std") or [1.0])
+                    ident.report["fault_detection"] = faults.as_dict()
+                checks = report_checks(ident.report, figures, faults)
+                ident.report["replay"] = figures.as_dict()
+                ident.report["checks"] = [c.as_dict() for c in checks]
+                failed = gating_failures(checks)
+                if failed and not keep_failed:
+                    raise _NotWritten  # the temporary file goes, RIG_OUT stays as it was
+                if failed:  # the model is the same; the file says what it failed
+                    tmp.write_text(header + f"# written with --force though it fails "
+                                   f"{', '.join(c.check for c in failed)} (see the "
+                                   ".identify.json report beside it)\n" + body,
+                                   encoding="utf-8")
+        except _NotWritten:
+            pass
+        return failed
+
+    ident = fit(args.order)
+    # A black box whose order the data chose (the lowest within a margin of the best
+    # hold-out fit) may fall one state short of what the monitor needs, e.g. an input that
+    # arrives part way through the output's period (a fractional delay: one more state
+    # holds it). One order up is tried once, through every refusal of the fit.
+    retry = args.order is None and ident.kind == "state_space" and ident.order < MAX_ORDER
+    failed = check_and_write(ident, keep_failed=args.force and not retry)
+    if failed and retry:
+        first: dict[str, Any] = {"order": ident.order, "failed": [c.check for c in failed]}
+        try:
+            higher: Identification | None = fit(ident.order + 1)
+        except IdentifyError as exc:
+            first["next_order_refused"] = one_line(exc)
+            higher = None
+        if higher is not None:
+            failed_higher = check_and_write(higher, keep_failed=False)
+            if failed_higher:
+                first["next_order_failed"] = [c.check for c in failed_higher]
+            else:
+                ident, failed = higher, []
+        ident.report["order_retry"] = first
+        if failed and args.force:  # the order the data chose, written as asked
+            check_and_write(ident, keep_failed=True)
     # The report is written even for a model that is not: it is where the user sees why.
     write_text("--out", report_path, ident.to_json() + "\n")
     try:
