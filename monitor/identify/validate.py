@@ -72,7 +72,7 @@ MIN_CHANGES = 10
 #: binary PRBS) cannot tell a gain that changes with the level (an actuator that saturates
 #: at one of them) from a smaller gain plus an offset.
 MIN_INPUT_LEVELS = 3
-LEVEL_RESOLUTION = 1e-3  # of an input's range: values closer than this are one level
+LEVEL_RESOLUTION = 1e-3  # of an input's range: a smaller move is no change, and no other level
 MIN_FIT = 30.0
 CONSISTENCY_DROP = 10.0
 STRUCTURE_DROP = 50.0
@@ -136,19 +136,19 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
     many distinct levels each input took (`LEVEL_RESOLUTION`)."""
     rms = np.sqrt(np.mean(u**2, axis=0))
     sd = np.std(u, axis=0)
+    # a change, and a level apart from another, is LEVEL_RESOLUTION of the input's range
+    step = LEVEL_RESOLUTION * (np.ptp(u, axis=0) + 1e-300)
+    levels: list[int] = []
     for j in range(u.shape[1]):
         if sd[j] <= 1e-6 * max(float(rms[j]), 1e-300):
             raise IdentifyError(
                 f"input '{names[j]}' is constant ({u[0, j]:.4g}) over the capture, so nothing "
                 f"can be identified: {RECORDING_ADVICE}")
-        du = np.abs(np.diff(u[:, j]))
-        changes = int(np.sum(du > 1e-3 * (float(np.ptp(u[:, j])) + 1e-300)))
+        changes = int(np.sum(np.abs(np.diff(u[:, j])) > step[j]))
         if changes < MIN_CHANGES:
             raise IdentifyError(
                 f"input '{names[j]}' changes only {changes} times: {RECORDING_ADVICE}")
-    span = np.where(np.ptp(u, axis=0) > 0, np.ptp(u, axis=0), 1.0)
-    levels = [int(np.unique(np.round((u[:, j] - u[:, j].min()) / (LEVEL_RESOLUTION * span[j])
-                                     )).size) for j in range(u.shape[1])]
+        levels.append(int(np.unique(np.round((u[:, j] - u[:, j].min()) / step[j])).size))
     L = 2 * order + 1
     uc = (u - u.mean(axis=0)) / sd
     N, m = uc.shape
