@@ -115,10 +115,10 @@ def _check_outputs(args: argparse.Namespace, rig: Rig) -> None:
             check_directory(option, directory, inputs, rotated=True)
 
 
-def serve(args: argparse.Namespace, stop: StopOnSignals, live: LiveBus | None,
+def serve(args: argparse.Namespace, stop: StopOnSignals, live: LiveBus,
           early: EarlyReceiver | None) -> int:
-    """The daemon on `live` (opened here when None), whose `early` receiver holds the
-    frames received while this was loading; returns at a stop signal."""
+    """The daemon on `live` (opened here where it could not be before), whose `early`
+    receiver holds the frames received while this was loading; returns at a stop signal."""
     rig = options.rig(args)
     _check_outputs(args, rig)
     db = options.database(args, rig)
@@ -131,9 +131,8 @@ def serve(args: argparse.Namespace, stop: StopOnSignals, live: LiveBus | None,
     MonitorPipeline(db, cfg)
     if outputs.records(args):
         load_recording()
-    if live is None:
-        live = LiveBus(args.interface, args.channel, args.bitrate, args.receive_buffer_kib,
-                       quiet=not log.isEnabledFor(logging.DEBUG))
+    if live.bus is None:
+        live.reopen()
     try:
         raw = _raw_log(args)
         recording = outputs.rerun_sink(args, cfg, rig=rig)

@@ -12,24 +12,20 @@ numerical libraries and the compiled kernels.
 from __future__ import annotations
 
 import argparse
-import logging
 from typing import Any
 
 from monitor.runtime.argtypes import add_monitor_options, positive_float, positive_int
-from monitor.runtime.livebus import open_early
+from monitor.runtime.livebus import LiveBus, open_early
 from monitor.runtime.signals import StopOnSignals
 
 __all__ = ["add_command", "run_live"]
-
-log = logging.getLogger("motor_monitor")
 
 
 def run_live(args: argparse.Namespace) -> int:
     """The daemon: `monitor.app.daemon.serve` on a bus opened before its imports."""
     with StopOnSignals() as stop:
-        live, early = open_early(args.interface, args.channel, args.bitrate,
-                                 args.receive_buffer_kib,
-                                 quiet=not log.isEnabledFor(logging.DEBUG))
+        live = LiveBus(args.interface, args.channel, args.bitrate, args.receive_buffer_kib)
+        early = open_early(live)
         try:
             # the estimator's libraries load while the bus is received on
             from monitor.app import daemon
@@ -38,9 +34,7 @@ def run_live(args: argparse.Namespace) -> int:
         finally:
             if early is not None:
                 early.handover()
-            if live is not None:
-                live.drop()
-
+            live.drop()
 
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     r = sub.add_parser("run", help="monitor a live CAN bus")

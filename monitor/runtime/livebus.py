@@ -35,25 +35,25 @@ _WAIT_S = 0.05  # how long a receive waits, i.e. how soon `handover` returns
 
 
 class LiveBus:
-    """The current bus (`bus`), or None while the interface is down.
+    """The current bus (`bus`), or None while the interface is down; `reopen` opens it.
 
     `receive_buffer_kib`: the socket's receive buffer asked for at every (re)open (None:
     the kernel's default); where the kernel grants less, the log says why once per open.
     """
 
     def __init__(self, interface: str | None, channel: str | None, bitrate: int | None,
-                 receive_buffer_kib: int | None = None, *, quiet: bool = True) -> None:
+                 receive_buffer_kib: int | None = None) -> None:
         self.interface = interface
         self.channel = channel
         self.bitrate = bitrate
         self.receive_buffer_kib = receive_buffer_kib
-        self.quiet = quiet
         self.bus: can.BusABC | None = None
-        self.reopen()
 
     def reopen(self) -> None:
-        """Open the bus (raises `BusError` with one line when it cannot be)."""
-        self.bus = open_bus(self.interface, self.channel, self.bitrate, quiet=self.quiet)
+        """Open the bus (raises `BusError` with one line when it cannot be). python-can's own
+        error record would be a second line: it is left out unless the log shows debug."""
+        self.bus = open_bus(self.interface, self.channel, self.bitrate,
+                            quiet=not log.isEnabledFor(logging.DEBUG))
         wanted = self.receive_buffer_kib
         if wanted is None:
             return
@@ -113,15 +113,13 @@ class EarlyReceiver:
         return frames, self.failure
 
 
-def open_early(interface: str | None, channel: str | None, bitrate: int | None,
-               receive_buffer_kib: int | None, *, quiet: bool = True
-               ) -> tuple[LiveBus | None, EarlyReceiver | None]:
-    """The bus opened and received on at once, or (None, None) where it cannot be opened
-    yet: the caller opens it again later, where its failure is reported (after the
+def open_early(live: LiveBus) -> EarlyReceiver | None:
+    """`live` opened and received on at once, or None where it cannot be opened yet (left
+    closed): the caller opens it again later, where its failure is reported (after the
     configuration's own mistakes, which come first)."""
     try:
-        live = LiveBus(interface, channel, bitrate, receive_buffer_kib, quiet=quiet)
+        live.reopen()
     except BusError as exc:
         log.debug("bus not opened early: %s", exc)
-        return None, None
-    return live, EarlyReceiver(live)
+        return None
+    return EarlyReceiver(live)

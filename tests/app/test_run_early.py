@@ -13,7 +13,7 @@ import can
 
 from monitor.app import daemon
 from monitor.app.cli import build_parser
-from monitor.runtime.livebus import open_early
+from monitor.runtime.livebus import LiveBus, open_early
 from monitor.runtime.signals import StopOnSignals
 
 
@@ -23,8 +23,9 @@ def test_frames_received_while_loading_reach_the_raw_log_despite_an_early_stop(
     args = build_parser("run").parse_args(
         ["run", "--interface", "virtual", "--channel", channel, "--raw-dir", str(tmp_path),
          "--raw-format", "log"])
-    live, early = open_early("virtual", channel, None, None)
-    assert live is not None and early is not None
+    live = LiveBus("virtual", channel, None)
+    early = open_early(live)
+    assert early is not None
     sender = can.Bus(interface="virtual", channel=channel)
     try:
         sent = [can.Message(arbitration_id=0x7A0, data=i.to_bytes(2, "little"),

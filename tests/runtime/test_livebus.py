@@ -37,8 +37,9 @@ def channel() -> Iterator[tuple[str, can.BusABC]]:
 def _sent_while_loading(channel: tuple[str, can.BusABC], n: int
                         ) -> tuple[LiveBus, EarlyReceiver]:
     """A bus opened early on `channel`, then `n` numbered frames sent on it."""
-    live, early = open_early("virtual", channel[0], None, None)
-    assert live is not None and early is not None
+    live = LiveBus("virtual", channel[0], None)
+    early = open_early(live)
+    assert live.bus is not None and early is not None
     for msg in _frames(n):
         channel[1].send(msg)
     time.sleep(0.3)  # the thread takes them off the bus meanwhile
@@ -84,4 +85,6 @@ def test_it_keeps_at_most_its_limit(monkeypatch: pytest.MonkeyPatch,
 
 
 def test_a_bus_that_cannot_open_yet_is_left_for_later() -> None:
-    assert open_early("no-such-interface", "x", None, None) == (None, None)
+    live = LiveBus("no-such-interface", "x", None)
+    assert open_early(live) is None
+    assert live.bus is None
