@@ -9,7 +9,9 @@ The stage errors that describe a bad value also derive from `ValueError`.
 
 from __future__ import annotations
 
-__all__ = ["ERROR_LINE_LIMIT", "MonitorError", "UsageError", "one_line"]
+import logging
+
+__all__ = ["ERROR_LINE_LIMIT", "FailureBurst", "MonitorError", "UsageError", "one_line"]
 
 ERROR_LINE_LIMIT = 500
 """The most characters of a message the command lines print: a value echoed from a user's
@@ -22,6 +24,32 @@ class MonitorError(Exception):
 
 class UsageError(MonitorError):
     """A mistake in what the user asked for on the command line."""
+
+
+class FailureBurst:
+    """The log of an operation the program retries and runs on without (a periodic file
+    write, a notification): the first failure of a burst is logged, the ones after it are
+    not (a failing disk would otherwise bury the journal in one line a period), and the first
+    success after a burst says that it works again."""
+
+    def __init__(self, log: logging.Logger, recovered: str, *,
+                 level: int = logging.ERROR) -> None:
+        self.failing = False
+        self._log = log
+        self._recovered = recovered
+        self._level = level
+
+    def failed(self, message: str) -> None:
+        """One failure: logged at the burst's `level` when it starts one."""
+        if not self.failing:
+            self._log.log(self._level, "%s", message)
+        self.failing = True
+
+    def worked(self) -> None:
+        """One success: ends a burst, with the `recovered` line."""
+        if self.failing:
+            self._log.warning("%s", self._recovered)
+        self.failing = False
 
 
 def one_line(text: BaseException | str, limit: int = 200) -> str:

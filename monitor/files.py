@@ -20,11 +20,11 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from monitor.errors import MonitorError, one_line
+from monitor.errors import FailureBurst, MonitorError, one_line
 
-__all__ = ["KIB", "MIB", "FileSeries", "UserFileError", "atomic_replace", "atomic_write_text",
-           "file_kind", "read_user_file", "read_user_text", "read_user_toml", "shown_path",
-           "user_file_problem"]
+__all__ = ["KIB", "MIB", "FileSeries", "PeriodicWrite", "UserFileError", "atomic_replace",
+           "atomic_write_text", "file_kind", "read_user_file", "read_user_text",
+           "read_user_toml", "shown_path", "user_file_problem"]
 
 KIB = 1024
 MIB = 1024 * KIB
@@ -304,6 +304,39 @@ def atomic_replace(path: str | os.PathLike[str]) -> Iterator[Path]:
             os.close(fd)
         yield Path(tmp)
         _fsync_path(tmp)
+
+
+class PeriodicWrite:
+    """A file written again every `period_s` while the program runs (SecOC freshness, the
+    metrics' textfile): `maybe_write`, called often, runs `write` once the period has passed
+    since the last, the first time `period_s` after `start` (a monotonic time; -inf: at the
+    first call). A failing `write` (OSError, or a `MonitorError` naming the file) is logged
+    once per burst of failures (`FailureBurst`) and retried at the next period: the program
+    keeps running on what it has."""
+
+    def __init__(self, write: Callable[[], None], what: str, period_s: float, *,
+                 start: float = -math.inf) -> None:
+        self.period_s = period_s
+        self._write = write
+        self._what = what
+        self._last = start
+        self.burst = FailureBurst(_log, f"{what}: written again")
+
+    def maybe_write(self, now_monotonic: float) -> None:
+        if now_monotonic - self._last >= self.period_s:
+            self._last = now_monotonic
+            self.write()
+
+    def write(self) -> bool:
+        """One write now; False where it failed (logged as `maybe_write`'s are)."""
+        try:
+            self._write()
+        except (OSError, MonitorError) as exc:
+            self.burst.failed(f"cannot write {self._what}: {one_line(exc)} (retrying every "
+                              f"{self.period_s:g} s)")
+            return False
+        self.burst.worked()
+        return True
 
 
 class FileSeries:

@@ -166,7 +166,7 @@ def _rig_motor(rig: Rig) -> DCMotorParameters | None:
 
 
 def _run_in_worker(ecu: VirtualECU | RigECU, duration: float | None, stop: threading.Event,
-                   every_second: Callable[[], None] | None = None) -> ECUStats:
+                   every_second: Callable[[], object] | None = None) -> ECUStats:
     """ecu.run in a worker thread; the main thread stays free to run signal handlers.
 
     (Setting an Event from a signal handler that interrupted the same thread inside
@@ -280,7 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             try:
                 stats = _run_in_worker(ecu, duration, stop,
-                                       None if saver is None else saver.save)
+                                       None if saver is None else saver.write)
             except Exception as exc:
                 log.debug("run failed", exc_info=True)
                 print(f"{PROG}: error: run failed: {one_line(exc, limit=ERROR_LINE_LIMIT)}",

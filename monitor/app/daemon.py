@@ -235,7 +235,7 @@ def _loop(args: argparse.Namespace, pipe: MonitorPipeline, sink: Sink, live: Liv
                     if raw is not None:
                         raw.maybe_flush(mono)
                     if fresh is not None:
-                        fresh.maybe_save(mono)
+                        fresh.maybe_write(mono)
                     drops = None if live.bus is None else socket_drops(live.bus)
                     if drops is not None:  # the kernel's count for this socket, since it opened
                         pipe.socket_drops(dropped_before + drops)

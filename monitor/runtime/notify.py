@@ -55,6 +55,8 @@ import socket
 import time
 from collections.abc import Mapping
 
+from monitor.errors import FailureBurst
+
 __all__ = ["NOTIFY_BUFFER_MAX", "STATUS_MAX_BYTES", "Notifier"]
 
 log = logging.getLogger(__name__)
@@ -150,7 +152,8 @@ class Notifier:
         #: Datagrams sent.
         self.sent = 0
         self._last_ping: float | None = None
-        self._failing = False
+        self._burst = FailureBurst(log, "sd_notify: the notification socket works again",
+                                   level=logging.WARNING)
         self._sock: socket.socket | None = None
         if address is not None:
             try:
@@ -308,19 +311,13 @@ class Notifier:
                 return False
             break
         self.sent += 1
-        if self._failing:
-            self._failing = False
-            log.info("sd_notify: the notification socket works again")
+        self._burst.worked()
         return True
 
     def _failed(self, reason: str) -> None:
         self.errors += 1
-        if not self._failing:
-            self._failing = True
-            log.warning(
-                "sd_notify: cannot send to %r (%s); carrying on without notifications",
-                self._printable_address(), reason,
-            )
+        self._burst.failed(f"sd_notify: cannot send to {self._printable_address()!r} ({reason}); "
+                           "carrying on without notifications")
 
     def _printable_address(self) -> str:
         if self.address is None:

@@ -38,7 +38,6 @@ too, at 0), so a rule never has to tell a missing series from a stopped one.
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 from collections.abc import Iterator, Mapping
@@ -49,6 +48,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from monitor.bus.stats import BusStats
+from monitor.files import PeriodicWrite
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import DecodeWatch
 from monitor.pipeline.events import Sample
@@ -56,7 +56,6 @@ from monitor.sinks.base import Sink
 
 __all__ = ["MetricsSink"]
 
-log = logging.getLogger(__name__)
 
 PREFIX = "motor_monitor"
 _LATENCY_BUCKETS = (1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 1.0)
@@ -152,7 +151,6 @@ class MetricsSink(Sink):
             raise ValueError(f"{self.path}: node_exporter's textfile collector reads *.prom")
         if not self.path.parent.is_dir():
             raise ValueError(f"{self.path.parent}: no such directory")
-        self.period_s = period_s
         self.live = live
         self.registry = CollectorRegistry(auto_describe=False)
         self.figures = _Figures(bus, watch)
@@ -162,8 +160,7 @@ class MetricsSink(Sink):
                                  buckets=_LATENCY_BUCKETS, registry=self.registry)
         self._nis_window_s = nis_window_s
         self._nis_t: dict[int, float] = {}
-        self._last = -math.inf
-        self._failing = False
+        self._writes = PeriodicWrite(self._write, f"metrics to {self.path}", period_s)
 
     def on_sample(self, sample: Sample) -> None:
         f = self.figures
@@ -184,19 +181,13 @@ class MetricsSink(Sink):
         self.figures.counters = dict(counters)
 
     def maybe_flush(self, now_monotonic: float) -> None:
-        if now_monotonic - self._last >= self.period_s:
-            self._last = now_monotonic
-            self.flush()
+        self._writes.maybe_write(now_monotonic)
 
     def flush(self) -> None:
-        try:
-            write_to_textfile(str(self.path), self.registry)
-        except OSError as exc:  # logged once per burst; the monitor keeps running
-            if not self._failing:
-                log.error("cannot write metrics to %s: %s", self.path, exc)
-            self._failing = True
-        else:
-            self._failing = False
+        self._writes.write()
+
+    def _write(self) -> None:
+        write_to_textfile(str(self.path), self.registry)
 
     def close(self) -> None:
         self.flush()
