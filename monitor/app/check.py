@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from monitor.app import options
-from monitor.bus.logfile import read_log, suffix_list
+from monitor.bus.logfile import read_log
 from monitor.errors import UsageError
 from monitor.rig.survey import RigFrame, Survey, rig_frames, survey
 
@@ -91,9 +91,8 @@ def run_check(args: argparse.Namespace) -> int:
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     c = sub.add_parser("check", help="what the monitor reads from a rig file, and what it "
                        "makes of every frame of a capture (before identify or run)")
-    c.add_argument("captures", nargs="*", metavar="CAPTURE",
-                   help=f"bus captures ({suffix_list()}) to hold the rig against")
-    options.add_rig_option(c, model_optional=True)
+    options.add_captures_and_rig(c, nargs="*", what="bus captures {formats} to hold the rig "
+                                 "against")
     c.add_argument("--dbc", default=None, help="DBC file (default: the rig's)")
     c.add_argument("--nodes", type=options.nodes, default=None,
                    help="only these nodes' messages, e.g. 0,3 (default: every node of the rig)")

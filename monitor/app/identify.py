@@ -50,7 +50,7 @@ from monitor.app.identify_check import (
 )
 from monitor.bus.cia402 import IGNORED_NOT_OPERATIONAL, IGNORED_PROTOCOL, drive_watch
 from monitor.bus.codec import Decoded, Rejected, RejectReason
-from monitor.bus.logfile import read_log, suffix_list
+from monitor.bus.logfile import read_log
 from monitor.bus.rigcodec import output_quantisation
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
@@ -513,9 +513,8 @@ def _shown(v: Any) -> str:
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
     c = sub.add_parser("identify", help="learn a node's model from a healthy capture and "
                        "write a rig file for it")
-    c.add_argument("captures", nargs="+", metavar="CAPTURE",
-                   help=f"healthy bus captures ({suffix_list()}) with the input varying")
-    options.add_rig_option(c, model_optional=True)
+    options.add_captures_and_rig(c, nargs="+", what="healthy bus captures {formats} with the "
+                                 "input varying")
     c.add_argument("--node", type=int, default=None, help="the node to identify")
     c.add_argument("--model", choices=KINDS, default="auto",
                    help="auto (the default): the DC motor where the rig's units say it applies "

@@ -10,6 +10,7 @@ from dataclasses import fields
 
 from monitor import setup
 from monitor.bus.codec import MotorDatabase
+from monitor.bus.logfile import suffix_list
 from monitor.bus.rigcodec import RigCodec
 from monitor.pipeline import MonitorConfig
 from monitor.rig import Rig
@@ -22,11 +23,20 @@ from monitor.runtime.argtypes import (
     rate,
 )
 
-__all__ = ["OneLineParser", "add_rig_option", "database", "monitor_config", "nodes",
-           "positive_float", "positive_int", "rate", "rig", "settings"]
+__all__ = ["OneLineParser", "add_captures_and_rig", "add_rig_option", "database",
+           "monitor_config", "nodes", "positive_float", "positive_int", "rate", "rig", "settings"]
 
 Options = argparse.Namespace
 """The parsed command line."""
+
+
+def add_captures_and_rig(p: argparse.ArgumentParser, *, nargs: str, what: str) -> None:
+    """The captures a command holds against a rig whose model may be missing yet (check,
+    identify): CAPTURE... (`what` describes them; ``{formats}`` in it becomes the formats
+    read) and --rig."""
+    p.add_argument("captures", nargs=nargs, metavar="CAPTURE",
+                   help=what.format(formats=f"({suffix_list()})"))
+    add_rig_option(p, model_optional=True)
 
 
 def settings(args: Options) -> setup.MonitorSettings:
