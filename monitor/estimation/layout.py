@@ -67,6 +67,10 @@ class Table:
         next entry)."""
         return self.base + self.names.index(name)
 
+    def at_each(self, *names: str) -> tuple[int, ...]:
+        """`at` of each of `names`, in their order."""
+        return tuple(self.at(name) for name in names)
+
     def shape(self, name: str, n: int, m: int, p: int) -> tuple[int, ...]:
         dims = {"n": n, "m": m, "p": p}
         spec = self.fields[self.names.index(name)][1]
