@@ -230,9 +230,9 @@ class RigCodec(SecOCHolder):
 
     @property
     def frame_by_frame(self) -> bool:
-        """Whether frames must be decoded one at a time, in order: with SecOC messages, key
-        or not (a rig's sync frames, even unverified, are counted by the per-frame path)."""
-        return self.secured
+        """Whether frames must be decoded one at a time, in order: with a key a frame's
+        verdict depends on its stream's freshness state (`monitor.bus.route.RouteSource`)."""
+        return self._secoc is not None
 
     @property
     def nodes(self) -> tuple[int, ...]:
