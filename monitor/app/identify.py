@@ -43,8 +43,10 @@ import tomli_w
 from monitor.app import options
 from monitor.app.identify_check import (
     Check,
+    failure_cause,
     fault_detection,
     gating_failures,
+    input_timing,
     replay_capture,
     report_checks,
 )
@@ -89,6 +91,10 @@ class NodeCapture:
     inputs: np.ndarray | None = None  # held so far
     seen: np.ndarray = field(default_factory=lambda: np.zeros(0, np.bool_))
     where: list[tuple[int, int]] = field(default_factory=list)  # (file index, frame number)
+    # per sample, the timestamp of the input frame that changed the held inputs since the
+    # sample before (NaN: none), for `identify_check.input_timing`
+    change_t: list[float] = field(default_factory=list)
+    changed: float = math.nan  # that timestamp, for the next sample
 
 
 def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
@@ -125,6 +131,8 @@ def _row(nc: NodeCapture, d: Decoded, m: int, counts: dict[str, int],
          where: tuple[int, int] = (0, 0)) -> None:
     if nc.inputs is None:
         nc.inputs, nc.seen = np.zeros(m), np.zeros(m, np.bool_)
+    if any(nc.inputs[i] != v for i, v in d.inputs):
+        nc.changed = d.timestamp
     hold(nc.inputs, nc.seen, d.inputs)
     if d.outputs:
         if nc.seen.all():
@@ -132,6 +140,8 @@ def _row(nc: NodeCapture, d: Decoded, m: int, counts: dict[str, int],
             nc.u.append(nc.inputs.tolist())
             nc.y.append(d.outputs)
             nc.where.append(where)
+            nc.change_t.append(nc.changed)
+            nc.changed = math.nan
             counts["samples"] += 1
         else:
             counts["before_inputs"] += 1
@@ -164,6 +174,7 @@ class Series(NamedTuple):
     span: tuple[float, float]  # the stretch's first and last timestamps
     t: np.ndarray  # the stretch's timestamps
     where: list[tuple[int, int]]  # the stretch's (file index, frame number) per row
+    change_t: np.ndarray  # the stretch's `NodeCapture.change_t`
 
 
 def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, int]
@@ -187,6 +198,7 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
     y = np.asarray(nc.y, dtype=float)
     finite = np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1)
     dropped = int(np.count_nonzero(~finite))
+    change_t = np.asarray(nc.change_t, dtype=float)[finite]
     t, u, y = t[finite], u[finite], y[finite]
     where = [w for w, ok in zip(nc.where, finite, strict=True) if ok]
     if t.size < 2:
@@ -220,7 +232,7 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
             f"needs {validate.MIN_SAMPLES} regular samples in a row: record without gaps or "
             "cut the capture to a gap-free stretch")
     return Series(T, u[seg], y[seg], seg, dropped, (float(t[seg][0]), float(t[seg][-1])),
-                  t[seg], where[seg])
+                  t[seg], where[seg], change_t[seg])
 
 
 def model_kind(rig: Rig, requested: str) -> str:
@@ -345,6 +357,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                                    "frames": counts, "period_s": T,
                                    "segment": [seg.start, seg.stop],
                                    "samples": int(u.shape[0]), "non_finite_dropped": dropped}
+        ident.report["input_timing"] = input_timing(series.t, series.change_t, T)
         return ident
 
     header = f"{RIG_HEADER} from {', '.join(p.name for p in paths)} (node {node})\n"
@@ -417,7 +430,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     print(_summary(ident, node, T, u.shape[0]))
     reports = f"{report_path}" + (f", {png}" if wrote_png else "")
     if failed:
+        cause = failure_cause(ident.report.get("checks", []))
+        # a cause the checks name comes first: a line cut at the limit keeps it
         why = (f"node {node}'s learned model fails on its own capture: "
+               + (f"{cause}: " if cause else "")
                + "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})"
                            for c in failed) + f": {failed[0].advice}")
         if not args.force:

@@ -314,6 +314,7 @@ def _evaluate(model: ContinuousDescriptor, u: Array, y: Array, ntr: int,
         "poles_continuous": [[float(z.real), float(z.imag)] for z in np.sort_complex(lam)],
         "dc_gain": None if integ.any() else _dc_gain(dm),
     }
+    res["steady_state_loss"] = _steady_state_loss(res["dc_gain"], u, res["innovation_std"])
     t_va = np.asarray((ntr + np.arange(yva.shape[0])) * T, dtype=float)
     traces: dict[str, Array] = {"t_holdout": t_va, "y_holdout": yva, "y_sim": ysim_va}
     return res, traces
@@ -353,6 +354,29 @@ def _growing_input_share(dm: DiscreteModel, u: Array, y: Array, T: float, durati
 def _poles(dm: DiscreteModel) -> Array:
     """Continuous poles of the part of the model the outputs see."""
     return np.asarray(np.linalg.eigvals(dm.Wobs @ dm.standard.A @ dm.Wobs.T))
+
+
+def _steady_state_loss(dc_gain: list[Any] | None, u: Array, innovation_std: list[float]
+                       ) -> dict[str, Any]:
+    """How far a total loss of each actuator moves the settled outputs, at the capture's
+    input level, in units of the innovations' standard deviation: per input j,
+    max_i |G0_ij| rms(u_j) / std_i (G0 the model's DC gain). A loss gamma at a constant
+    input shows at steady state as gamma times this. Near zero, the output does not settle
+    at a level the input sets (a speed held by a spring, a high-pass sensor): a loss then
+    shows only in the transients after the input changes, so gamma^ learns nothing while
+    the input holds and whatever the model misses there (an input frame's timing,
+    friction at a reversal) is read as a loss. None for a model with an integrator (its
+    output ramps under a loss: observable)."""
+    out: dict[str, Any] = {"per_input": None, "input_rms": _floats(np.sqrt(np.mean(u**2, axis=0))),
+                           "definition": "max over outputs of |dc_gain| rms(input) / "
+                                         "innovation std: the settled output's change under a "
+                                         "total loss of the input, in noise units"}
+    if dc_gain is None:
+        return out
+    G0 = np.abs(np.asarray(dc_gain, dtype=float))
+    sd = np.asarray(innovation_std, dtype=float)[:, None]
+    out["per_input"] = _floats(np.max(G0 * np.asarray(out["input_rms"])[None, :] / sd, axis=0))
+    return out
 
 
 def _dc_gain(dm: DiscreteModel) -> list[Any] | None:
@@ -490,7 +514,9 @@ def identify(
     quantisation_floor: per output with a known step, its step, source, floor, learned R and
     whether the floor applied), mean_nis_kalman_holdout, fuzzy_ukf (its
     mean NIS and gamma^ on the hold-out), consistency (halves NRMSE drop), excitation,
-    order_selection (black box), dc_gain, poles_continuous, auto, seconds, timing_s,
+    order_selection (black box), dc_gain, steady_state_loss (per input, a total loss's
+    change of the settled outputs in innovation standard deviations; None with an
+    integrator), poles_continuous, auto, seconds, timing_s,
     input_delay (samples, given or estimated, with each candidate's ARX loss and F-test p).
 
     Raises IdentifyError (one line: what to record instead) for a capture that is too
