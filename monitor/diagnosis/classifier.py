@@ -147,7 +147,7 @@ class MismatchDetector:
     exponential average with coefficient a (a window of `window_s`) has mean p and variance
     2 p a / (2 - a), which is that of p / v times a chi-square with v = p (2 - a) / a degrees
     of freedom; the band is its [`alpha`/2, 1 - `alpha`/2] quantiles (`rules.chi2_quantile`),
-    never narrower than a factor `rules.NIS_TOLERANCE` either side of p. A
+    never narrower than p times `rules.NIS_BAND_FLOOR` (p / 1.5 to 1.25 p). A
     loss of effectiveness is absorbed by gamma^ within a fraction of a second; a drifted
     resistance, an unmodelled load or a wrong rig file keeps the average out of the band,
     and after `dwell_s` the node is flagged. It is cleared when the average has been back

@@ -42,7 +42,7 @@ from scipy.special import gammaincinv
 from monitor.diagnosis.thresholds import DiagnosisError, Thresholds
 from monitor.jit import JIT_DISABLED, njit
 
-__all__ = ["FLAG_CAUSES", "HEALTH_CAUSES", "NIS_TOLERANCE", "NO_DATA", "OUT", "PARAMS", "STATE",
+__all__ = ["FLAG_CAUSES", "HEALTH_CAUSES", "NIS_BAND_FLOOR", "NO_DATA", "OUT", "PARAMS", "STATE",
            "FloatVector", "IntVector", "chi2_quantile", "cls_no_data", "cls_update", "mm_reset",
            "mm_update", "new_out", "new_state", "on_sample", "on_tick", "params", "region",
            "report", "reported_state", "run", "step_vectors", "warm_up"]
@@ -106,15 +106,17 @@ FLAG_CAUSES = ("nis", "restart", "silence")
 """The cause of a change of the flag, by its `OUT` flag code - 1."""
 
 
-NIS_TOLERANCE = 1.5
-"""The mismatch band is never narrower than [p / this, p * this] (p outputs, the NIS's mean).
-Its chi-square quantiles hold for a filter whose noise model is exact, and they narrow with
-the sample rate: +-23 % at 100 Hz, +-7 % at 1 kHz (alpha 1e-3, a 2 s window). A model learned
-from a capture meets other noise levels at other operating points (its Q carries the fit's
-error at the capture's excitation): the rig zoo's seed 5, 1 kHz, fitted at 98.6 %, ran its
-fresh healthy runs at a windowed NIS of 0.78 and was flagged 92 % of the time. The flag is
-for a model that does not fit (a wrong rig file, a drifted plant, an input paired with the
-wrong output: NIS 3 to 20 times off), not for a filter within half of its noise level."""
+NIS_BAND_FLOOR = (1.0 / 1.5, 1.25)
+"""The mismatch band always holds [p lo, p hi] (p outputs, the NIS's mean). Its chi-square
+quantiles hold for a filter whose noise model is exact, and they narrow with the sample
+rate: +-23 % at 100 Hz, +-7 % at 1 kHz (alpha 1e-3, a 2 s window). A model learned from a
+capture meets other noise levels at other operating points (its Q carries the fit's error at
+the capture's excitation): the rig zoo's seed 5, 1 kHz, fitted at 98.6 %, ran its fresh
+healthy runs at a windowed NIS of 0.78 and was flagged 92 % of the time. Above p the
+innovations are larger than the filter expects, which is what a model that misses something
+gives (an unmodelled load of 5 N m on the paper's motor: 1.35); below p its noise is
+overstated and the fit better than it claims, so that side is given more room. An input
+paired with the wrong output or a wrong rig file is off by 3 to 20 times."""
 
 
 def chi2_quantile(q: float, dof: float) -> float:
@@ -135,7 +137,7 @@ def params(thresholds: Thresholds, *, dwell_s: float = 0.05, hysteresis: float =
     The mismatch band is that of `MismatchDetector`: the [alpha/2, 1 - alpha/2] quantiles
     of the exponential average (coefficient a = 1 / (window_s rate)) of a chi-square NIS
     with `outputs` degrees of freedom, p / v times a chi-square with v = p (2 - a) / a,
-    widened to [p / `NIS_TOLERANCE`, p `NIS_TOLERANCE`] where narrower."""
+    widened to hold [p, p] times `NIS_BAND_FLOOR`."""
     dwell_s = float(dwell_s)
     hysteresis = float(hysteresis)
     if not (math.isfinite(dwell_s) and dwell_s >= 0.0):
@@ -153,9 +155,9 @@ def params(thresholds: Thresholds, *, dwell_s: float = 0.05, hysteresis: float =
     return np.array([f1, f2, f1 + hysteresis, f1 - hysteresis, f2 + hysteresis,
                      f2 - hysteresis, dwell_s, a,
                      min(chi2_quantile(0.5 * alpha, dof) * outputs / dof,
-                         outputs / NIS_TOLERANCE),
+                         outputs * NIS_BAND_FLOOR[0]),
                      max(chi2_quantile(1.0 - 0.5 * alpha, dof) * outputs / dof,
-                         outputs * NIS_TOLERANCE),
+                         outputs * NIS_BAND_FLOOR[1]),
                      float(mismatch_dwell_s), float(outputs), float(publish_period_s),
                      float(silence_timeout_s), float(bool(withhold))])
 
