@@ -102,13 +102,7 @@ from monitor.pipeline.events import (
     drive_event,
     error_frame_event,
 )
-from monitor.pipeline.samples import (
-    SIMULTANEOUS,
-    HeldInputs,
-    delayed,
-    input_delay_problem,
-    no_past,
-)
+from monitor.pipeline.samples import delayed, hold, input_delay_problem, no_past
 from monitor.pipeline.sink import Sink
 
 __all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
@@ -225,8 +219,8 @@ class NodeMonitor:
         self.estimator = FuzzyUKF(model, cfg.estimator)
         self.diag, self.prm, self.out = rules.step_vectors(
             prm if prm is not None else cfg.diagnosis_params(model.p))
-        self.held = HeldInputs(model.m)  # `monitor.pipeline.samples`, rule 1
-        self.window = SIMULTANEOUS * self.T
+        self.u = np.zeros(model.m)  # the held inputs (`monitor.pipeline.samples`)
+        self.u_seen = np.zeros(model.m, dtype=bool)
         self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
         self.y = np.zeros(model.p)
         self.admission = new_state()  # `monitor.pipeline.admission`: last sample, resumption
@@ -236,7 +230,7 @@ class NodeMonitor:
     @property
     def first_input(self) -> float | None:
         """The first input (the voltage command of our bus's motor), None before any."""
-        return float(self.held.latest[0]) if self.held.seen[0] else None
+        return float(self.u[0]) if self.u_seen[0] else None
 
     def restart(self) -> None:
         """Forget the estimate (after a gap too long to predict through, or a NaN); the
@@ -267,7 +261,7 @@ class NodeMonitor:
         the fault takes away, in the input's unit."""
         g = self.estimator.out.gamma
         j = int(np.argmax(g))
-        return float(g[j] * self.held.latest[j])
+        return float(g[j] * self.u[j])
 
 
 class MonitorPipeline:
@@ -383,7 +377,7 @@ class MonitorPipeline:
                 self.counters.inc(C.E2E_COUNTER_JUMPS)
                 self.counters.inc(C.E2E_LOST_FRAMES, lost)
         if d.inputs:
-            nm.held.take(d.timestamp, d.inputs)
+            hold(nm.u, nm.u_seen, d.inputs)
             self.counters.inc(C.SAMPLES_INPUT)
             for i, v in sorted(d.inputs):  # every input the frame carries, by index
                 self.sink.on_input(InputSample(d.node, d.timestamp, v, i))
@@ -404,9 +398,8 @@ class MonitorPipeline:
         counter that may be 16 m periods on (`admission.alive_verdict`)."""
         t = d.timestamp
         cfg = self.cfg
-        held, seen = nm.held.at(t, d.inputs, nm.window)
         status, k, restarted, jitter, rate_change = admit(
-            nm.admission, t, lost, wrap, seen, False, cfg.rate,
+            nm.admission, t, lost, wrap, bool(nm.u_seen.all()), False, cfg.rate,
             cfg.max_gap_s, cfg.silence_timeout_s, cfg.jitter_fraction)
         if rate_change:
             self.sink.on_bus_event(self.rate_change(t, nm.node, rate_change))
@@ -432,7 +425,7 @@ class MonitorPipeline:
         y = nm.y
         for i, v in enumerate(outputs):
             y[i] = v
-        applied, nm.u_past = delayed(held[None], self.cfg.input_delay, nm.u_past, restart)
+        applied, nm.u_past = delayed(nm.u[None], self.cfg.input_delay, nm.u_past, restart)
         u = applied[0]
         out = nm.estimator.step(u, y, k * nm.T)
         nm.samples += 1

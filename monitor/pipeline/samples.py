@@ -3,14 +3,8 @@
 
 1. The held input. For each output sample, every input of the node holds the value of its
    latest frame received before the output's frame, or in it (an ECU holds its command
-   between its input frames), but for a frame received less than `SIMULTANEOUS` of a
-   period before the output's: that one was sent together with the output, and the bus
-   put them in either order (frames queued at one instant go out by ID, and a logger
-   stamps them microseconds apart), so it is held from the next output sample on, as if
-   it had come after it -- whichever order the bus gave them, the same pairing. Then the
-   input holds the value before that frame. `HeldInputs` keeps a node's held values frame
-   by frame, `held_columns` does the same for a whole chunk of frames at once; both read
-   the held value at an output through `held_at`.
+   between its input frames). `hold` takes one frame into the held values, `held_column`
+   does the same for a whole chunk of frames at once.
 2. The input delay. The estimator's step for output sample k applies, over the interval
    that ends at the sample (Liu et al. 2020, (35)), the held input of output sample k - d,
    d = the rig's `[model] input_delay` (whole samples, `MAX_INPUT_DELAY` at most). d = 0:
@@ -29,7 +23,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable
 
 import numpy as np
@@ -37,17 +30,12 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["MAX_INPUT_DELAY", "SIMULTANEOUS", "HeldInputs", "delayed", "fit_rows", "held_at",
-           "held_column", "held_columns", "input_delay_problem", "no_past"]
+__all__ = ["MAX_INPUT_DELAY", "delayed", "fit_rows", "held_column", "hold", "input_delay_problem",
+           "no_past"]
 
 MAX_INPUT_DELAY = 50
 """The largest input delay a rig may give (samples): a dead time longer than this is a
 record the model cannot describe at this rate."""
-
-
-SIMULTANEOUS = 0.1
-"""An input frame received less than this share of the nominal period before an output frame
-(and not in it) was sent together with it: held from the next output sample on (rule 1)."""
 
 
 def input_delay_problem(d: object) -> str | None:
@@ -58,54 +46,11 @@ def input_delay_problem(d: object) -> str | None:
     return None
 
 
-def held_at(latest: Array, seen: NDArray[np.bool_], before: Array,
-            seen_before: NDArray[np.bool_], t_latest: Array, own: NDArray[np.bool_],
-            t: float | Array, window: float) -> tuple[Array, NDArray[np.bool_]]:
-    """Rule 1 at output frames: per input, the `latest` value unless its frame came less than
-    `window` before the output's frame at `t` (a frame stamped after it, where the clock went
-    back, is the latest) and is not the output's own (`own`): then the value `before` it.
-    Works on one output (arrays (m,), `t` a float) or on rows ((n, m), `t` (n, 1)). Returns
-    the values and whether each was seen."""
-    recent = (t_latest > t - window) & (t_latest <= t) & ~own
-    return np.where(recent, before, latest), np.where(recent, seen_before, seen)
-
-
-class HeldInputs:
-    """A node's inputs frame by frame (rule 1): per input the latest value, the time of its
-    frame and the value before it, each with whether there was one."""
-
-    __slots__ = ("before", "latest", "newest", "seen", "seen_before", "t")
-
-    def __init__(self, m: int) -> None:
-        self.latest = np.zeros(m)
-        self.seen = np.zeros(m, np.bool_)
-        self.before = np.zeros(m)
-        self.seen_before = np.zeros(m, np.bool_)
-        self.t = np.full(m, -np.inf)
-        self.newest = -math.inf  # the latest frame's time, of any input
-
-    def take(self, t: float, inputs: Iterable[tuple[int, float]]) -> None:
-        """One frame's (index, value) inputs, received at `t`."""
-        for i, v in inputs:
-            self.before[i] = self.latest[i]
-            self.seen_before[i] = self.seen[i]
-            self.latest[i] = v
-            self.seen[i] = True
-            self.t[i] = t
-        self.newest = max(self.newest, t)
-
-    def at(self, t: float, own: Iterable[tuple[int, float]], window: float
-           ) -> tuple[Array, bool]:
-        """The inputs an output frame received at `t` holds (its own inputs `own`, the
-        frame's (index, value) pairs, taken first), and whether every one has a value."""
-        if self.newest <= t - window:  # no frame within the window: `held_at` gives latest
-            return self.latest, bool(self.seen.all())
-        mine = np.zeros(self.latest.shape[0], np.bool_)
-        for i, _ in own:
-            mine[i] = True
-        values, seen = held_at(self.latest, self.seen, self.before, self.seen_before, self.t,
-                               mine, t, window)
-        return values, bool(seen.all())
+def hold(held: Array, seen: NDArray[np.bool_], inputs: Iterable[tuple[int, float]]) -> None:
+    """Take one frame's (index, value) inputs into the held values and mark them seen."""
+    for i, v in inputs:
+        held[i] = v
+        seen[i] = True
 
 
 def held_column(has: NDArray[np.bool_], values: Array, carried: float, seen: bool
@@ -117,38 +62,6 @@ def held_column(has: NDArray[np.bool_], values: Array, carried: float, seen: boo
     got = idx >= 0
     val = np.where(got, values[np.maximum(idx, 0)], carried)
     return val, got | seen
-
-
-def held_columns(has: NDArray[np.bool_], values: Array, t: Array, held: HeldInputs,
-                 window: float) -> tuple[Array, NDArray[np.bool_], Array]:
-    """`HeldInputs.take` and `HeldInputs.at` over a chunk of a node's frames at once: `has`
-    (n, m) which inputs each frame carries, `values` (n, m) their values, `t` (n,) the frames'
-    times, `held` the node's held inputs before the chunk (left as after it). Returns per
-    frame the inputs an output in that frame holds (`held_at`) and whether all have a
-    value, and the latest values (what `HeldInputs.latest` is after each frame)."""
-    n, m = has.shape
-    rows = np.arange(n)
-    idx = np.maximum.accumulate(np.where(has, rows[:, None], -1), axis=0)  # latest frame <= i
-    got = idx >= 0
-    # the frame before the latest: the latest strictly before it
-    prev = np.vstack([np.full((1, m), -1, np.int64), idx[:-1]]) if n else idx
-    cols = np.arange(m)[None, :]
-    j = np.maximum(idx, 0)
-    k = prev[j, cols]
-    k_got = got & (k >= 0)
-    latest = np.where(got, values[j, cols], held.latest)
-    seen = got | held.seen
-    t_latest = np.where(got, t[j], held.t)
-    before = np.where(k_got, values[np.maximum(k, 0), cols],
-                      np.where(got, held.latest, held.before))
-    seen_before = k_got | np.where(got, held.seen, held.seen_before)
-    at, at_seen = held_at(latest, seen, before, seen_before, t_latest, has, t[:, None], window)
-    if n:
-        held.latest, held.seen = latest[-1].copy(), seen[-1].copy()
-        held.before, held.seen_before = before[-1].copy(), seen_before[-1].copy()
-        held.t = t_latest[-1].copy()
-        held.newest = max(held.newest, float(np.max(t_latest[-1])))
-    return at, np.asarray(at_seen.all(axis=1), np.bool_), latest
 
 
 def no_past(m: int) -> Array:

@@ -100,13 +100,10 @@ def _attached(frames: list[can.Message], t: float) -> list[can.Message]:
     return [m for m in frames if m.timestamp >= T0 + t - 1e-9]
 
 
-def _input_first(frames: list[can.Message], output_id: int, period: float
-                 ) -> list[can.Message]:
-    """The frames of each sample with its output frame last, the others a third of a
-    period before it (an ECU that sends the command first: the first output the monitor
-    pairs with a new command is measured before the command acts, not one period into the
-    response; a command sent with the output, within `SIMULTANEOUS` of a period, would be
-    held from the next sample on, as if it came after)."""
+def _input_first(frames: list[can.Message], output_id: int) -> list[can.Message]:
+    """The frames of each sample with its output frame last (an ECU that sends the command
+    first: the first output the monitor pairs with a new command is measured before the
+    command acts, not one period into the response)."""
     out: list[can.Message] = []
     i = 0
     while i < len(frames):
@@ -114,9 +111,7 @@ def _input_first(frames: list[can.Message], output_id: int, period: float
         while j < len(frames) and frames[j].timestamp == frames[i].timestamp:
             j += 1
         group = frames[i:j]
-        out += [can.Message(timestamp=m.timestamp - period / 3, arbitration_id=m.arbitration_id,
-                            data=m.data, is_extended_id=m.is_extended_id)
-                for m in group if m.arbitration_id != output_id]
+        out += [m for m in group if m.arbitration_id != output_id]
         out += [m for m in group if m.arbitration_id == output_id]
         i = j
     return out
@@ -198,8 +193,7 @@ def test_start_at_rest_with_the_command_before_the_output(plant_name: str) -> No
     # the first output the monitor pairs with the command was measured before it acted
     plant = PLANTS[plant_name]()
     frames = plant.frames([[0.0, 0.0], [1.0, plant.volts]], 3.0, [])
-    _, rec = _per_frame(plant, _input_first(_attached(frames, 1.0), plant.output_id,
-                                            1.0 / plant.config.rate))
+    _, rec = _per_frame(plant, _input_first(_attached(frames, 1.0), plant.output_id))
     _assert_fault_free(plant, rec, int(1.9 * plant.config.rate))
     assert abs(rec.samples[0].measured) < 0.05 * abs(rec.samples[-1].measured)  # at rest
 

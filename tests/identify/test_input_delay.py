@@ -15,7 +15,6 @@ from monitor.app.identify import NodeCapture, _row, collect, rig_document
 from monitor.bus.codec import Decoded, load_database
 from monitor.identify import identify, prbs
 from monitor.identify.delay import estimate_input_delay
-from monitor.pipeline.samples import SIMULTANEOUS
 from monitor.rig import builtin_rig, load_rig
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.scenario import Scenario
@@ -36,11 +35,10 @@ def _plant(order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _rows(order: int, dead: int, input_first: bool, *, n: int = 3000, seed: int = 0,
-          sigma: float = 0.02, lead: float = 0.3) -> NodeCapture:
+          sigma: float = 0.02) -> NodeCapture:
     """The rows `identify` collects from a bus where an ECU, every period, measures y(k),
     applies its command u(k) from t(k) to a plant with `dead` samples of dead time, and
-    sends the output frame at t(k) and the input frame 1e-4 s after it or, `input_first`,
-    `lead` periods before it."""
+    sends the output frame and the input frame in the order asked."""
     rng = np.random.default_rng(seed)
     Ad, Bd, Cd = _plant(order)
     u = np.repeat(rng.uniform(-1.0, 1.0, n), rng.integers(3, 40, n))[:n]
@@ -51,24 +49,21 @@ def _rows(order: int, dead: int, input_first: bool, *, n: int = 3000, seed: int 
         y = float((Cd @ x)[0]) + sigma * float(rng.standard_normal())
         x = Ad @ x + Bd[:, 0] * u[max(k - dead, 0)]
         out = Decoded("out", 1, k * T, y, None, {}, outputs=(y,))
-        t_cmd = k * T - lead * T if input_first else k * T + 1e-4
-        cmd = Decoded("in", 1, t_cmd, float(u[k]), None, {}, inputs=((0, float(u[k])),))
+        cmd = Decoded("in", 1, k * T + 1e-4, float(u[k]), None, {}, inputs=((0, float(u[k])),))
         for d in ((cmd, out) if input_first else (out, cmd)):
             _row(nc, d, 1, counts)
     return nc
 
 
 @pytest.mark.parametrize("order", [1, 2])
-@pytest.mark.parametrize(("input_first", "lead"), [(False, 0.0), (True, 0.3), (True, 0.01)])
+@pytest.mark.parametrize("input_first", [False, True])
 @pytest.mark.parametrize("dead", [0, 1, 2, 3])
 def test_the_delay_of_a_dead_time_and_of_the_frame_order(order: int, dead: int,
-                                                         input_first: bool,
-                                                         lead: float) -> None:
-    nc = _rows(order, dead, input_first, seed=dead + 4 * order, lead=lead)
-    u, y = nc.inputs(T)[0], np.asarray(nc.y)
-    # a command sent well before the output it cannot yet affect is held one sample early;
-    # one sent with it (within `SIMULTANEOUS` of a period), whichever comes first, is not
-    want = dead + int(input_first and lead > SIMULTANEOUS)
+                                                         input_first: bool) -> None:
+    nc = _rows(order, dead, input_first, seed=dead + 4 * order)
+    u, y = np.asarray(nc.u), np.asarray(nc.y)
+    # a command sent before the output it cannot yet affect is held one sample early
+    want = dead + int(input_first)
     est = estimate_input_delay(u[:2100], y[:2100])
     assert est.delay == want, est
     assert set(est.loss) == set(range(11))
@@ -102,12 +97,12 @@ def test_identify_fits_for_the_monitors_pairing() -> None:
     """A dead time of two samples: identify reports it, the model written for it gives
     the monitor's own filter unit NIS on the capture, and the rig file carries it."""
     nc = _rows(2, 2, False, n=6000, seed=11, sigma=0.01)
-    ident = identify(nc.inputs(T)[0], np.asarray(nc.y), T, kind="state_space")
+    ident = identify(np.asarray(nc.u), np.asarray(nc.y), T, kind="state_space")
     rep = ident.report
     assert ident.input_delay == 2 and rep["input_delay"]["samples"] == 2
     assert not rep["input_delay"]["given"] and len(rep["input_delay"]["arx_loss"]) == 11
     assert 0.7 < rep["fuzzy_ukf"]["mean_nis_holdout"] < 1.5, rep["fuzzy_ukf"]
-    given = identify(nc.inputs(T)[0], np.asarray(nc.y), T, kind="state_space",
+    given = identify(np.asarray(nc.u), np.asarray(nc.y), T, kind="state_space",
                      input_delay=2, run_filter=False)
     assert given.report["input_delay"] == {"samples": 2, "given": True}
     assert given.report["fit"] == rep["fit"]
@@ -134,7 +129,7 @@ def test_our_own_bus_has_no_input_delay(tmp_path: Path) -> None:
     args = argparse.Namespace(rig=None, dbc=None, key=None)
     nodes, _ = collect(args, rig, [path])
     nc = nodes[1]
-    ident = identify(nc.inputs(T)[0], np.asarray(nc.y), T, kind="dc_motor",
+    ident = identify(np.asarray(nc.u), np.asarray(nc.y), T, kind="dc_motor",
                      run_filter=True)
     assert ident.input_delay == 0, ident.report["input_delay"]
     assert 0.7 < ident.report["fuzzy_ukf"]["mean_nis_holdout"] < 1.4

@@ -109,13 +109,11 @@ def test_replayed_frame_is_dropped_and_lost_frames_are_predicted_through(
     feed_all(pipe, currents[:50])
     pipe.feed(currents[49])  # the same frame again: a replay
     assert pipe.counters["e2e/repeated"] == 1
-    # the command sent with the first sample is held from the second on (`SIMULTANEOUS`)
-    assert pipe.counters["samples/no_input"] == 1
-    assert pipe.counters["samples/estimated"] == 49
+    assert pipe.counters["samples/estimated"] == 50
     feed_all(pipe, currents[53:60])  # three lost
     assert pipe.counters["e2e/lost_frames"] == 3
     assert pipe.counters["samples/predicted_through"] == 3
-    assert pipe.counters["samples/estimated"] == 56
+    assert pipe.counters["samples/estimated"] == 57
 
 
 def test_time_going_backwards_and_missing_voltage(db: MotorDatabase,

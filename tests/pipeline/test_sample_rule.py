@@ -5,21 +5,15 @@ both engines, and the rig's `[model] input_delay`."""
 from __future__ import annotations
 
 import argparse
-from collections import defaultdict
 from pathlib import Path
 
-import can
 import numpy as np
 import pytest
 
-from monitor.app.identify import NodeCapture, _row, fit_series
-from monitor.bus.codec import Decoded, load_database
-from monitor.bus.logfile import read_log
+from monitor.bus.codec import load_database
 from monitor.pipeline import MonitorConfig
 from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, fit_rows, no_past
 from monitor.rig import RigError, load_rig
-from sim_ecu.ecu import VirtualECU
-from sim_ecu.scenario import scenario_from_dict
 from tests.support.engines import compare_engines, sim_frames
 from tests.support.log_readers import write_log
 from tests.support.paths import ROOT, TEST_RIGS
@@ -126,60 +120,3 @@ def test_a_wrong_input_delay_is_one_line(tmp_path: Path, value: str) -> None:
         load_rig(_rig_with(tmp_path, f"input_delay = {value}"))
     msg = str(info.value)
     assert "\n" not in msg and "model.input_delay" in msg, msg
-
-
-def _reordered(frames: list[can.Message], how: str, seed: int = 4) -> list[can.Message]:
-    """Our bus's frames with each voltage command (0x120, sent at the instant of a current
-    sample 0x110, after it) moved to before that sample's frame: at the same time stamp
-    ("same"), 2 % of a period earlier ("early"), or either of those or left after it, at
-    random ("mixed")."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for m in frames:
-        if m.arbitration_id != 0x120:
-            out.append(m)
-            continue
-        choice = how if how != "mixed" else str(rng.choice(["same", "early", "after"]))
-        if choice == "after":
-            out.append(m)
-            continue
-        t = m.timestamp - (0.0002 if choice == "early" else 0.0)
-        moved = can.Message(timestamp=t, arbitration_id=m.arbitration_id, data=m.data,
-                            is_extended_id=m.is_extended_id)
-        k = max(i for i, f in enumerate(out) if f.arbitration_id == 0x110)  # its sample's
-        out.insert(k, moved)
-    return out
-
-
-@pytest.mark.parametrize("how", ["same", "early", "mixed"])
-def test_an_input_sent_with_an_output_pairs_alike_in_either_order(tmp_path: Path,
-                                                                  how: str) -> None:
-    """A command frame sent with an output frame is held from the next sample on whichever
-    the bus put first (`SIMULTANEOUS`): every sample holds the same inputs, in both engines
-    and in identify's rows, as when the command came after the output."""
-    sc = scenario_from_dict({"name": "prbs-loss", "duration": 20.0,
-                             "fault": [{"kind": "step", "start": 10.0, "gamma": 0.4}],
-                             "voltage": {"prbs": {"level": 200.0, "amplitude": 20.0,
-                                                  "clock": 0.1, "seed": 1}}})
-    base = list(VirtualECU(None, load_database(), 0, sc, seed=3).frames(start_time=1000.0))
-    assert len({bytes(m.data[2:4]) for m in base if m.arbitration_id == 0x120}) > 1  # it varies
-    cfg = MonitorConfig(nodes=(0,))
-    _, _, ref = compare_engines(write_log(tmp_path / "ref.log", base), load_database(),
-                                load_database(), cfg)
-    log = write_log(tmp_path / f"{how}.log", _reordered(base, how))
-    _, _, got = compare_engines(log, load_database(), load_database(), cfg)
-    assert len(got.samples) == len(ref.samples) > 1900
-    assert [s.inputs for s in got.samples] == [s.inputs for s in ref.samples]
-    assert [s.gamma for s in got.samples] == [s.gamma for s in ref.samples]
-
-    def rows(path: Path) -> np.ndarray:
-        nc: dict[int, NodeCapture] = {}
-        counts: dict[str, int] = defaultdict(int)
-        db = load_database()
-        for m in read_log(path):
-            d = db.decode_can(m)
-            if isinstance(d, Decoded) and d.node == 0:
-                _row(nc.setdefault(0, NodeCapture()), d, 1, counts)
-        return fit_series(nc[0], 0, [path], counts).u
-
-    assert np.array_equal(rows(log), rows(tmp_path / "ref.log"))
