@@ -85,7 +85,7 @@ def monitor_config(rig: Rig, *, nodes: tuple[int, ...] | None = None,
         silence_timeout_s=d.silence_timeout_s, model=build_model(rig),
         mismatch_window_s=d.mismatch_window_s, mismatch_dwell_s=d.mismatch_dwell_s,
         withhold_alarms_on_mismatch=d.withhold_alarms_on_mismatch,
-        input_delay=spec.input_delay,
+        input_delay=spec.input_delay, input_window=spec.input_window,
         estimator=FuzzyUKFConfig(adaptive_noise=spec.adaptive_noise,
                                  noise_window=spec.noise_window_s, bias=spec.bias))
 

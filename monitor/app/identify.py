@@ -46,7 +46,6 @@ from monitor.app.identify_check import (
     failure_cause,
     fault_detection,
     gating_failures,
-    input_timing,
     replay_capture,
     report_checks,
 )
@@ -61,7 +60,7 @@ from monitor.identify import KINDS, Identification, IdentifyError, identify, val
 from monitor.identify.core import MAX_ORDER
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
-from monitor.pipeline.samples import hold
+from monitor.pipeline.samples import HeldInputs, held_at, input_window_of
 from monitor.rig import Rig, RigError, build_decoder
 from monitor.rig.load import RIG_FILE_LIMIT, rate_problem
 from monitor.rig.spec import ModelSpec
@@ -82,19 +81,32 @@ GAP_PERIODS = 1.5  # an output spacing above this many periods is a lost sample
 
 @dataclass
 class NodeCapture:
-    """The (t, u, y) rows of one node, in capture order: u the inputs held at each output
-    sample (`monitor.pipeline.samples`, the monitor's rule)."""
+    """The (t, u, y) rows of one node, in capture order. What each output sample holds of
+    the inputs (`monitor.pipeline.samples`, the monitor's rule 1) depends on the period,
+    which the samples themselves give (`fit_series`): per sample the latest inputs, the
+    ones before them, the times of their frames and which came in the output's frame."""
 
     t: list[float] = field(default_factory=list)
-    u: list[list[float]] = field(default_factory=list)
     y: list[tuple[float, ...]] = field(default_factory=list)
-    inputs: np.ndarray | None = None  # held so far
-    seen: np.ndarray = field(default_factory=lambda: np.zeros(0, np.bool_))
+    held: HeldInputs | None = None
+    latest: list[np.ndarray] = field(default_factory=list)
+    before: list[np.ndarray] = field(default_factory=list)
+    seen_before: list[np.ndarray] = field(default_factory=list)
+    t_latest: list[np.ndarray] = field(default_factory=list)
+    own: list[np.ndarray] = field(default_factory=list)
     where: list[tuple[int, int]] = field(default_factory=list)  # (file index, frame number)
-    # per sample, the timestamp of the input frame that changed the held inputs since the
-    # sample before (NaN: none), for `identify_check.input_timing`
-    change_t: list[float] = field(default_factory=list)
-    changed: float = math.nan  # that timestamp, for the next sample
+    t_in: list[float] = field(default_factory=list)  # input frames apart from the outputs'
+
+    def inputs(self, T: float, window: float) -> tuple[np.ndarray, np.ndarray]:
+        """The inputs each sample holds at period T with input window `window` (rows), and
+        whether all have a value."""
+        if not self.t:
+            return np.zeros((0, 0)), np.zeros(0, np.bool_)
+        latest = np.asarray(self.latest)
+        u, seen = held_at(latest, np.ones_like(latest, np.bool_), np.asarray(self.before),
+                          np.asarray(self.seen_before), np.asarray(self.t_latest),
+                          np.asarray(self.own), np.asarray(self.t)[:, None], window * T)
+        return u, np.asarray(seen.all(axis=1), np.bool_)
 
 
 def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
@@ -129,19 +141,24 @@ def collect(args: argparse.Namespace, rig: Rig, paths: list[Path]) -> tuple[
 
 def _row(nc: NodeCapture, d: Decoded, m: int, counts: dict[str, int],
          where: tuple[int, int] = (0, 0)) -> None:
-    if nc.inputs is None:
-        nc.inputs, nc.seen = np.zeros(m), np.zeros(m, np.bool_)
-    if any(nc.inputs[i] != v for i, v in d.inputs):
-        nc.changed = d.timestamp
-    hold(nc.inputs, nc.seen, d.inputs)
+    if nc.held is None:
+        nc.held = HeldInputs(m)
+    held = nc.held
+    held.take(d.timestamp, d.inputs)
+    if d.inputs and not d.outputs:
+        nc.t_in.append(d.timestamp)
     if d.outputs:
-        if nc.seen.all():
+        if held.seen.all():
             nc.t.append(d.timestamp)
-            nc.u.append(nc.inputs.tolist())
             nc.y.append(d.outputs)
+            nc.latest.append(held.latest.copy())
+            nc.before.append(held.before.copy())
+            nc.seen_before.append(held.seen_before.copy())
+            nc.t_latest.append(held.t.copy())
+            own = np.zeros(m, np.bool_)
+            own[[i for i, _ in d.inputs]] = True
+            nc.own.append(own)
             nc.where.append(where)
-            nc.change_t.append(nc.changed)
-            nc.changed = math.nan
             counts["samples"] += 1
         else:
             counts["before_inputs"] += 1
@@ -174,7 +191,7 @@ class Series(NamedTuple):
     span: tuple[float, float]  # the stretch's first and last timestamps
     t: np.ndarray  # the stretch's timestamps
     where: list[tuple[int, int]]  # the stretch's (file index, frame number) per row
-    change_t: np.ndarray  # the stretch's `NodeCapture.change_t`
+    input_window: float  # rule 1's, from where the input frames fall (`input_window_of`)
 
 
 def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, int]
@@ -194,11 +211,16 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
             f"frame {number} ({t[k]:.6f} s after {t[k - 1]:.6f} s): identify needs the "
             "samples in time order; give the captures in the order they were recorded, or "
             "record again with a working clock")
-    u = np.asarray(nc.u, dtype=float)
     y = np.asarray(nc.y, dtype=float)
-    finite = np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1)
-    dropped = int(np.count_nonzero(~finite))
-    change_t = np.asarray(nc.change_t, dtype=float)[finite]
+    # the period (the median spacing of the samples, to the microsecond: candump logs keep
+    # microseconds), and with it where the input frames fall in it (rule 1's window)
+    T = round(float(np.median(step)), 6) if step.size else 0.0
+    window = input_window_of(t, np.asarray(nc.t_in, dtype=float), T) if T > 0 else 0.0
+    u, held = nc.inputs(T, window)
+    if not held.all():  # an input first seen together with the first outputs
+        counts["before_inputs"] = counts.get("before_inputs", 0) + int(np.sum(~held))
+    finite = held & np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1)
+    dropped = int(np.count_nonzero(~finite & held))
     t, u, y = t[finite], u[finite], y[finite]
     where = [w for w, ok in zip(nc.where, finite, strict=True) if ok]
     if t.size < 2:
@@ -206,8 +228,6 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
             f"{', '.join(p.name for p in paths)}: {t.size} usable output sample(s) of node "
             f"{node}{f' ({dropped} not finite)' if dropped else ''}: record at least "
             f"{validate.MIN_SAMPLES} samples, better 60 s, with the input varying")
-    # candump logs keep microseconds: the median spacing, to the microsecond
-    T = round(float(np.median(np.diff(t))), 6)
     problem = rate_problem(1.0 / T) if T > 0 else "must be finite (samples less than a " \
         "microsecond apart)"
     if problem is not None:
@@ -232,7 +252,7 @@ def fit_series(nc: NodeCapture, node: int, paths: list[Path], counts: dict[str, 
             f"needs {validate.MIN_SAMPLES} regular samples in a row: record without gaps or "
             "cut the capture to a gap-free stretch")
     return Series(T, u[seg], y[seg], seg, dropped, (float(t[seg][0]), float(t[seg][-1])),
-                  t[seg], where[seg], change_t[seg])
+                  t[seg], where[seg], window)
 
 
 def model_kind(rig: Rig, requested: str) -> str:
@@ -260,8 +280,10 @@ def _matrix(a: np.ndarray) -> list[list[float]]:
     return [[float(v) for v in row] for row in np.atleast_2d(a)]
 
 
-def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
-    """The input rig's TOML document with the learned model, ready to write at `out`."""
+def rig_document(rig: Rig, ident: Identification, out: Path, input_window: float = 0.0
+                 ) -> dict[str, Any]:
+    """The input rig's TOML document with the learned model, ready to write at `out`;
+    `input_window` the pairing the capture's rows were formed with (`fit_series`)."""
     if rig.source is not None:
         doc = read_user_toml(rig.source, what="rig file", limit=RIG_FILE_LIMIT)
     else:
@@ -281,6 +303,8 @@ def rig_document(rig: Rig, ident: Identification, out: Path) -> dict[str, Any]:
         doc["bus"]["dbc"] = [_relative(p.resolve(), base) for p in rig.dbc]
     # the delay the model was fitted for: the monitor must pair inputs and outputs so
     model: dict[str, Any] = {"rate": 1.0 / ident.T, "input_delay": ident.input_delay}
+    if input_window > 0.0:
+        model["input_window"] = input_window
     if ident.motor is not None:
         mp: DCMotorParameters = ident.motor
         model.update(kind="dc_motor", J=mp.J, b=mp.b, Ke=mp.Ke, Ki=mp.Ki, Ra=mp.Ra, La=mp.La,
@@ -356,8 +380,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
                                    "frames": counts, "period_s": T,
                                    "segment": [seg.start, seg.stop],
-                                   "samples": int(u.shape[0]), "non_finite_dropped": dropped}
-        ident.report["input_timing"] = input_timing(series.t, series.change_t, T)
+                                   "samples": int(u.shape[0]), "non_finite_dropped": dropped,
+                                   "input_window": series.input_window}
         return ident
 
     header = f"{RIG_HEADER} from {', '.join(p.name for p in paths)} (node {node})\n"
@@ -365,7 +389,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     def check_and_write(ident: Identification, keep_failed: bool) -> list[Check]:
         """Replay the capture with `ident`'s rig; write it where it passes (or where it
         fails and `keep_failed`, saying so in the file). Returns the failed gating checks."""
-        body = tomli_w.dumps(rig_document(rig, ident, out))
+        body = tomli_w.dumps(rig_document(rig, ident, out, series.input_window))
         failed: list[Check] = []
         try:
             with atomic_output("--out", out) as tmp:

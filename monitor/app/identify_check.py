@@ -53,7 +53,7 @@ from monitor.sinks.base import Sink
 
 __all__ = ["DETECT_S", "MAX_MISMATCH_SHARE", "START_SHARE", "STEADY_LOSS_NOISE", "Check",
            "FaultFigures", "ReplayFigures", "added_loss", "failure_cause", "fault_detection",
-           "gating_failures", "input_timing", "replay_capture", "report_checks"]
+           "gating_failures", "replay_capture", "report_checks"]
 
 MAX_MISMATCH_SHARE = 0.01
 """The largest share of the replayed time the model-mismatch flag may be up. A fitting
@@ -101,16 +101,6 @@ fails it is what the refusal says first. Measured on the rig zoo: 0.03 and 0.34 
 spring-held speeds whose own capture replayed as faulty (seeds 202 and 209), 0.72 on
 another (seed 4), 0.003 on one diagnosed right (seed 207), 6.6 to 140 on the other rigs
 diagnosed right."""
-
-SIMULTANEOUS = 0.1
-"""An input frame this share of a period or less from an output frame is sent with it: the
-bus orders the two by chance (timestamp jitter, arbitration)."""
-
-MIN_FLIPPED_SHARE = 0.05
-"""The least share of the input changes (and at least two) sent with an output frame in the
-less common order that makes the pairing ambiguous: each such change is paired one output
-sample off from the rest, a burst of innovations at an input change that the structure
-test (20) reads as a loss (the rig zoo's seed 209: 15 of 46 changes, replayed as faulty)."""
 
 _MORE_DATA = "more excitation (larger, faster input steps or a PRBS), a longer capture"
 _ONE_CONDITION = "record the healthy node only, at one load"
@@ -484,49 +474,12 @@ def report_checks(report: Mapping[str, Any], replay: ReplayFigures,
               "them) looks like a smaller gain plus an offset, which runs at other levels "
               "then meet as model mismatch or false alarms; record steps between several "
               "levels (random steps or a multi-level PRBS)", gating=False),
-        _timing_check(report),
         _steady_check(report, replay.f1),
         *_replay_checks(replay, structure, faults),
     ]
     # advice is for what failed: a passing check has nothing to do
     return [c if not c.passed else Check(c.check, True, c.value, c.limit, "", c.gating)
             for c in checks]
-
-
-def input_timing(t: NDArray[np.float64], change_t: NDArray[np.float64], T: float
-                 ) -> dict[str, Any]:
-    """Where the input frames that changed a held input came relative to the output frames:
-    t the output samples' timestamps, change_t per sample the timestamp of the input frame
-    that changed the held inputs since the sample before (NaN: none), T the period.
-    before: changes sent within SIMULTANEOUS T before the output frame they are first held
-    at (paired with it); after: within SIMULTANEOUS T after the output frame before that
-    one (paired with the next). Both common: the frames go out together in either order."""
-    k = np.flatnonzero(np.isfinite(change_t[1:])) + 1
-    window = SIMULTANEOUS * T
-    return {"changes": int(k.size),
-            "before_output": int(np.count_nonzero(t[k] - change_t[k] <= window)),
-            "after_output": int(np.count_nonzero(change_t[k] - t[k - 1] <= window)),
-            "window_s": window,
-            "definition": "input frames that changed a held input, sent at most window_s "
-                          "before the output frame they are held at, or after the one before"}
-
-
-def _timing_check(report: Mapping[str, Any]) -> Check:
-    """The input frames must not come with the output frames in either order
-    (MIN_FLIPPED_SHARE)."""
-    timing = report.get("input_timing") or {}
-    n = int(timing.get("changes", 0))
-    before, after = int(timing.get("before_output", 0)), int(timing.get("after_output", 0))
-    flipped = min(before, after)
-    pct = f"{100 * SIMULTANEOUS:g} %"
-    return Check(
-        "input_timing", not (flipped >= 2 and flipped >= MIN_FLIPPED_SHARE * n),
-        float(flipped / n) if n else None, MIN_FLIPPED_SHARE,
-        f"{after} of {n} input changes came just after an output frame, {before} just "
-        f"before one (within {pct} of a period): the frames go out together in either "
-        "order, so a change is paired with one output sample or the next as the bus orders "
-        "them, which no input delay fits; send the input frame at least "
-        f"{pct} of a period from the output frame, or in it", gating=False)
 
 
 def _steady_check(report: Mapping[str, Any], f1: float) -> Check:
@@ -622,10 +575,10 @@ def _num(v: float) -> float | None:
     return float(v) if math.isfinite(v) else None
 
 
-CAUSES = ("input_timing", "steady_state_loss")
+CAUSES = ("steady_state_loss",)
 """The advisory checks that, failed, explain a failed replay better than any order or delay
-would (none pairs frames the bus orders by chance, none gives a settled output a gain the
-plant lacks): a refusal names them first, in this order."""
+would (none gives a settled output a gain the plant lacks): a refusal names them first, in
+this order."""
 
 
 def failure_cause(checks: Sequence[Mapping[str, Any]]) -> str | None:

@@ -40,7 +40,7 @@ from monitor.pipeline.events import (
     SampleColumns,
 )
 from monitor.pipeline.feed import replay_frames
-from monitor.pipeline.samples import delayed, held_column
+from monitor.pipeline.samples import delayed, held_column, held_columns
 from monitor.sinks.base import FanOut, Sink
 
 __all__ = ["ColumnarEngine", "ReplayResult", "columnar_obstacle", "replay_chunks", "replay_file"]
@@ -279,12 +279,9 @@ class ColumnarEngine:
             # every input each frame carries, frame by frame, by index (as the per-frame engine)
             rows, cols = np.nonzero(has_u)
             self.router.inputs(nm.node, t_fr[rows], u_fr[rows, cols], cols.astype(np.int64))
-        held_u = np.empty_like(u_fr)
-        seen = np.ones(len(fr), np.bool_)
-        for a in range(m):
-            v, s = held_column(has_u[:, a], u_fr[:, a], float(nm.u[a]), bool(nm.u_seen[a]))
-            held_u[:, a] = v
-            seen &= s
+        # what an output in each frame holds (rule 1), and the latest inputs after each frame
+        prev_u = nm.held.latest.copy()
+        at_u, seen, held_u = held_columns(has_u, u_fr, t_fr, nm.held, nm.window)
         tr = dec.truth[fr]
         has_t = ~np.isnan(tr)
         if has_t.any():
@@ -294,12 +291,9 @@ class ColumnarEngine:
                                     truth is not None)
         is_out = self.n_out[ra] > 0
         oi = np.flatnonzero(is_out)
-        # everything held at this chunk's end, and at every frame (for ticks)
-        prev_u = nm.u.copy()
+        # the truth held at this chunk's end (the inputs: `held_columns`)
         g0, r0 = nm.estimator.out.gamma.copy(), nm.estimator.out.rules
         if len(fr):
-            nm.u[:] = held_u[-1]
-            nm.u_seen |= has_u.any(axis=0)
             nm.truth_gamma = float(held_t[-1]) if got_t[-1] else None
         t_o = t_fr[oi]
         status = np.zeros(len(oi), np.int64)
@@ -348,8 +342,8 @@ class ColumnarEngine:
         pt = kA[~rA] - 1
         if (pt > 0).any():
             cnt.inc(C.SAMPLES_PREDICTED_THROUGH, int(pt[pt > 0].sum()))
-        H = held_u[oA]
-        U, nm.u_past = delayed(H, cfg.input_delay, nm.u_past, rA)
+        H = held_u[oA]  # the latest inputs at each sample (the fault's input, as live)
+        U, nm.u_past = delayed(at_u[oA], cfg.input_delay, nm.u_past, rA)
         Y = np.nan_to_num(dec.y[fr[oA]], nan=0.0)
         dts: NDArray[np.float64] = (kA * nm.T).astype(np.float64)
         nA = len(A)

@@ -146,6 +146,8 @@ def admit(state: NDArray[np.float64], t: float, lost: int, wrap: bool, seen: boo
     last = state[LAST]
     if wrap and (last != last or not _wrapped(t - last, rate, silence)):
         return REPEATED, 1, False, False, 0
+    if last == last and not t - last > 0.0:  # before the inputs: a clock gone back says more
+        return NON_MONOTONIC, 1, False, False, 0
     if not seen:
         return NO_INPUT, 1, False, False, 0
     restart = False
@@ -154,8 +156,6 @@ def admit(state: NDArray[np.float64], t: float, lost: int, wrap: bool, seen: boo
     rate_change = 0
     if last == last:
         dt = t - last
-        if not dt > 0.0:
-            return NON_MONOTONIC, 1, False, False, 0
         if dt > max_gap or state[RESUME] != 0.0:
             restart = True
         else:

@@ -102,7 +102,13 @@ from monitor.pipeline.events import (
     drive_event,
     error_frame_event,
 )
-from monitor.pipeline.samples import delayed, hold, input_delay_problem, no_past
+from monitor.pipeline.samples import (
+    HeldInputs,
+    delayed,
+    input_delay_problem,
+    input_window_problem,
+    no_past,
+)
 from monitor.pipeline.sink import Sink
 
 __all__ = ["FrameDecoder", "MonitorConfig", "MonitorPipeline", "NodeMonitor"]
@@ -139,6 +145,8 @@ class MonitorConfig:
     default: a fault the estimator sees is reported, mismatch or not.
     input_delay: the estimator's step for output sample k applies the input held at
     output sample k - input_delay (`monitor.pipeline.samples`; the rig's `[model]`).
+    input_window: an input frame received less than this share of a period before an
+    output frame is held from the next sample on (`monitor.pipeline.samples`, rule 1).
     """
 
     nodes: tuple[int, ...] | None = None
@@ -160,11 +168,15 @@ class MonitorConfig:
     withhold_alarms_on_mismatch: bool = _DIAGNOSIS.withhold_alarms_on_mismatch
     jitter_fraction: float = 0.25  # of a period: counted as time/jitter (no counter)
     input_delay: int = 0
+    input_window: float = 0.0
 
     def __post_init__(self) -> None:
         problem = input_delay_problem(self.input_delay)
         if problem is not None:
             raise ValueError(f"input_delay {problem}")
+        problem = input_window_problem(self.input_window)
+        if problem is not None:
+            raise ValueError(f"input_window {problem}")
 
     def plant(self) -> ContinuousDescriptor:
         """The continuous model of every node."""
@@ -219,8 +231,8 @@ class NodeMonitor:
         self.estimator = FuzzyUKF(model, cfg.estimator)
         self.diag, self.prm, self.out = rules.step_vectors(
             prm if prm is not None else cfg.diagnosis_params(model.p))
-        self.u = np.zeros(model.m)  # the held inputs (`monitor.pipeline.samples`)
-        self.u_seen = np.zeros(model.m, dtype=bool)
+        self.held = HeldInputs(model.m)  # `monitor.pipeline.samples`, rule 1
+        self.window = cfg.input_window * self.T  # rule 1's, in seconds
         self.u_past = no_past(model.m)  # held inputs of the last input_delay samples
         self.y = np.zeros(model.p)
         self.admission = new_state()  # `monitor.pipeline.admission`: last sample, resumption
@@ -230,7 +242,7 @@ class NodeMonitor:
     @property
     def first_input(self) -> float | None:
         """The first input (the voltage command of our bus's motor), None before any."""
-        return float(self.u[0]) if self.u_seen[0] else None
+        return float(self.held.latest[0]) if self.held.seen[0] else None
 
     def restart(self) -> None:
         """Forget the estimate (after a gap too long to predict through, or a NaN); the
@@ -261,7 +273,7 @@ class NodeMonitor:
         the fault takes away, in the input's unit."""
         g = self.estimator.out.gamma
         j = int(np.argmax(g))
-        return float(g[j] * self.u[j])
+        return float(g[j] * self.held.latest[j])
 
 
 class MonitorPipeline:
@@ -377,7 +389,7 @@ class MonitorPipeline:
                 self.counters.inc(C.E2E_COUNTER_JUMPS)
                 self.counters.inc(C.E2E_LOST_FRAMES, lost)
         if d.inputs:
-            hold(nm.u, nm.u_seen, d.inputs)
+            nm.held.take(d.timestamp, d.inputs)
             self.counters.inc(C.SAMPLES_INPUT)
             for i, v in sorted(d.inputs):  # every input the frame carries, by index
                 self.sink.on_input(InputSample(d.node, d.timestamp, v, i))
@@ -398,8 +410,9 @@ class MonitorPipeline:
         counter that may be 16 m periods on (`admission.alive_verdict`)."""
         t = d.timestamp
         cfg = self.cfg
+        held, seen = nm.held.at(t, d.inputs, nm.window)
         status, k, restarted, jitter, rate_change = admit(
-            nm.admission, t, lost, wrap, bool(nm.u_seen.all()), False, cfg.rate,
+            nm.admission, t, lost, wrap, seen, False, cfg.rate,
             cfg.max_gap_s, cfg.silence_timeout_s, cfg.jitter_fraction)
         if rate_change:
             self.sink.on_bus_event(self.rate_change(t, nm.node, rate_change))
@@ -425,7 +438,7 @@ class MonitorPipeline:
         y = nm.y
         for i, v in enumerate(outputs):
             y[i] = v
-        applied, nm.u_past = delayed(nm.u[None], self.cfg.input_delay, nm.u_past, restart)
+        applied, nm.u_past = delayed(held[None], self.cfg.input_delay, nm.u_past, restart)
         u = applied[0]
         out = nm.estimator.step(u, y, k * nm.T)
         nm.samples += 1

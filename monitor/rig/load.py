@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 from monitor.estimation.model import BIAS_MODES
 from monitor.files import MIB, UserFileError, read_user_toml, shown_path, user_file_problem
-from monitor.pipeline.samples import input_delay_problem
+from monitor.pipeline.samples import input_delay_problem, input_window_problem
 from monitor.rig.check import check_rig
 from monitor.rig.errors import NO_MODEL, RigError
 from monitor.rig.spec import (
@@ -373,12 +373,16 @@ def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
     problem = input_delay_problem(delay)
     if problem is not None:
         raise fail("model.input_delay", problem)
+    input_window = t.number("input_window", 0.0)
+    problem = input_window_problem(input_window)
+    if problem is not None:
+        raise fail("model.input_window", problem)
     adaptive = t.take("adaptive_noise", bool, True)
     window = t.number("noise_window_s", 2.0, positive=True)
     bias = t.take("bias", str, "auto")
     if bias not in BIAS_MODES:
         raise fail("model.bias", f"must be one of {', '.join(BIAS_MODES)}, got {bias!r}")
-    return replace(spec, input_delay=delay, adaptive_noise=adaptive,
+    return replace(spec, input_delay=delay, input_window=input_window, adaptive_noise=adaptive,
                    noise_window_s=window, bias=bias), rate
 
 

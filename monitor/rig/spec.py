@@ -102,7 +102,9 @@ class ModelSpec:
     """The plant model of every node: the DC motor's physical parameters (`dc_motor`), or
     matrices (`state_space`, continuous or discrete, descriptor E optional); `input_delay`:
     the estimator's step for output sample k takes the input held at sample k - input_delay
-    (`monitor.pipeline.samples`); `adaptive_noise`: the estimator learns output noise above
+    (`monitor.pipeline.samples`); `input_window`: an input frame received less than this
+    share of a period before an output frame is held from the next sample on (the same
+    module, rule 1); `adaptive_noise`: the estimator learns output noise above
     R from its innovations over `noise_window_s` (`monitor.estimation.fuzzy_ukf`, step 5b);
     `bias`: the estimator's bias states for a load or an offset the model lacks ("auto",
     "none", "input", "output"; `monitor.estimation.fuzzy_ukf`, step 8)."""
@@ -117,6 +119,7 @@ class ModelSpec:
     fault_inputs: tuple[int, ...] | None = None  # None: every input
     state_names: tuple[str, ...] = ()
     input_delay: int = 0
+    input_window: float = 0.0
     adaptive_noise: bool = True
     noise_window_s: float = 2.0
     bias: str = "auto"

@@ -61,7 +61,7 @@ def _rows(order: int, dead: int, input_first: bool, *, n: int = 3000, seed: int 
 def test_the_delay_of_a_dead_time_and_of_the_frame_order(order: int, dead: int,
                                                          input_first: bool) -> None:
     nc = _rows(order, dead, input_first, seed=dead + 4 * order)
-    u, y = np.asarray(nc.u), np.asarray(nc.y)
+    u, y = nc.inputs(T, 0.0)[0], np.asarray(nc.y)
     # a command sent before the output it cannot yet affect is held one sample early
     want = dead + int(input_first)
     est = estimate_input_delay(u[:2100], y[:2100])
@@ -97,12 +97,12 @@ def test_identify_fits_for_the_monitors_pairing() -> None:
     """A dead time of two samples: identify reports it, the model written for it gives
     the monitor's own filter unit NIS on the capture, and the rig file carries it."""
     nc = _rows(2, 2, False, n=6000, seed=11, sigma=0.01)
-    ident = identify(np.asarray(nc.u), np.asarray(nc.y), T, kind="state_space")
+    ident = identify(nc.inputs(T, 0.0)[0], np.asarray(nc.y), T, kind="state_space")
     rep = ident.report
     assert ident.input_delay == 2 and rep["input_delay"]["samples"] == 2
     assert not rep["input_delay"]["given"] and len(rep["input_delay"]["arx_loss"]) == 11
     assert 0.7 < rep["fuzzy_ukf"]["mean_nis_holdout"] < 1.5, rep["fuzzy_ukf"]
-    given = identify(np.asarray(nc.u), np.asarray(nc.y), T, kind="state_space",
+    given = identify(nc.inputs(T, 0.0)[0], np.asarray(nc.y), T, kind="state_space",
                      input_delay=2, run_filter=False)
     assert given.report["input_delay"] == {"samples": 2, "given": True}
     assert given.report["fit"] == rep["fit"]
@@ -129,7 +129,7 @@ def test_our_own_bus_has_no_input_delay(tmp_path: Path) -> None:
     args = argparse.Namespace(rig=None, dbc=None, key=None)
     nodes, _ = collect(args, rig, [path])
     nc = nodes[1]
-    ident = identify(np.asarray(nc.u), np.asarray(nc.y), T, kind="dc_motor",
+    ident = identify(nc.inputs(T, 0.0)[0], np.asarray(nc.y), T, kind="dc_motor",
                      run_filter=True)
     assert ident.input_delay == 0, ident.report["input_delay"]
     assert 0.7 < ident.report["fuzzy_ukf"]["mean_nis_holdout"] < 1.4

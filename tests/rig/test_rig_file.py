@@ -68,6 +68,9 @@ MISTAKES = [
     ("not TOML", "[bus\n", "not valid TOML"),
     ("negative rate", SERVO_TEXT.replace("rate = 1000.0", "rate = -1.0"),
      "model.rate: must be > 0"),
+    ("an input window of a whole period", SERVO_TEXT.replace(
+        "rate = 1000.0", "rate = 1000.0\ninput_window = 1.0"),
+     "model.input_window: must be a share of the period from 0 to below 1, got 1.0"),
     ("thresholds out of order", SERVO_TEXT.replace("f1 = 0.15", "f1 = 0.9"),
      "diagnosis.f1: thresholds must satisfy 0 < f1 < f2 < 1"),
     ("a silence timeout within two sample periods", SERVO_TEXT.replace(
