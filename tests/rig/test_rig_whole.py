@@ -1,8 +1,8 @@
 """A rig file is read whole, whatever bus it describes: our own bus goes through the same
-checks as any other (units, protection, truth), `MotorDatabase` serves only a rig that
-says exactly what it implements and the rig codec any other; units parse, convert and suit
-the model; a DBC with two messages on one frame ID, or listed twice, is refused in one
-line."""
+checks as any other (units, protection, truth: the refusals are cases of mistakes.toml),
+`MotorDatabase` serves only a rig that says exactly what it implements and the rig codec any
+other; units parse, convert and suit the model; a DBC with two messages on one frame ID, or
+two files that clash, is refused in one line."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from tests.support import BIN
 from tests.support.dbc import REPO_DBC
 from tests.support.paths import ROOT, TEST_RIGS
 from tests.support.pipeline import Recorder
-from tests.support.rig_files import rig_refusal, written_rig
+from tests.support.rig_files import written_rig
 
 MOTOR_TEXT = (ROOT / "rigs" / "motor.toml").read_text().replace('"../dbc/motor.dbc"',
                                                                f'"{REPO_DBC}"')
@@ -174,61 +174,6 @@ def test_our_dbc_in_milliamps_is_scaled_not_taken_as_amps(tmp_path: Path) -> Non
         build_decoder(replace(builtin_rig(), dbc=(dbc,)), secoc_key=bytes(16))
 
 
-# ----------------------------------------------------------------- nothing is ignored
-
-
-OUR_MISTAKES = [
-    ("a current in mA for a dc_motor", MOTOR_TEXT.replace('unit = "A"', 'unit = "mA"'),
-     "signals.outputs[0].unit: a dc_motor model's output is a current in A (its parameters "
-     "are SI), not 'mA': give unit = \"A\""),
-    ("a current in kg", MOTOR_TEXT.replace('unit = "A"', 'unit = "kg"'),
-     "signals.outputs[0].unit: cannot convert 'A' to 'kg'"),
-    ("a voltage in A", MOTOR_TEXT.replace('unit = "V"', 'unit = "A"'),
-     "signals.inputs[0].unit: cannot convert 'V' to 'A'"),
-    ("a unit pint does not know", MOTOR_TEXT.replace('unit = "V"', 'unit = "trun/s"'),
-     "signals.inputs[0].unit: 'trun/s' is not a unit (pint: "),
-    ("a counter the DBC does not have", MOTOR_TEXT.replace(
-        'counter = "Counter"', 'counter = "NoSuchCounter"'),
-     "protection.MotorVoltage.counter: MotorVoltage_N0 has no signal NoSuchCounter (it has "),
-    ("a CRC the DBC does not have", MOTOR_TEXT.replace('crc = "CRC"', 'crc = "Crc"'),
-     "protection.MotorVoltage.crc: MotorVoltage_N0 has no signal Crc (it has "),
-    ("a counter that is not where profile 2 has it", MOTOR_TEXT.replace(
-        'counter = "Counter"', 'counter = "FreshnessValue"'),
-     "protection.MotorVoltage.counter: MotorVoltage_N0: E2E profile 2 needs the alive "
-     "counter in the low nibble of byte 1"),
-    ("a truth the DBC does not have", MOTOR_TEXT.replace(
-        'signal = "TrueGamma"', 'signal = "NoSuchTruth"'),
-     "signals.truth.signal: SimTruth_N0 has no signal NoSuchTruth (it has TrueCurrent, "
-     "TrueGamma, TrueSpeed)"),
-    ("a truth in percent", MOTOR_TEXT.replace(
-        'signal = "TrueGamma" }', 'signal = "TrueGamma", unit = "%" }'),
-     "signals.truth.unit: the truth is gamma, a plain fraction 0..1 shown beside gamma^ as "
-     "it comes, not '%'"),
-    ("a truth that is a current", MOTOR_TEXT.replace(
-        'signal = "TrueGamma" }', 'signal = "TrueCurrent" }'),
-     "signals.truth.unit: the truth is gamma, a plain fraction 0..1 shown beside gamma^ as "
-     "it comes, not 'A' (the DBC's)"),
-    ("protection of a message the rig does not read", MOTOR_TEXT.replace(
-        "[protection]\n", '[protection]\nMonitorDiagnosis = { kind = "none" }\n'),
-     "protection.MonitorDiagnosis: not a message of the rig's signals"),
-    ("a node our DBC does not have", MOTOR_TEXT.replace('nodes = "all"', "nodes = [20]"),
-     "signals.inputs[0].message: no MotorVoltage message for nodes [20]"),
-    ("the same DBC twice", MOTOR_TEXT.replace(f'dbc = "{REPO_DBC}"',
-                                              f'dbc = ["{REPO_DBC}", "{REPO_DBC}"]'),
-     f"bus.dbc: {REPO_DBC}: listed twice"),
-]
-
-
-@pytest.mark.parametrize(("what", "text", "needle"), OUR_MISTAKES,
-                         ids=[m[0] for m in OUR_MISTAKES])
-def test_a_key_our_bus_used_to_ignore_is_checked(tmp_path: Path, what: str, text: str,
-                                                 needle: str) -> None:
-    assert text != MOTOR_TEXT, what
-    path = written_rig(tmp_path, text)
-    msg = rig_refusal(path)
-    assert msg.startswith(f"rig file {path}: {needle}"), msg
-
-
 # ----------------------------------------------------------------- units
 
 
@@ -249,56 +194,6 @@ def _servo(tmp_path: Path, rig_text: str, voltage_unit: str = "V") -> Path:
     (tmp_path / "servo.dbc").write_text(dbc.replace(
         old, f'VoltageCmd : 0|32@1- (1,0) [-50|50] "{voltage_unit}"'))
     return written_rig(tmp_path, rig_text)
-
-
-UNIT_MISTAKES = [
-    ("a DBC unit pint does not know", "twin", TWIN.replace(
-        TWIN_Y1, '{ message = "TwinSense", signal = "Y1", unit = "rad/s" }'),
-     ('SG_ Y1 : 0|16@1- (0.001,0) [-30|30] ""', 'SG_ Y1 : 0|16@1- (0.001,0) [-30|30] '
-      '"trun/s"'),
-     "signals.outputs[0].unit: TwinSense_N1.Y1 has the unit 'trun/s' in the DBC, which is "
-     "not a unit (pint: "),
-    ("a DBC unit pint does not know, none in the rig", "twin", TWIN,
-     ('SG_ Y1 : 0|16@1- (0.001,0) [-30|30] ""', 'SG_ Y1 : 0|16@1- (0.001,0) [-30|30] '
-      '"trun/s"'),
-     "signals.outputs[0].signal: TwinSense_N1.Y1 has the unit 'trun/s' in the DBC, which is "
-     "not a unit (pint: "),
-    ("a DBC unit that is not the rig's quantity", "twin", TWIN.replace(
-        '{ message = "TwinCommand", signal = "U1" }',
-        '{ message = "TwinCommand", signal = "U1", unit = "rad/s" }'), None,
-     "signals.inputs[0].unit: cannot convert 'V' to 'rad/s': "),
-    ("a rig unit pint does not know, none in the DBC", "twin", TWIN.replace(
-        TWIN_Y1, '{ message = "TwinSense", signal = "Y1", unit = "trun/s" }'), None,
-     "signals.outputs[0].unit: 'trun/s' is not a unit (pint: "),
-    ("a dc_motor whose input is a current", "servo", SERVO.replace('unit = "V"',
-                                                                   'unit = "A"'), None,
-     "signals.inputs[0].unit: cannot convert 'V' to 'A'"),
-    ("a dc_motor input in mV from the DBC", "servo", SERVO.replace(
-        ', unit = "V" }', " }"), "mV",
-     "signals.inputs[0].unit: a dc_motor model's input is a voltage in V (its parameters "
-     "are SI), not 'mV' (the DBC's): give unit = \"V\" (the DBC's 'mV' are converted)"),
-    ("a dc_motor input without unit whose DBC gives a speed", "servo", SERVO.replace(
-        ', unit = "V" }', " }"), "rad/s",
-     "signals.inputs[0].unit: a dc_motor model's input is a voltage in V (its parameters "
-     "are SI), not 'rad/s' (the DBC's)"),
-]
-
-
-@pytest.mark.parametrize(("what", "base", "rig_text", "dbc_change", "needle"), UNIT_MISTAKES,
-                         ids=[m[0] for m in UNIT_MISTAKES])
-def test_each_unit_mistake_is_one_line(tmp_path: Path, what: str, base: str, rig_text: str,
-                                       dbc_change: tuple[str, str] | str | None,
-                                       needle: str) -> None:
-    if base == "twin":
-        dbc = (TEST_RIGS / "twin.dbc").read_text()
-        if isinstance(dbc_change, tuple):
-            assert dbc_change[0] in dbc
-            dbc = dbc.replace(*dbc_change)
-        path = _twin(tmp_path, rig_text, dbc)
-    else:
-        path = _servo(tmp_path, rig_text, dbc_change if isinstance(dbc_change, str) else "V")
-    msg = rig_refusal(path)
-    assert msg.startswith(f"rig file {path}: {needle}"), msg
 
 
 def test_a_unit_only_the_rig_gives_is_taken_and_said_once(
