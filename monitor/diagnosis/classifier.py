@@ -73,7 +73,8 @@ class OnlineClassifier:
     __slots__ = ("_prm", "_s", "thresholds")
 
     def __init__(
-        self, thresholds: Thresholds, *, dwell_s: float = 0.05, hysteresis: float = 0.02
+        self, thresholds: Thresholds, *, dwell_s: float = rules.DEFAULTS.dwell_s,
+        hysteresis: float = rules.DEFAULTS.hysteresis
     ) -> None:
         self.thresholds = thresholds
         prm = rules.params(thresholds, dwell_s=dwell_s, hysteresis=hysteresis)
@@ -156,8 +157,9 @@ class MismatchDetector:
 
     __slots__ = ("_prm", "_s", "dwell_s")
 
-    def __init__(self, outputs: int, rate: float, *, window_s: float = 2.0,
-                 dwell_s: float = 3.0, alpha: float = 1e-3) -> None:
+    def __init__(self, outputs: int, rate: float, *,
+                 window_s: float = rules.DEFAULTS.mismatch_window_s,
+                 dwell_s: float = rules.DEFAULTS.mismatch_dwell_s, alpha: float = 1e-3) -> None:
         prm = rules.params(DEFAULT_THRESHOLDS, outputs=outputs, rate=rate,
                            window_s=window_s, mismatch_dwell_s=dwell_s, alpha=alpha)
         self._s, self._prm, _ = rules.step_vectors(prm)

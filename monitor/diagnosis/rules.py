@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import gammaincinv
 
-from monitor.diagnosis.thresholds import DiagnosisError, Thresholds
+from monitor.diagnosis.thresholds import DiagnosisError, DiagnosisSpec, Thresholds
 from monitor.jit import JIT_DISABLED, njit
 
 __all__ = ["FLAG_CAUSES", "HEALTH_CAUSES", "NIS_BAND_FLOOR", "NO_DATA", "OUT", "PARAMS", "STATE",
@@ -127,11 +127,17 @@ def chi2_quantile(q: float, dof: float) -> float:
     return float(2.0 * gammaincinv(0.5 * dof, q))
 
 
-def params(thresholds: Thresholds, *, dwell_s: float = 0.05, hysteresis: float = 0.02,
-           outputs: int = 1, rate: float = 100.0, window_s: float = 2.0,
-           mismatch_dwell_s: float = 3.0, alpha: float = 1e-3,
-           publish_period_s: float = 0.1, silence_timeout_s: float = 0.5,
-           withhold: bool = False) -> F8:
+#: The diagnosis's defaults, declared once by `DiagnosisSpec` (a rig's ``[diagnosis]``).
+DEFAULTS = DiagnosisSpec()
+
+
+def params(thresholds: Thresholds, *, dwell_s: float = DEFAULTS.dwell_s,
+           hysteresis: float = DEFAULTS.hysteresis, outputs: int = 1, rate: float = 100.0,
+           window_s: float = DEFAULTS.mismatch_window_s,
+           mismatch_dwell_s: float = DEFAULTS.mismatch_dwell_s, alpha: float = 1e-3,
+           publish_period_s: float = 0.1,
+           silence_timeout_s: float = DEFAULTS.silence_timeout_s,
+           withhold: bool = DEFAULTS.withhold_alarms_on_mismatch) -> F8:
     """The parameter vector (`PARAMS`); raises `DiagnosisError` for a value out of range.
 
     The mismatch band is that of `MismatchDetector`: the [alpha/2, 1 - alpha/2] quantiles
