@@ -386,14 +386,22 @@ def _cmd_identify(args: argparse.Namespace) -> int:
 
     header = f"{RIG_HEADER} from {', '.join(p.name for p in paths)} (node {node})\n"
 
+    def document(ident: Identification, failed: list[Check]) -> str:
+        """The learned rig file; one that fails `failed` says so in its header."""
+        body = tomli_w.dumps(rig_document(rig, ident, out, series.input_window))
+        if not failed:
+            return header + body
+        return (header + f"# written with --force though it fails "
+                f"{', '.join(c.check for c in failed)} (see the .identify.json report "
+                "beside it)\n" + body)
+
     def check_and_write(ident: Identification, keep_failed: bool) -> list[Check]:
         """Replay the capture with `ident`'s rig; write it where it passes (or where it
         fails and `keep_failed`, saying so in the file). Returns the failed gating checks."""
-        body = tomli_w.dumps(rig_document(rig, ident, out, series.input_window))
         failed: list[Check] = []
         try:
             with atomic_output("--out", out) as tmp:
-                tmp.write_text(header + body, encoding="utf-8")
+                tmp.write_text(document(ident, []), encoding="utf-8")
                 # the monitor replays the capture with the rig as it loads from this very file
                 learned = _check_rig(tmp, out)
                 figures = replay_capture(learned, paths, node, span)
@@ -411,10 +419,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                 if failed and not keep_failed:
                     raise _NotWritten  # the temporary file goes, RIG_OUT stays as it was
                 if failed:  # the model is the same; the file says what it failed
-                    tmp.write_text(header + f"# written with --force though it fails "
-                                   f"{', '.join(c.check for c in failed)} (see the "
-                                   ".identify.json report beside it)\n" + body,
-                                   encoding="utf-8")
+                    tmp.write_text(document(ident, failed), encoding="utf-8")
         except _NotWritten:
             pass
         return failed
@@ -440,8 +445,9 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             else:
                 ident, failed = higher, []
         ident.report["order_retry"] = first
-        if failed and args.force:  # the order the data chose, written as asked
-            check_and_write(ident, keep_failed=True)
+        if failed and args.force:  # the order the data chose, written as asked (checked)
+            with atomic_output("--out", out) as tmp:
+                tmp.write_text(document(ident, failed), encoding="utf-8")
     # The report is written even for a model that is not: it is where the user sees why.
     write_text("--out", report_path, ident.to_json() + "\n")
     try:

@@ -104,3 +104,21 @@ def test_c_a_rig_without_model_is_identifys_input_only(tmp_path: Path) -> None:
     lines = rep.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in rep.stderr, rep.stderr
     assert "model: missing" in lines[0] and "motor-monitor identify" in lines[0], lines[0]
+
+
+def test_b2_forced_when_both_orders_fail_writes_the_order_the_data_chose(
+        tmp_path: Path) -> None:
+    # A black box on the capture whose noise doubles half way: the order the data chose and
+    # the one above it both fail their replay; --force writes the first, as checked.
+    cap = our_capture(tmp_path / "noisy.log", noisy_from=20.0)
+    out = tmp_path / "learned.toml"
+    res = run_identify(str(cap), "--out", str(out), "--model", "state_space", "--force",
+                       cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    report = json.loads(out.with_suffix(".identify.json").read_text())
+    retry = report["order_retry"]
+    assert retry["order"] == report["order"] and retry["next_order_failed"], retry
+    head = out.read_text().splitlines()[1]
+    assert head.startswith("# written with --force") and retry["failed"][0] in head, head
+    model = load_rig(out).model
+    assert model is not None and len(model.matrices["A"]) == report["order"]
