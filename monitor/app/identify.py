@@ -56,7 +56,14 @@ from monitor.bus.rigcodec import output_quantisation
 from monitor.errors import ERROR_LINE_LIMIT, MonitorError, UsageError, one_line
 from monitor.estimation.model import DCMotorParameters
 from monitor.files import read_user_toml, shown_path
-from monitor.identify import KINDS, Identification, IdentifyError, identify, validate
+from monitor.identify import (
+    KINDS,
+    Identification,
+    IdentifyError,
+    identify,
+    nis_calibrated,
+    validate,
+)
 from monitor.identify.core import MAX_ORDER
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
@@ -424,13 +431,29 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             pass
         return failed
 
+    def checked(ident: Identification, keep_failed: bool
+                ) -> tuple[Identification, list[Check]]:
+        """`check_and_write`; where the replay's mean NIS lies below its band, once more with
+        the noise calibrated by it (`nis_calibrated`: the monitor's filter explains the
+        capture better than the noise was fitted for), which is then the model."""
+        failed = check_and_write(ident, keep_failed)
+        replay = ident.report.get("replay", {})
+        nis, band = replay.get("mean_nis"), replay.get("nis_band")
+        if not (failed and isinstance(nis, float) and band and 0.0 < nis < band[0]):
+            return ident, failed
+        calibrated = nis_calibrated(ident, nis, [None if s is None else s[0] for s in steps]
+                                    if len(steps) == len(rig.outputs) else
+                                    [None] * len(rig.outputs))
+        calibrated.report["noise"]["calibrated"]["failed_before"] = [c.check for c in failed]
+        return calibrated, check_and_write(calibrated, keep_failed)
+
     ident = fit(args.order)
     # A black box whose order the data chose (the lowest within a margin of the best
     # hold-out fit) may fall one state short of what the monitor needs, e.g. an input that
     # arrives part way through the output's period (a fractional delay: one more state
     # holds it). One order up is tried once, through every refusal of the fit.
     retry = args.order is None and ident.kind == "state_space" and ident.order < MAX_ORDER
-    failed = check_and_write(ident, keep_failed=args.force and not retry)
+    ident, failed = checked(ident, keep_failed=args.force and not retry)
     if failed and retry:
         first: dict[str, Any] = {"order": ident.order, "failed": [c.check for c in failed]}
         try:
@@ -439,7 +462,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             first["next_order_refused"] = one_line(exc)
             higher = None
         if higher is not None:
-            failed_higher = check_and_write(higher, keep_failed=False)
+            higher, failed_higher = checked(higher, keep_failed=False)
             if failed_higher:
                 first["next_order_failed"] = [c.check for c in failed_higher]
             else:

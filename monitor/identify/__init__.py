@@ -29,9 +29,15 @@ too slow inside a fit (a Python loop per sample): `lti.dsim` runs the same recur
 through the complex Schur form and lfilter.
 """
 
-from monitor.identify.core import KINDS, Identification, identify, quantisation_floor
+from monitor.identify.core import (
+    KINDS,
+    Identification,
+    identify,
+    nis_calibrated,
+    quantisation_floor,
+)
 from monitor.identify.errors import IdentifyError
 from monitor.identify.excitation import RECORDING_ADVICE, prbs
 
-__all__ = ["KINDS", "RECORDING_ADVICE", "Identification", "IdentifyError", "identify", "prbs",
-           "quantisation_floor"]
+__all__ = ["KINDS", "RECORDING_ADVICE", "Identification", "IdentifyError", "identify",
+           "nis_calibrated", "prbs", "quantisation_floor"]
