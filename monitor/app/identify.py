@@ -62,6 +62,7 @@ from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
 from monitor.pipeline.samples import HeldInputs, held_at, input_window_of
 from monitor.rig import Rig, RigError, build_decoder
+from monitor.rig.check import motion_of, signal_units
 from monitor.rig.load import RIG_FILE_LIMIT, rate_problem
 from monitor.rig.spec import ModelSpec
 from monitor.runtime.paths import (
@@ -318,6 +319,10 @@ def rig_document(rig: Rig, ident: Identification, out: Path, input_window: float
                      R=_matrix(md.R), states=list(md.state_names))
         if np.any(md.D):
             model["D"] = _matrix(md.D)
+        if md.friction is not None:
+            fr = md.friction
+            model["friction"] = {"B": [float(v) for v in fr.B], "speed": fr.speed,
+                                 "output": fr.output, "width": fr.width}
     # the user's choices about the estimator, not learned: kept as the input rig has them
     if rig.model is not None:
         model.update(adaptive_noise=rig.model.adaptive_noise,
@@ -372,11 +377,13 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     steps = output_quantisation(options.database(args, rig), node)
     kind = model_kind(rig, args.model)
 
-    def fit(order: int | None) -> Identification:
-        ident = identify(u, y, T, kind=kind, order=order, template=template,
-                         input_names=[r.signal for r in rig.inputs],
+    def fit(order: int | None, friction: str | None = None,
+            delay: int | None = None) -> Identification:
+        ident = identify(u, y, T, kind="state_space" if friction else kind, order=order,
+                         template=template, input_names=[r.signal for r in rig.inputs],
                          output_names=[r.signal for r in rig.outputs],
-                         output_steps=steps if len(steps) == len(rig.outputs) else None)
+                         output_steps=steps if len(steps) == len(rig.outputs) else None,
+                         friction=friction, input_delay=delay)
         ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
                                    "frames": counts, "period_s": T,
                                    "segment": [seg.start, seg.stop],
@@ -425,7 +432,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     # arrives part way through the output's period (a fractional delay: one more state
     # holds it). One order up is tried once, through every refusal of the fit.
     retry = args.order is None and ident.kind == "state_space" and ident.order < MAX_ORDER
-    failed = check_and_write(ident, keep_failed=args.force and not retry)
+    forced = args.force and not retry
+    failed = check_and_write(ident, keep_failed=forced)
     if failed and retry:
         first: dict[str, Any] = {"order": ident.order, "failed": [c.check for c in failed]}
         try:
@@ -440,8 +448,32 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             else:
                 ident, failed = higher, []
         ident.report["order_retry"] = first
-        if failed and args.force:  # the order the data chose, written as asked
-            check_and_write(ident, keep_failed=True)
+    # Coulomb friction (`monitor.estimation.friction`): a drive whose speed reverses meets a
+    # torque of constant size against it, which a linear model lacks and the monitor reads
+    # as a loss at every reversal. Where the model without it fails its replay and the
+    # output is a speed or a position (its unit says which), the black box is fitted once
+    # more with the friction, the order chosen again, and checked the same way.
+    motion = _motion(rig) if failed and ident.kind == "state_space" else None
+    if motion is not None:
+        tried: dict[str, Any] = {"speed": motion, "failed": [c.check for c in failed]}
+        try:
+            with_friction: Identification | None = fit(
+                args.order, friction=motion, delay=ident.input_delay)
+        except IdentifyError as exc:
+            tried["friction_refused"] = one_line(exc)
+            with_friction = None
+        if with_friction is not None:
+            failed_friction = check_and_write(with_friction, keep_failed=False)
+            if failed_friction:
+                tried["friction_failed"] = [c.check for c in failed_friction]
+            else:
+                with_friction.report["friction_retry"] = tried
+                with_friction.report.setdefault("order_retry", ident.report.get("order_retry"))
+                ident, failed = with_friction, []
+        if failed:
+            ident.report["friction_retry"] = tried
+    if failed and args.force and not forced:  # the data's first choice, written as asked
+        check_and_write(ident, keep_failed=True)
     # The report is written even for a model that is not: it is where the user sees why.
     write_text("--out", report_path, ident.to_json() + "\n")
     try:
@@ -473,6 +505,17 @@ def _cmd_identify(args: argparse.Namespace) -> int:
               file=sys.stderr)
     print(f"wrote {out}, {reports}")
     return 0
+
+
+def _motion(rig: Rig) -> str | None:
+    """The friction's speed for the rig's one output (`motion_of` of its unit), None for
+    a rig of several outputs or an output that is no speed or position."""
+    if len(rig.outputs) != 1:
+        return None
+    try:
+        return motion_of(signal_units(rig)[1][0])
+    except MonitorError:  # a unit the decoder took but pint does not read: no friction
+        return None
 
 
 class _NotWritten(Exception):

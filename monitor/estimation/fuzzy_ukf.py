@@ -42,9 +42,20 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from monitor.estimation.bias import augmented_matrices
+from monitor.estimation.friction import friction_code, speed_row
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem
 from monitor.estimation.kernel import select_kernel
-from monitor.estimation.layout import KERNEL_LAYOUT, MODEL, OUT, PRM, RING, STATE, WORK, offsets
+from monitor.estimation.layout import (
+    FRICTION,
+    KERNEL_LAYOUT,
+    MODEL,
+    OUT,
+    PRM,
+    RING,
+    STATE,
+    WORK,
+    offsets,
+)
 from monitor.estimation.many import ManyStepping, ManySteps
 from monitor.estimation.model import (
     BIAS_WINDOW_S,
@@ -315,8 +326,15 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         if blk is not None:
             return blk
         A, B, Q, C, D = self._matrices(dt)
-        mats = {"A": A, "B": B, "Q": Q, "C": C, "D": D, "R": self.model.R}
-        flat = np.concatenate([mats[f].ravel() for f in MODEL.names])
+        n = A.shape[0]
+        fr = self.model.friction
+        F = np.zeros(n)
+        F[:self._nx] = self.model.friction_at(dt)
+        mats = {"A": A, "B": B, "Q": Q, "C": C, "D": D, "R": self.model.R, "F": F,
+                "S": speed_row(self.model.C, fr.output, n) if fr is not None else np.zeros(n),
+                "fr": np.array([friction_code(fr.speed), fr.width] if fr is not None
+                               else [0.0, 1.0])}
+        flat = np.concatenate([mats[f].ravel() for f in (*MODEL.names, *FRICTION.names)])
         # The averaging weight of the innovation (test (20), the NIS, the fuzzy input) is
         # that of one sample period even after lost samples (dt = k T): the statistic
         # chi (2 - c) / c assumes the stationary variance c / (2 - c) of the average,
