@@ -409,7 +409,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                     # a loss is added to a capture that replays fault-free: where it does
                     # not, whether the loss is reported says nothing
                     faults = fault_detection(learned, paths, node, series.t, u, series.where,
-                                             ident.report.get("innovation_std") or [1.0])
+                                             ident.report.get("innovation_std") or [1.0],
+                                             outputs=y)
                     ident.report["fault_detection"] = faults.as_dict()
                 checks = report_checks(ident.report, figures, faults)
                 ident.report["replay"] = figures.as_dict()
@@ -465,7 +466,12 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         if with_friction is not None:
             failed_friction = check_and_write(with_friction, keep_failed=False)
             if failed_friction:
-                tried["friction_failed"] = [c.check for c in failed_friction]
+                tried["friction_failed"] = {c.check: c.value for c in failed_friction}
+                tried["friction"] = with_friction.report.get("friction")
+                tried["friction_order"] = with_friction.order
+                tried["friction_fit_pct"] = with_friction.report["fit"]["nrmse_holdout_pct"]
+                tried["friction_fault_detection"] = with_friction.report.get(
+                    "fault_detection")
             else:
                 with_friction.report["friction_retry"] = tried
                 with_friction.report.setdefault("order_retry", ident.report.get("order_retry"))
