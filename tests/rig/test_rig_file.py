@@ -93,6 +93,30 @@ MISTAKES = [
         'R = [[0.01]]').replace("J = 2e-5\nb = 1e-5\nKe = 0.03\nKi = 0.03\nRa = 1.0\n"
                                 "La = 1e-3\nprocess_noise = 1e-4\noutput_sigma = 0.01\n", ""),
      "not observable"),
+    ("friction on a DC-motor model", SERVO_TEXT.replace(
+        "rate = 1000.0", "rate = 1000.0\nfriction = { B = [1.0], speed = \"output\", "
+        "width = 0.1 }"), "model.friction: only a state_space model has friction"),
+    ("friction of an unknown speed", SERVO_TEXT.replace(
+        'kind = "dc_motor"', 'kind = "state_space"\nA = [[-1.0]]\nB = [[1.0]]\n'
+        'C = [[1.0]]\nQ = [[1.0]]\nR = [[0.01]]\n'
+        'friction = { B = [1.0], speed = "velocity", width = 0.1 }').replace(
+        "J = 2e-5\nb = 1e-5\nKe = 0.03\nKi = 0.03\nRa = 1.0\n"
+        "La = 1e-3\nprocess_noise = 1e-4\noutput_sigma = 0.01\n", ""),
+     "model.friction.speed: must be one of output, rate, got 'velocity'"),
+    ("friction with a column of the wrong length", SERVO_TEXT.replace(
+        'kind = "dc_motor"', 'kind = "state_space"\nA = [[-1.0]]\nB = [[1.0]]\n'
+        'C = [[1.0]]\nQ = [[1.0]]\nR = [[0.01]]\n'
+        'friction = { B = [1.0, 2.0], speed = "output", width = 0.1 }').replace(
+        "J = 2e-5\nb = 1e-5\nKe = 0.03\nKi = 0.03\nRa = 1.0\n"
+        "La = 1e-3\nprocess_noise = 1e-4\noutput_sigma = 0.01\n", ""),
+     "model.friction: B has 2 columns, A has 1 states"),
+    ("friction without a width", SERVO_TEXT.replace(
+        'kind = "dc_motor"', 'kind = "state_space"\nA = [[-1.0]]\nB = [[1.0]]\n'
+        'C = [[1.0]]\nQ = [[1.0]]\nR = [[0.01]]\n'
+        'friction = { B = [1.0], speed = "output", width = -0.1 }').replace(
+        "J = 2e-5\nb = 1e-5\nKe = 0.03\nKi = 0.03\nRa = 1.0\n"
+        "La = 1e-3\nprocess_noise = 1e-4\noutput_sigma = 0.01\n", ""),
+     "model.friction.width: must be > 0"),
     ("outputs in two messages", SERVO_TEXT.replace(
         'outputs = [{ message = "AxisFeedback", signal = "CurrentFb", unit = "A" }]',
         'outputs = [{ message = "AxisFeedback", signal = "CurrentFb", unit = "A" }, '
