@@ -565,6 +565,12 @@ def _summary(ident: Identification, node: int, T: float, n: int) -> str:
             lines.append(f"  {label}: " + ", ".join(f"{p:.3g}" for p in rep[key]["p_value"]))
     if "identifiable" in rep:
         lines.append(f"  identifiable: {rep['identifiable']}")
+    fr = ident.model.friction
+    if fr is not None:
+        what = "rate of change" if fr.speed == "rate" else "value"
+        lines.append(f"  Coulomb friction following the output's {what} (width "
+                     f"{fr.width:.3g}), fitted where the model without it failed "
+                     f"{', '.join(rep.get('friction_retry', {}).get('failed', []))}")
     lines.append(f"  R = {json.dumps(np.asarray(ident.R).tolist())}, q = {ident.q:.4g}")
     for f in rep.get("noise", {}).get("quantisation_floor", []):
         if f["applied"]:
