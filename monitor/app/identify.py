@@ -474,7 +474,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                     "fault_detection")
             else:
                 with_friction.report["friction_retry"] = tried
-                with_friction.report.setdefault("order_retry", ident.report.get("order_retry"))
+                if "order_retry" in ident.report:
+                    with_friction.report["order_retry"] = ident.report["order_retry"]
                 ident, failed = with_friction, []
         if failed:
             ident.report["friction_retry"] = tried

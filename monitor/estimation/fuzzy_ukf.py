@@ -17,6 +17,8 @@ modules of `monitor.estimation`, each with the paper's equations it implements:
 * `structure`: what a structure event (20)-(22) does -- the onset of the change, the
   samples since processed again, a new membership function (`fuzzy`, (15)-(29)).
 * `bias`: step 8, the bias states (a load or an offset the model lacks).
+* `friction`: the model's Coulomb friction, a known input of step 2 from the model's own
+  speed (our extension, like the bias states).
 * `start`: the initial covariance and the start without an x0.
 * `many`: `FuzzyUKF.step_many`, many samples in one compiled loop.
 * `ukf`: the sigma points and the UKF (30)-(49); `fuzzy`: the rule base (15)-(29).
