@@ -30,7 +30,7 @@ from monitor.identify import validate as V
 from monitor.identify.blackbox import ORDER_MARGIN, fit_state_space, subspace_model
 from monitor.identify.dcmotor import fit_dc_motor, oe_refit
 from monitor.identify.delay import MAX_ESTIMATED_DELAY, estimate_input_delay
-from monitor.identify.errors import IdentifyError
+from monitor.identify.errors import GrowingModeError, IdentifyError
 from monitor.identify.excitation import RECORDING_ADVICE
 from monitor.identify.friction import FRICTION_ITERATIONS, friction_column, speed_estimate
 from monitor.identify.lti import dsim, integrating, kalman, predict, steady_state_x0
@@ -733,7 +733,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         # levels meets the true gain (the rig zoo's seed 6: 25 % of the swing; accepted
         # at order 5, false alarms in a healthy run and a loss of 0.3 read as 0.2).
         z, share = grown
-        raise IdentifyError(
+        raise GrowingModeError(
             f"the fitted model has a growing mode (a pole at s = {z.real:.3g}"
             f"{f' +- {abs(z.imag):.3g}j' if z.imag else ''} 1/s) that the input drives "
             f"({100 * share:.2g} % of the output's swing over the capture); no healthy drive "
