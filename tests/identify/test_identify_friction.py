@@ -61,3 +61,19 @@ def test_identify_with_friction_finds_its_size() -> None:
     assert plain.model.friction is None  # the linear fit takes the friction in part
     assert ident.report["fit"]["nrmse_holdout_pct"][0] > \
         plain.report["fit"]["nrmse_holdout_pct"][0] + 1.0
+
+
+def test_a_growing_mode_that_stood_in_for_friction_is_answered_by_it(tmp_path: Path) -> None:
+    """The rig zoo's seed 203 (a torque in, a speed out, friction 10 % of the input's level,
+    the speed one-signed): the linear fit carried the friction on a slow growing mode that
+    the input drives (4.9 % of the output's swing) and was refused for it; the friction's
+    refit (a constant phi: an input offset) fits order 1 and passes every check."""
+    rig = identify_files(203, tmp_path)
+    out = tmp_path / "learned.toml"
+    res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, "--node",
+                       str(rig.nodes[0]), cwd=tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    report = json.loads(out.with_suffix(".identify.json").read_text())
+    assert "growing mode" in report["friction_retry"]["refused"]
+    assert report["friction"]["speed"] == "output"
+    assert report["replay"]["gamma_max"] < 0.1
