@@ -42,8 +42,10 @@ from monitor.archive.engine import ENGINES, MonitorSetup, ReplaySettings, RunRec
 from monitor.bus.codec import Decoded, Rejected
 from monitor.bus.logfile import read_log
 from monitor.diagnosis import HealthState, MismatchDetector
+from monitor.estimation.friction import coulomb, friction_code, speed_row
 from monitor.identify import validate as V
 from monitor.identify.excitation import RECORDING_ADVICE
+from monitor.identify.friction import filtered_states
 from monitor.pipeline import MonitorConfig, MonitorPipeline
 from monitor.pipeline.events import Sample, SampleColumns
 from monitor.pipeline.samples import delayed, no_past
@@ -322,20 +324,37 @@ class _Lossy:
 
 
 def loss_effect(cfg: MonitorConfig, held: NDArray[np.float64], start: int, stop: int,
-                loss: float) -> NDArray[np.float64]:
+                loss: float, states: NDArray[np.float64] | None = None
+                ) -> NDArray[np.float64]:
     """The change of the model's outputs at rows start..stop-1 of held inputs `held`
     (N, m) when every actuator delivers (1 - loss) of its command from row `start` on:
     the estimator's step for row k applies the input held at row k - input_delay
-    (`monitor.pipeline.samples`) to the state it predicts for row k."""
-    dm = cfg.plant().discretize(1.0 / cfg.rate)
-    A, B, _ = dm.at(1.0 / cfg.rate)
+    (`monitor.pipeline.samples`) to the state it predicts for row k. A model with Coulomb
+    friction (`monitor.estimation.friction`) answers a loss nonlinearly: the change x_d
+    is then added to the capture's own trajectory, `states` (the filtered x(k|k) per row,
+    `monitor.identify.friction.filtered_states`), its friction phi(x + x_d) - phi(x) by
+    the estimator's rule."""
+    T = 1.0 / cfg.rate
+    dm = cfg.plant().discretize(T)
+    A, B, _ = dm.at(T)
     applied, _ = delayed(held, cfg.input_delay, no_past(held.shape[1]))
     x = np.zeros(A.shape[0])
     out = np.empty((stop - start, dm.C.shape[0]))
     D = np.asarray(getattr(dm, "D", np.zeros((dm.C.shape[0], held.shape[1]))))
+    fr = dm.friction
+    F = dm.friction_at(T)
+    S = speed_row(dm.C, fr.output, A.shape[0]) if fr is not None else F
+    code = friction_code(fr.speed) if fr is not None else 0.0
+    width = fr.width if fr is not None else 1.0
     for i, k in enumerate(range(start, stop)):
         w = -loss * applied[k]
-        x = A @ x + B @ w
+        step = B @ w
+        if fr is not None and states is not None:
+            xk = states[max(k - 1, 0)]
+            b = B @ applied[k]
+            step = step + F * (coulomb(A, b + step, xk + x, S, code, width, T)
+                               - coulomb(A, b, xk, S, code, width, T))
+        x = A @ x + step
         out[i] = dm.C @ x + D @ w
     return out
 
@@ -348,13 +367,15 @@ def added_loss(f1: float) -> float:
 
 def fault_detection(rig: Rig, paths: Sequence[Path], node: int, times: NDArray[np.float64],
                     held: NDArray[np.float64], where: Sequence[tuple[int, int]],
-                    noise_std: Sequence[float]) -> FaultFigures:
+                    noise_std: Sequence[float],
+                    outputs: NDArray[np.float64] | None = None) -> FaultFigures:
     """A loss of twice the lower threshold added to node `node`'s fitted stretch -- held
     inputs `held` (N, m) at the output samples of timestamps `times` (N,), frames `where`
     ((file index, frame number) each) -- at
     FAULT_ONSETS onsets, each stretch from WARM_S before to FAULT_S after it replayed
     through `MonitorPipeline` with `rig` (the learned rig); `noise_std` the innovations'
-    standard deviation per output, for the figures' noise units."""
+    standard deviation per output, for the figures' noise units; `outputs` (N, p) the
+    decoded outputs, for a model with friction (`loss_effect`)."""
     cfg = monitor_config(rig, nodes=(node,))
     loss = added_loss(cfg.thresholds.f1)
     N = held.shape[0]
@@ -367,9 +388,12 @@ def fault_detection(rig: Rig, paths: Sequence[Path], node: int, times: NDArray[n
     # a stretch from a single capture: frame numbers name frames within one file
     onsets = [int(j) for j in spread if where[j - warm][0] == where[j + span - 1][0]]
     sd = np.asarray(noise_std, float)
+    plant = cfg.plant()
+    states = filtered_states(plant, held, outputs, 1.0 / cfg.rate, cfg.input_delay) \
+        if plant.friction is not None and outputs is not None else None
     runs = []
     for j0 in onsets:
-        dy = loss_effect(cfg, held, j0, j0 + span, loss)
+        dy = loss_effect(cfg, held, j0, j0 + span, loss, states)
         add = {where[j][1]: dy[j - j0] for j in range(j0, j0 + span)}
         snr = float(np.sqrt(np.sum((dy[:first] / sd) ** 2)))
         runs.append((j0, _Lossy(frame_decoder(rig), node, add), snr))

@@ -17,6 +17,8 @@ modules of `monitor.estimation`, each with the paper's equations it implements:
 * `structure`: what a structure event (20)-(22) does -- the onset of the change, the
   samples since processed again, a new membership function (`fuzzy`, (15)-(29)).
 * `bias`: step 8, the bias states (a load or an offset the model lacks).
+* `friction`: the model's Coulomb friction, a known input of step 2 from the model's own
+  speed (our extension, like the bias states).
 * `start`: the initial covariance and the start without an x0.
 * `many`: `FuzzyUKF.step_many`, many samples in one compiled loop.
 * `ukf`: the sigma points and the UKF (30)-(49); `fuzzy`: the rule base (15)-(29).
@@ -42,9 +44,20 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from monitor.estimation.bias import augmented_matrices
+from monitor.estimation.friction import friction_code, speed_row
 from monitor.estimation.fuzzy import FuzzyConfig, SelfConstructingFuzzySystem
 from monitor.estimation.kernel import select_kernel
-from monitor.estimation.layout import KERNEL_LAYOUT, MODEL, OUT, PRM, RING, STATE, WORK, offsets
+from monitor.estimation.layout import (
+    FRICTION,
+    KERNEL_LAYOUT,
+    MODEL,
+    OUT,
+    PRM,
+    RING,
+    STATE,
+    WORK,
+    offsets,
+)
 from monitor.estimation.many import ManyStepping, ManySteps
 from monitor.estimation.model import (
     BIAS_WINDOW_S,
@@ -315,8 +328,15 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         if blk is not None:
             return blk
         A, B, Q, C, D = self._matrices(dt)
-        mats = {"A": A, "B": B, "Q": Q, "C": C, "D": D, "R": self.model.R}
-        flat = np.concatenate([mats[f].ravel() for f in MODEL.names])
+        n = A.shape[0]
+        fr = self.model.friction
+        F = np.zeros(n)
+        F[:self._nx] = self.model.friction_at(dt)
+        mats = {"A": A, "B": B, "Q": Q, "C": C, "D": D, "R": self.model.R, "F": F,
+                "S": speed_row(self.model.C, fr.output, n) if fr is not None else np.zeros(n),
+                "fr": np.array([friction_code(fr.speed), fr.width] if fr is not None
+                               else [0.0, 1.0])}
+        flat = np.concatenate([mats[f].ravel() for f in (*MODEL.names, *FRICTION.names)])
         # The averaging weight of the innovation (test (20), the NIS, the fuzzy input) is
         # that of one sample period even after lost samples (dt = k T): the statistic
         # chi (2 - c) / c assumes the stationary variance c / (2 - c) of the average,

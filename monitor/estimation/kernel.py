@@ -9,7 +9,8 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    the per-actuator losses gamma and f^ is built from them. When other rules fire than
    at the previous sample, gamma^ changes, and the state follows it (step 6).
 2. UKF time update (32)-(43) with the fault term: x^- = A x^ + B u + f^ (35), and the
-   sensitivity of the prior to gamma, V^- = A V - B diag(u).
+   sensitivity of the prior to gamma, V^- = A V - B diag(u). A model with Coulomb
+   friction adds its term b_f phi as a known input (`monitor.estimation.friction`).
 3. UKF measurement update (44)-(49): the innovation nu = y - y^- (the output error e of
    (20) between the plant and the fault model (53)) and its covariance P_yy.
 4. The random walk of the fault (11), (14), (54) adds q_gamma dt to the variance of
@@ -107,8 +108,18 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from monitor.estimation.friction import coulomb
 from monitor.estimation.fuzzy import fire, infer
-from monitor.estimation.layout import KERNEL_LAYOUT, MODEL, OUT, PRM, RING, STATE, WORK
+from monitor.estimation.layout import (
+    FRICTION,
+    KERNEL_LAYOUT,
+    MODEL,
+    OUT,
+    PRM,
+    RING,
+    STATE,
+    WORK,
+)
 from monitor.estimation.ukf import mat_vec_add, spd_inverse, ukf_predict, ukf_update
 from monitor.jit import njit
 
@@ -128,6 +139,8 @@ _NOISE_CLIP = 9.0
 # numba compiles in as constants. numba keys its cache by this file's source, so an edit of
 # the tables (which changes `KERNEL_LAYOUT`) must come with an edit here to be recompiled.
 (_A, _B, _Q, _C, _D, _R) = MODEL.at_each("A", "B", "Q", "C", "D", "R")
+_MODEL_END = MODEL.at("R") + 1  # the model block's size: its FRICTION follows
+(_F, _S, _FR) = FRICTION.at_each("F", "S", "fr")
 (_DT, _DELTA, _WI, _QG, _VMAX, _NISC, _VREOPEN, _THR, _MODE, _SHARE, _SLOT, _VRULE, _LO, _HI,
  _NOISEC) = PRM.at_each(
     "dt", "delta", "wi", "q_gamma", "var_max", "nis_coef", "var_reopen", "nis_threshold",
@@ -183,13 +196,13 @@ def fuzzy_ukf_step(
 ) -> None:
     """One sample of the fuzzy UKF, steps 0-7 of the module docstring, on flat buffers.
 
-    mdl: a `MODEL` block; prm: the sample's `PRM` (mode 0: no structure test, the dwell
-    time; 1: test, stats[3] = 1 when it fires; 2: a structure event at the start of this
-    sample, the caller re-processes from the onset of a change; slot: this sample's place
-    in the onset ring); st: the `STATE`, then the ring of `RING` slots; out: `OUT`; wk:
-    `WORK`; lay: `monitor.estimation.layout.offsets` (n, m, p). centres .. rule_w: the
-    rule base (`SelfConstructingFuzzySystem`) over the plant's states, the first
-    centres.shape[0] entries of z.
+    mdl: a `MODEL` block, its `FRICTION` after it; prm: the sample's `PRM` (mode 0: no
+    structure test, the dwell time; 1: test, stats[3] = 1 when it fires; 2: a structure
+    event at the start of this sample, the caller re-processes from the onset of a change;
+    slot: this sample's place in the onset ring); st: the `STATE`, then the ring of `RING`
+    slots; out: `OUT`; wk: `WORK`; lay: `monitor.estimation.layout.offsets` (n, m, p).
+    centres .. rule_w: the rule base (`SelfConstructingFuzzySystem`) over the plant's
+    states, the first centres.shape[0] entries of z.
     """
     # ---- views into the flat buffers, by the offsets of `monitor.estimation.layout`
     # (slices and reshapes allocate nothing)
@@ -199,6 +212,10 @@ def fuzzy_ukf_step(
     C = _mat(mdl, lay, _C, 0, p, n)
     D = _mat(mdl, lay, _D, 0, p, m)
     R = _mat(mdl, lay, _R, 0, p, p)
+    fb = lay[_MODEL_END]
+    Fc = _vec(mdl, lay, _F, fb)
+    Sf = _vec(mdl, lay, _S, fb)
+    fr = _vec(mdl, lay, _FR, fb)
     dt = prm[lay[_DT]]
     delta = prm[lay[_DELTA]]
     wi = prm[lay[_WI]]
@@ -349,6 +366,12 @@ def fuzzy_ukf_step(
             f -= B[r, a] * u[a] * gamma[a]
         b[r] = acc
         fhat[r] = f
+    # Coulomb friction (`monitor.estimation.friction`, (1)): a known input of the step,
+    # from the speed the model predicts over it
+    phi = coulomb(A, b, x, Sf, fr[0], fr[1], dt)
+    if phi != 0.0:
+        for r in range(n):
+            b[r] += Fc[r] * phi
     for r in range(p):
         yoff[r] = 0.0
     mat_vec_add(D, uf, 1.0, yoff)

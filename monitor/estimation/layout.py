@@ -3,7 +3,8 @@
 The step kernel (`monitor.estimation.kernel`) runs on flat float64 buffers allocated once
 per estimator, so that a sample allocates nothing:
 
-* `MODEL`: one block per distinct step dt, the ZOH model (63)-(65) of the filter's state.
+* `MODEL`: one block per distinct step dt, the ZOH model (63)-(65) of the filter's state,
+  followed in the same block by its `FRICTION` (`monitor.estimation.friction`).
 * `PRM`: the scalars of a sample (dt, the sigma-point weights (33)-(43), the tuning, the
   per-actuator bounds of (28)).
 * `STATE`: the filter's state between samples; followed in the same buffer by the onset
@@ -31,6 +32,7 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 __all__ = [
+    "FRICTION",
     "KERNEL_LAYOUT",
     "MODEL",
     "OUT",
@@ -136,6 +138,13 @@ def _tables() -> tuple[Table, ...]:
                   ("yoff", "p"), ("nu", "p"), ("Pq", "n", "n"), ("St", "p", "p"),
                   ("Sti", "p", "p"), ("Vp", "n", "m"), ("M", "p", "m"), ("Ra", "p", "p"),
                   *UKF_SCRATCH]),
+        # the Coulomb friction of one step (`monitor.estimation.friction`), packed into the
+        # model block after MODEL's fields: the step's column of phi, the speed's row over
+        # the states and [code, width] (code 0: none). Last of the tables, so that adding
+        # it moved no offset of the others: numba's cache keeps a module's compiled
+        # functions, with the offsets they read frozen in, until that module's own file
+        # changes (a layout module edited alone leaves them stale)
+        ("FRICTION", [("F", "n"), ("S", "n"), ("fr", "2")]),
     ]
     out: list[Table] = []
     base = 0
@@ -146,7 +155,7 @@ def _tables() -> tuple[Table, ...]:
 
 
 TABLES = _tables()
-MODEL, PRM, STATE, RING, OUT, WORK = TABLES
+MODEL, PRM, STATE, RING, OUT, WORK, FRICTION = TABLES
 
 
 def offsets(n: int, m: int, p: int) -> IntArray:
@@ -156,8 +165,9 @@ def offsets(n: int, m: int, p: int) -> IntArray:
 
 
 # What the buffers mean beyond their fields' order and sizes (bump it when that changes:
-# 6, the layout of these tables; 5 added the bias states after the plant's in x, P, V, z).
-_SEMANTICS = 6
+# 7 added the FRICTION table after the model block; 6, the layout of these tables; 5 added
+# the bias states after the plant's in x, P, V, z).
+_SEMANTICS = 7
 
 
 

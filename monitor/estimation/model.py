@@ -63,6 +63,7 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from monitor.errors import MonitorError, one_line
+from monitor.estimation.friction import FRICTION_SPEEDS, Friction
 from monitor.estimation.layout import RING
 
 Array = NDArray[np.float64]
@@ -319,6 +320,32 @@ def _validate(model: _Descriptor, Q: object) -> dict[str, object]:
     _check_regular(Ea, Aa)
     return {"E": Ea, "A": Aa, "B": Ba, "C": Ca, "D": Da, "Q": Qa, "R": Ra, "state_names": sts,
             "input_names": ins, "output_names": outs, "fault_inputs": faults}
+
+
+def _checked_friction(model: ContinuousDescriptor, fr: Friction) -> Friction:
+    """`fr` normalised against the validated `model`, or one ModelError line (key
+    "friction") saying what is wrong with it (`monitor.estimation.friction`, (1))."""
+    n, p = model.A.shape[0], model.C.shape[0]
+    if fr.speed not in FRICTION_SPEEDS:
+        raise ModelError(f"speed must be one of {', '.join(FRICTION_SPEEDS)}, got "
+                         f"{fr.speed!r}", "friction")
+    if isinstance(fr.output, bool) or not isinstance(fr.output, int) \
+            or not 0 <= fr.output < p:
+        raise ModelError(f"output must be an output index from 0 to {p - 1}, got "
+                         f"{fr.output!r}", "friction")
+    width = fr.width
+    if isinstance(width, bool) or not isinstance(width, (int, float)) \
+            or not (math.isfinite(width) and 0.0 < width < MAX_ENTRY):
+        raise ModelError(f"width must be a positive number, got {width!r}", "friction")
+    try:
+        b = _as_matrix("B", fr.B, 1, n, "a list of one number per state",
+                       f"A has {n} states")[0]
+    except ModelError as exc:
+        raise ModelError(str(exc), "friction") from None
+    if np.linalg.matrix_rank(model.E) < n:
+        raise ModelError("needs an invertible E (a singular E's algebraic states have no "
+                         "friction)", "friction")
+    return Friction(B=b.copy(), speed=fr.speed, output=int(fr.output), width=float(width))
 
 
 def van_loan(A: Array, Qc: Array, T: float) -> Array:
@@ -785,9 +812,12 @@ class ContinuousDescriptor(_Descriptor):
     output_names: tuple[str, ...] = ()
     D: Array = field(default_factory=_empty)
     fault_inputs: FaultInputs = None
+    friction: Friction | None = None
 
     def __post_init__(self) -> None:
         self._validate_into("Qc")
+        if self.friction is not None:
+            object.__setattr__(self, "friction", _checked_friction(self, self.friction))
 
     def noise_standard_form(self) -> Array:
         """Process-noise intensity on the reduced (dynamic) states."""
@@ -1098,6 +1128,24 @@ class DiscreteModel:
         A, B, Q, _, _ = self.full_at(dt)
         return A, B, Q
 
+    @property
+    def friction(self) -> Friction | None:
+        """The model's Coulomb friction (`monitor.estimation.friction`), None without."""
+        return self.continuous.friction
+
+    def friction_at(self, dt: float) -> Array:
+        """The zero-order hold of the friction's column b_f over a step of dt on the
+        observable states (zeros without friction): the step's response to phi of (1)
+        held over it, as `at` gives B for the inputs."""
+        fr = self.continuous.friction
+        if fr is None:
+            return np.zeros(self.n)
+        ss = self._ss
+        Ef = np.asarray(np.linalg.solve(self.continuous.E, fr.B)[:, None], dtype=np.float64)
+        with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+            _, Fd = zoh(ss.A, Ef, dt)
+        return np.ascontiguousarray(self.Wobs @ Fd[:, 0])
+
     def bias_plan(self, mode: str, window: float) -> BiasPlan:
         """The slowly varying biases the estimator adds to its state for `mode` (one of
         BIAS_MODES), each observable with the model's state (see `BiasPlan`), computed once
@@ -1195,6 +1243,7 @@ def model_from_matrices(
     state_names: Sequence[str] | None = None,
     input_names: Sequence[str] | None = None,
     output_names: Sequence[str] | None = None,
+    friction: Friction | None = None,
 ) -> DiscreteModel:
     """The estimator's model from plain matrices (nested lists as read from a rig file).
 
@@ -1203,7 +1252,8 @@ def model_from_matrices(
     E x(k+1) = A x(k) + B u_F(k) + w(k) at period T with Q per period, converted by the
     inverse zero-order hold (`DiscreteDescriptor`). E (identity) and D (zeros) are optional;
     `fault_inputs` are actuator indices or input names (all by default); names default to
-    x1.., u/u1.., y/y1... Any problem raises a one-line ModelError naming the matrix.
+    x1.., u/u1.., y/y1... `friction`: Coulomb friction (`monitor.estimation.friction`), of
+    the continuous domain only. Any problem raises a one-line ModelError naming the matrix.
     """
     if domain not in ("continuous", "discrete"):
         raise ModelError(f"model domain must be 'continuous' or 'discrete', got {domain!r}")
@@ -1219,7 +1269,10 @@ def model_from_matrices(
             E=cast(Array, E), A=cast(Array, A), B=cast(Array, B), C=cast(Array, C),
             Qc=cast(Array, Q), R=cast(Array, R), D=cast(Array, D), state_names=sts,
             input_names=ins, output_names=outs, fault_inputs=fault_inputs,
+            friction=friction,
         ).discretize(T)
+    if friction is not None:
+        raise ModelError("friction is given in continuous time: use domain \"continuous\"")
     return DiscreteModel.from_discrete(A, B, C, Q, R, T, D=D, E=E, state_names=sts,
                                        input_names=ins, output_names=outs,
                                        fault_inputs=fault_inputs)

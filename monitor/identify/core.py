@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
 from monitor.errors import one_line
+from monitor.estimation.friction import Friction
 from monitor.estimation.fuzzy_ukf import FuzzyUKF
 from monitor.estimation.model import (
     ContinuousDescriptor,
@@ -29,8 +30,9 @@ from monitor.identify import validate as V
 from monitor.identify.blackbox import ORDER_MARGIN, fit_state_space, subspace_model
 from monitor.identify.dcmotor import fit_dc_motor, oe_refit
 from monitor.identify.delay import MAX_ESTIMATED_DELAY, estimate_input_delay
-from monitor.identify.errors import IdentifyError
+from monitor.identify.errors import GrowingModeError, IdentifyError
 from monitor.identify.excitation import RECORDING_ADVICE
+from monitor.identify.friction import FRICTION_ITERATIONS, friction_column, speed_estimate
 from monitor.identify.lti import dsim, integrating, kalman, predict, steady_state_x0
 from monitor.identify.noise import process_noise_scale
 from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, fit_rows, no_past
@@ -180,8 +182,11 @@ def _fit_motor(u: Array, y: Array, T: float, template: DCMotorParameters,
 
 
 def _fit_black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
-                   names: tuple[tuple[str, ...], tuple[str, ...]]) -> _Candidate:
-    """The black box fitted on the first ntr rows; the rest chooses its order."""
+                   names: tuple[tuple[str, ...], tuple[str, ...]],
+                   fault_inputs: tuple[int, ...] | None = None) -> _Candidate:
+    """The black box fitted on the first ntr rows; the rest chooses its order.
+    `fault_inputs`: the inputs that may lose effectiveness (None: all; the friction's
+    phi is a known input, `_friction_box`)."""
     advice = ("the black-box fit found no usable model: record a longer capture with the "
               "input varying more (steps or a PRBS), or give --order")
     try:
@@ -191,7 +196,7 @@ def _fit_black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
         model = ContinuousDescriptor(
             E=np.eye(n), A=Ac, B=Bc, C=C, Qc=Qc, R=fit.R,
             state_names=tuple(f"x{i + 1}" for i in range(n)), input_names=names[0],
-            output_names=names[1])
+            output_names=names[1], fault_inputs=fault_inputs)
     except IdentifyError:
         raise
     except NUMERIC_FAILURES as exc:  # ModelError (a NaN noise intensity, say) included
@@ -258,6 +263,55 @@ def _black_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
                                              "why": one_line(first, 300)}
             return other, ev, tr
         raise
+
+
+def _friction_box(held: Array, y_held: Array, delay: int, ntr: int, T: float,
+                  order: int | None, names: tuple[tuple[str, ...], tuple[str, ...]],
+                  speed: str) -> tuple[_Candidate, dict[str, Any], dict[str, Array], Array,
+                                       dict[str, Any]]:
+    """The black box with Coulomb friction (`monitor.identify.friction`): the linear fit,
+    then FRICTION_ITERATIONS refits with the friction's phi (from the previous model's
+    filter) as a known last input. Returns the candidate (its model's last input the
+    friction), its evaluation, traces, the held inputs with phi appended (rows as
+    `held`) and the report's "friction" entry."""
+    m = held.shape[1]
+    u, y, _ = fit_rows(held, y_held, delay)
+    cand = _fit_black_box(u, y, ntr, T, order, names)
+    _, width = speed_estimate(cand.model, held, y_held, T, delay, speed)
+    names_f = (names[0] + ("friction",), names[1])
+    fits: list[float] = []
+    held_f = held
+    for _ in range(FRICTION_ITERATIONS):
+        held_f = np.column_stack([held, friction_column(cand.model, m, held, y_held, T,
+                                                        delay, speed, width)])
+        u_f, y_f, _ = fit_rows(held_f, y_held, delay)
+        cand = _fit_black_box(u_f, y_f, ntr, T, order, names_f,
+                              fault_inputs=tuple(range(m)))
+        fits.append(float(cand.extra["order_selection"]["holdout_fit_pct"][str(cand.order)]))
+    u_f, y_f, _ = fit_rows(held_f, y_held, delay)
+    ev, tr = _evaluate(cand.model, u_f, y_f, ntr, T)
+    if ev["dc_gain"] is not None:  # the settled output's loss: the rig's inputs only
+        ev["steady_state_loss"] = _steady_state_loss([row[:m] for row in ev["dc_gain"]],
+                                                     u_f[:, :m], ev["innovation_std"])
+    info = {"speed": speed, "width": width, "iterations": FRICTION_ITERATIONS,
+            "holdout_fit_pct_per_iteration": fits,
+            "phi_mean": float(np.mean(held_f[:, m])),
+            "phi_sign_changes": int(np.count_nonzero(np.diff(np.sign(held_f[:, m])))),
+            "rule": "Coulomb friction b_f phi, phi = -tanh(v / width), v the model's "
+                    "speed over the step; fitted by refitting with phi from the previous "
+                    "model's filter"}
+    return cand, ev, tr, held_f, info
+
+
+def _without_friction_input(model: ContinuousDescriptor, m: int, friction: Friction
+                            ) -> ContinuousDescriptor:
+    """The model whose last input (m, the friction's phi) becomes its `friction`."""
+    return ContinuousDescriptor(
+        E=model.E, A=model.A, B=model.B[:, :m], C=model.C, Qc=model.Qc, R=model.R,
+        state_names=model.state_names, input_names=model.input_names[:m],
+        output_names=model.output_names, D=model.D[:, :m],
+        fault_inputs=tuple(a for a in model.faults if a < m),
+        friction=replace(friction, B=model.B[:, m].copy()))
 
 
 MOTOR_ADVICE = ("the DC-motor model needs the armature voltage as input and the armature "
@@ -506,6 +560,7 @@ def identify(
     run_filter: bool = True,
     input_delay: int | None = None,
     output_steps: Sequence[tuple[float, str] | None] | None = None,
+    friction: str | None = None,
 ) -> Identification:
     """Identify a model of one node from a healthy capture of inputs u (N, m) and outputs
     y (N, p) sampled every T seconds.
@@ -531,6 +586,9 @@ def identify(
     is not (a float-coded signal): the learned R is floored at step^2 / 12
     (`quantisation_floor`) before the model is evaluated, so every figure of the report is
     the returned model's.
+    `friction` ("output": the output is a speed; "rate": a position; None: none) fits the
+    black box with Coulomb friction (`monitor.estimation.friction`, `_friction_box`), of one
+    output only; the model's `friction` then holds it and the report's "friction" says how.
 
     report keys: fit (hold-out and training NRMSE %, by simulation), whiteness (innovation
     autocorrelation, 99 % band, Ljung-Box p), cross_correlation (innovation x input, band,
@@ -555,7 +613,7 @@ def identify(
         try:
             ident = _identify(u, y, T, kind, order, holdout, template or DCMotorParameters(),
                               input_names, output_names, run_filter, input_delay,
-                              output_steps)
+                              output_steps, friction)
         except IdentifyError:
             raise
         except NUMERIC_FAILURES as exc:  # a degenerate record no check above foresaw
@@ -571,7 +629,8 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
               holdout: float, template: DCMotorParameters, input_names: Sequence[str] | None,
               output_names: Sequence[str] | None, run_filter: bool,
               input_delay: int | None = None,
-              output_steps: Sequence[tuple[float, str] | None] | None = None
+              output_steps: Sequence[tuple[float, str] | None] | None = None,
+              friction: str | None = None,
               ) -> Identification:
     requested = kind
     if kind not in KINDS:
@@ -629,7 +688,17 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                     ev["fit"]["nrmse_holdout_pct"][0] >= V.MIN_FIT:
                 auto_note["reason"] = "dc_motor residuals independent of the input"
                 kind = "dc_motor"
-    if kind == "state_space" or kind == "auto":
+    friction_info: dict[str, Any] | None = None
+    if friction is not None:
+        if kind != "state_space" or p != 1:
+            raise IdentifyError("friction is fitted for a state_space model of one output")
+        c, ev, tr, held, friction_info = _friction_box(held, y_held, delay["samples"], ntr, T,
+                                                       order, names, friction)
+        cands.append((c, ev, tr))
+        # every figure below is the friction model's, its phi a known input
+        u, y, rows = fit_rows(held, y_held, delay["samples"])
+        utr, ytr = u[:ntr], y[:ntr]
+    elif kind == "state_space" or kind == "auto":
         try:
             c, ev, tr = _black_box(u, y, ntr, T, order, names)
         except IdentifyError as exc:
@@ -689,7 +758,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         # levels meets the true gain (the rig zoo's seed 6: 25 % of the swing; accepted
         # at order 5, false alarms in a healthy run and a loss of 0.3 read as 0.2).
         z, share = grown
-        raise IdentifyError(
+        raise GrowingModeError(
             f"the fitted model has a growing mode (a pole at s = {z.real:.3g}"
             f"{f' +- {abs(z.imag):.3g}j' if z.imag else ''} 1/s) that the input drives "
             f"({100 * share:.2g} % of the output's swing over the capture); no healthy drive "
@@ -737,17 +806,25 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         **cand.extra,
     }
     report["input_delay"] = delay
+    model = cand.model
+    if friction_info is not None:
+        report["friction"] = friction_info
+        report["inputs"] = list(names[0])
+        model = _without_friction_input(model, m, Friction(
+            B=np.zeros(0), speed=friction_info["speed"], output=0,
+            width=friction_info["width"]))
+        friction_info["B"] = _floats(model.friction.B if model.friction else np.zeros(0))
     if requested == "auto":
         report["auto"] = auto_note
     if run_filter:
         t = time.perf_counter()
-        report["fuzzy_ukf"] = _fuzzy_ukf(cand.model, held, y_held, rows.start + ntr, T,
+        report["fuzzy_ukf"] = _fuzzy_ukf(model, held[:, :m], y_held, rows.start + ntr, T,
                                          delay["samples"])
         timing["fuzzy_ukf"] = time.perf_counter() - t
     report["timing_s"] = timing
     if motor_failed is not None:
         _log.warning("auto: %s; the black box is used", motor_failed)
-    return Identification(model=cand.model, q=cand.q, Qc=cand.model.Qc, R=cand.model.R, T=T,
+    return Identification(model=model, q=cand.q, Qc=model.Qc, R=model.R, T=T,
                           kind=cand.kind, order=cand.order, motor=cand.motor, report=report,
                           traces=traces, input_delay=delay["samples"])
 

@@ -80,6 +80,22 @@ def _unknown(unit: str) -> str | None:
     return None
 
 
+def motion_of(unit: str | None) -> str | None:
+    """What a unit says of a drive's motion, for the friction's speed
+    (`monitor.estimation.friction`): "output" for a speed (rad/s, rpm, m/s: an inverse time
+    or a length per time), "rate" for a position (an angle -- dimensionless in pint -- or a
+    length), None for anything else (a current, a torque) or no unit."""
+    written = _written(unit)
+    if written is None or written in _PLAIN or _unknown(written) is not None:
+        return None
+    dim = dict(_units().parse_units(written).dimensionality)
+    if dim in ({"[time]": -1.0}, {"[length]": 1.0, "[time]": -1.0}):
+        return "output"
+    if dim in ({}, {"[length]": 1.0}):
+        return "rate"
+    return None
+
+
 def unit_factor(dbc_unit: str | None, model_unit: str | None) -> float:
     """The factor from a DBC signal's unit to the unit the model wants (pint); 1 where
     either is missing or they are the same. `ValueError` (one line) if the two do not
@@ -533,10 +549,17 @@ def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
             params = replace(DCMotorParameters(), **spec.motor)
             return dc_motor(params, q=spec.process_noise, r=spec.output_sigma[0] ** 2,
                             speed_noise_ratio=spec.speed_noise_ratio)
+        import numpy as np
+
+        from monitor.estimation.friction import Friction
         from monitor.estimation.model import model_from_matrices
 
+        fr = spec.friction
         return model_from_matrices(
             domain=spec.domain, T=1.0 / rate, fault_inputs=spec.fault_inputs,
+            friction=None if fr is None else Friction(
+                B=np.asarray(fr.B, dtype=float), speed=fr.speed, output=fr.output,
+                width=fr.width),
             state_names=spec.state_names or None,
             input_names=tuple(r.signal for r in rig.inputs),
             output_names=tuple(r.signal for r in rig.outputs),

@@ -15,6 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, TypeVar
 
+from monitor.estimation.friction import FRICTION_SPEEDS
 from monitor.estimation.model import BIAS_MODES
 from monitor.files import MIB, UserFileError, read_user_toml, shown_path, user_file_problem
 from monitor.pipeline.samples import input_delay_problem, input_window_problem
@@ -23,6 +24,7 @@ from monitor.rig.errors import NO_MODEL, RigError
 from monitor.rig.spec import (
     CanopenSpec,
     DiagnosisSpec,
+    FrictionSpec,
     LayoutSpec,
     ModelSpec,
     ProtectionSpec,
@@ -389,6 +391,9 @@ def _model(t: _Table, m: int, p: int, fail: Callable[[str, str], RigError]
 def _model_kind(t: _Table, kind: str, rate: float, m: int, p: int,
                 fail: Callable[[str, str], RigError]) -> tuple[ModelSpec, float]:
     if kind == "dc_motor":
+        if "friction" in t.data:
+            raise fail("model.friction", "only a state_space model has friction (its column "
+                       "B gives one number per state)")
         if (m, p) != (1, 1):
             raise fail("model.kind", f"dc_motor has one input and one output; the rig "
                        f"names {m} input(s) and {p} output(s)")
@@ -420,10 +425,31 @@ def _model_kind(t: _Table, kind: str, rate: float, m: int, p: int,
         names = t.take("states", list, [])
         if not all(isinstance(v, str) for v in names):
             raise fail("model.states", "must be an array of names")
+        friction = _friction(t.table("friction"), p) if "friction" in t.data else None
         return ModelSpec("state_space", domain=domain,
                          matrices=matrices, fault_inputs=faults,
-                         state_names=tuple(names)), rate
+                         state_names=tuple(names), friction=friction), rate
     raise fail("model.kind", f"must be dc_motor or state_space, got {kind!r}")
+
+
+def _friction(t: _Table, p: int) -> FrictionSpec:
+    """`[model.friction]` (`FrictionSpec`); the length of B against the states is the
+    model's check (`monitor.estimation.model`)."""
+    b = t.take("B", list)
+    if not b or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in b):
+        raise t.fail(t.key("B"), "must be an array of numbers, one per state")
+    speed = t.take("speed", str)
+    if speed not in FRICTION_SPEEDS:
+        raise t.fail(t.key("speed"), f"must be one of {', '.join(FRICTION_SPEEDS)}, got "
+                     f"{speed!r}")
+    output = t.take("output", int, 0)
+    if not 0 <= output < p:
+        raise t.fail(t.key("output"), f"must be an output index from 0 to {p - 1}, got "
+                     f"{output}")
+    width = t.number("width", positive=True)
+    t.done()
+    return FrictionSpec(B=tuple(float(v) for v in b), speed=speed, output=output,
+                        width=width)
 
 
 SILENT_PERIODS = 2

@@ -98,6 +98,19 @@ class ProtectionSpec:
 
 
 @dataclass(frozen=True)
+class FrictionSpec:
+    """`[model.friction]` of a state_space model: Coulomb friction
+    (`monitor.estimation.friction`): its column `B` (one number per state), the `speed` it
+    follows ("output": the output is a speed; "rate": the output's rate of change, a
+    position), the `output` it is read from (index) and the `width` within which it fades."""
+
+    B: tuple[float, ...]
+    speed: str
+    output: int
+    width: float
+
+
+@dataclass(frozen=True)
 class ModelSpec:
     """The plant model of every node: the DC motor's physical parameters (`dc_motor`), or
     matrices (`state_space`, continuous or discrete, descriptor E optional); `input_delay`:
@@ -107,7 +120,8 @@ class ModelSpec:
     module, rule 1); `adaptive_noise`: the estimator learns output noise above
     R from its innovations over `noise_window_s` (`monitor.estimation.fuzzy_ukf`, step 5b);
     `bias`: the estimator's bias states for a load or an offset the model lacks ("auto",
-    "none", "input", "output"; `monitor.estimation.fuzzy_ukf`, step 8)."""
+    "none", "input", "output"; `monitor.estimation.fuzzy_ukf`, step 8); `friction`: a
+    state_space model's Coulomb friction (`FrictionSpec`), None without."""
 
     kind: ModelKind = "dc_motor"
     motor: Mapping[str, float] = field(default_factory=dict)  # J, b, Ke, Ki, Ra, La
@@ -123,6 +137,7 @@ class ModelSpec:
     adaptive_noise: bool = True
     noise_window_s: float = 2.0
     bias: str = "auto"
+    friction: FrictionSpec | None = None
 
 
 @dataclass(frozen=True)

@@ -5,19 +5,25 @@ rig zoo's seed 6: current -> speed, an actuator saturating at the top of a two-l
 input; the model of order 5 had a pole at s = +0.0056 1/s, passed every check of its own
 capture, and in fresh runs at other input levels raised a false alarm and read a loss of
 0.3 as 0.2). One that carries an offset alone, on its initial state, is kept (a sensor
-offset with friction gives one)."""
+offset with friction gives one). Where the output is a speed or a position, identify
+answers the refusal with a fit with Coulomb friction (`monitor.identify.friction`)."""
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from monitor.app import options
+from monitor.app.cli import build_parser
+from monitor.app.identify import collect, fit_series
 from monitor.estimation.model import ContinuousDescriptor
-from monitor.identify import prbs
+from monitor.identify import identify, prbs
 from monitor.identify.core import MAX_GROWING_SHARE, _growing_input_share
+from monitor.identify.errors import GrowingModeError
 from monitor.identify.lti import c2d, dsim
 from tests.bench.zoo.gen import identify_files
 from tests.support.identify import run_identify
@@ -70,13 +76,34 @@ def test_a_growing_mode_that_carries_an_offset_alone_is_below_the_limit() -> Non
     assert grown is not None and grown[1] < MAX_GROWING_SHARE
 
 
+def _series(d: Path) -> tuple[np.ndarray, np.ndarray, float]:
+    """The rows identify fits from the capture in `d` (identify.log, rig.toml)."""
+    args = build_parser().parse_args(["identify", str(d / "identify.log"), "--rig",
+                                      str(d / "rig.toml"), "--out", str(d / "x.toml")])
+    rig = options.rig(args, model_optional=True)
+    paths = [d / "identify.log"]
+    nodes, counts = collect(args, rig, paths)
+    node = next(iter(nodes))
+    series = fit_series(nodes[node], node, paths, counts)
+    return series.u, series.y, series.T
+
+
 def test_the_zoo_rig_that_needs_one_is_refused_in_one_line(tmp_path: Path) -> None:
+    """The linear fit of seed 6 is refused; identify then answers the growing mode with
+    the friction's refit (a speed output), whose constant term carries the offset the
+    saturated gain needs, and writes that model (the rig zoo diagnoses it right)."""
     identify_files(6, tmp_path)
+    u, y, T = _series(tmp_path)
+    with pytest.raises(GrowingModeError) as err:
+        identify(u, y, T, kind="state_space", run_filter=False)
+    line = str(err.value)
+    assert "\n" not in line
+    assert re.search(r"growing mode \(a pole at s = [0-9.]+ 1/s\) that the input drives "
+                     r"\([0-9.e+]+ % of the output's swing", line), line
+    assert "several levels" in line
     out = tmp_path / "learned.toml"
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, cwd=tmp_path)
-    assert res.returncode != 0, res.stdout + res.stderr
-    lines = [x for x in res.stderr.strip().splitlines() if "WARNING" not in x]
-    assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
-    assert re.search(r"growing mode \(a pole at s = [0-9.]+ 1/s\) that the input drives "
-                     r"\([0-9.e+]+ % of the output's swing", lines[0]), lines[0]
-    assert "several levels" in lines[0] and not out.exists()
+    assert res.returncode == 0, res.stdout + res.stderr
+    report = json.loads(out.with_suffix(".identify.json").read_text())
+    assert "growing mode" in report["friction_retry"]["refused"]
+    assert report["friction"]["speed"] == "output"
