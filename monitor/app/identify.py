@@ -33,6 +33,7 @@ import logging
 import math
 import sys
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -456,6 +457,18 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         calibrated.report["noise"]["calibrated"]["failed_before"] = [c.check for c in failed]
         return calibrated, check_and_write(calibrated, keep_failed)
 
+    def attempt(make: Callable[[], Identification], note: dict[str, Any], name: str
+                ) -> tuple[Identification, list[Check]] | None:
+        """Another fit where the first failed its checks, checked the same way: it and
+        its failed checks, or None where the fit itself is refused (`note[name_refused]`
+        says why)."""
+        try:
+            other = make()
+        except IdentifyError as exc:
+            note[f"{name}_refused"] = one_line(exc)
+            return None
+        return checked(other, keep_failed=False)
+
     grown: GrowingModeError | None = None
     try:
         ident = fit(args.order)
@@ -487,17 +500,12 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         ident, failed = checked(ident, keep_failed=forced)
         if failed and retry:
             first: dict[str, Any] = {"order": ident.order, "failed": [c.check for c in failed]}
-            try:
-                higher: Identification | None = fit(ident.order + 1)
-            except IdentifyError as exc:
-                first["next_order_refused"] = one_line(exc)
-                higher = None
-            if higher is not None:
-                higher, failed_higher = checked(higher, keep_failed=False)
-                if failed_higher:
-                    first["next_order_failed"] = [c.check for c in failed_higher]
-                else:
-                    ident, failed = higher, []
+            order_up = ident.order + 1
+            higher = attempt(lambda: fit(order_up), first, "next_order")
+            if higher is not None and higher[1]:
+                first["next_order_failed"] = [c.check for c in higher[1]]
+            elif higher is not None:
+                ident, failed = higher[0], []
             ident.report["order_retry"] = first
         # Coulomb friction (`monitor.estimation.friction`): a drive whose speed reverses meets a
         # torque of constant size against it, which a linear model lacks and the monitor reads
@@ -507,14 +515,11 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         motion = _motion(rig) if failed and ident.kind == "state_space" else None
         if motion is not None:
             tried: dict[str, Any] = {"speed": motion, "failed": [c.check for c in failed]}
-            try:
-                with_friction: Identification | None = fit(
-                    args.order, friction=motion, delay=ident.input_delay)
-            except IdentifyError as exc:
-                tried["friction_refused"] = one_line(exc)
-                with_friction = None
-            if with_friction is not None:
-                with_friction, failed_friction = checked(with_friction, keep_failed=False)
+            delay = ident.input_delay
+            refit = attempt(lambda: fit(args.order, friction=motion, delay=delay), tried,
+                            "friction")
+            if refit is not None:
+                with_friction, failed_friction = refit
                 if failed_friction:
                     tried["friction_failed"] = {c.check: c.value for c in failed_friction}
                     tried["friction"] = with_friction.report.get("friction")

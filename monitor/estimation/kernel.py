@@ -110,16 +110,7 @@ from numpy.typing import NDArray
 
 from monitor.estimation.friction import coulomb
 from monitor.estimation.fuzzy import fire, infer
-from monitor.estimation.layout import (
-    FRICTION,
-    KERNEL_LAYOUT,
-    MODEL,
-    OUT,
-    PRM,
-    RING,
-    STATE,
-    WORK,
-)
+from monitor.estimation.layout import FRICTION, KERNEL_LAYOUT, MODEL, OUT, PRM, RING, STATE, WORK
 from monitor.estimation.ukf import mat_vec_add, spd_inverse, ukf_predict, ukf_update
 from monitor.jit import njit
 

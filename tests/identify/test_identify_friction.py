@@ -9,7 +9,6 @@ from `identify(..., friction=...)`: on a simulated drive it finds the friction's
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -18,26 +17,21 @@ import pytest
 
 from monitor.identify import identify, prbs
 from monitor.rig import build_model, load_rig
-from tests.bench.zoo.gen import identify_files
-from tests.support.identify import run_identify
+from tests.support.identify import identify_zoo_rig
 
 
 def test_a_position_with_friction_is_learned_with_it(tmp_path: Path) -> None:
-    rig = identify_files(307, tmp_path)
-    out = tmp_path / "learned.toml"
-    res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, "--node",
-                       str(rig.nodes[0]), cwd=tmp_path)
+    res, report = identify_zoo_rig(307, tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr
-    report = json.loads(out.with_suffix(".identify.json").read_text())
     assert report["friction_retry"]["speed"] == "rate"
     assert "replay_gamma_margin" in report["friction_retry"]["failed"]
     assert report["friction"]["speed"] == "rate"
     assert report["replay"]["gamma_max"] < 0.1
-    learned = load_rig(out)
+    learned = load_rig(tmp_path / "learned.toml")
     assert learned.model is not None and learned.model.friction is not None
     model = build_model(learned)
     assert model.friction is not None and model.friction.speed == "rate"
-    assert "[model.friction]" in out.read_text()
+    assert "[model.friction]" in (tmp_path / "learned.toml").read_text()
 
 
 def test_identify_with_friction_finds_its_size() -> None:
@@ -68,12 +62,8 @@ def test_a_growing_mode_that_stood_in_for_friction_is_answered_by_it(tmp_path: P
     the speed one-signed): the linear fit carried the friction on a slow growing mode that
     the input drives (4.9 % of the output's swing) and was refused for it; the friction's
     refit (a constant phi: an input offset) fits order 1 and passes every check."""
-    rig = identify_files(203, tmp_path)
-    out = tmp_path / "learned.toml"
-    res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, "--node",
-                       str(rig.nodes[0]), cwd=tmp_path)
+    res, report = identify_zoo_rig(203, tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr
-    report = json.loads(out.with_suffix(".identify.json").read_text())
     assert "growing mode" in report["friction_retry"]["refused"]
     assert report["friction"]["speed"] == "output"
     assert report["replay"]["gamma_max"] < 0.1

@@ -10,8 +10,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from tests.bench.zoo.gen import identify_files
-from tests.support.identify import run_identify
+from tests.support.identify import identify_zoo_rig, run_identify
 
 
 def _report(out: Path) -> dict[str, object]:
@@ -21,20 +20,15 @@ def _report(out: Path) -> dict[str, object]:
 
 
 def test_the_chosen_order_that_fails_its_replay_is_tried_one_up(tmp_path: Path) -> None:
-    rig = identify_files(308, tmp_path)
-    out = tmp_path / "learned.toml"
-    node = str(rig.nodes[0])
-    res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, "--node", node,
-                       cwd=tmp_path)
+    res, report = identify_zoo_rig(308, tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr
-    report = _report(out)
     assert report["order"] == 2
     assert report["order_retry"] == {"order": 1, "failed": ["replay_gamma_margin"]}
     assert "FAIL" not in res.stdout
 
     given = tmp_path / "given.toml"
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", given.name, "--node",
-                       node, "--order", "1", cwd=tmp_path)
+                       str(report["capture"]["node"]), "--order", "1", cwd=tmp_path)
     assert res.returncode == 1, res.stdout + res.stderr
     assert "replay_gamma_margin" in res.stderr and not given.exists()
     assert "order_retry" not in _report(given)

@@ -8,7 +8,6 @@ sensor offset and a coarse quantum, the output 5 sensor sigmas off the model: me
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,8 +17,7 @@ import scipy.linalg
 
 from monitor.estimation.model import ContinuousDescriptor
 from monitor.identify import Identification, nis_calibrated
-from tests.bench.zoo.gen import identify_files
-from tests.support.identify import run_identify
+from tests.support.identify import identify_zoo_rig
 
 
 def _ident(R: float) -> Identification:
@@ -64,12 +62,8 @@ def test_r_stays_at_the_quantisation_floor_and_only_a_low_nis_calibrates() -> No
 
 
 def test_a_zoo_rig_refused_for_a_low_nis_is_written_calibrated(tmp_path: Path) -> None:
-    rig = identify_files(408, tmp_path)
-    out = tmp_path / "learned.toml"
-    res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, "--node",
-                       str(rig.nodes[0]), cwd=tmp_path)
+    res, report = identify_zoo_rig(408, tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr
-    report = json.loads(out.with_suffix(".identify.json").read_text())
     cal = report["noise"]["calibrated"]
     assert cal["replay_mean_nis"] < 0.5 and "replay_mean_nis" in cal["failed_before"], cal
     checks = {c["check"]: c for c in report["checks"]}

@@ -1,11 +1,14 @@
 """Captures for `motor-monitor identify` and the command itself, as the identify tests run
 them: the press rig's twin (`press_capture`), node 0 of our bus under a PRBS command
-(`our_capture`), and `identify` in a subprocess (`run_identify`)."""
+(`our_capture`), `identify` in a subprocess (`run_identify`), and on a rig of the rig zoo
+(`identify_zoo_rig`)."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -16,11 +19,12 @@ from monitor.rig import build_decoder, load_rig
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario, scenario_from_dict
+from tests.bench.zoo.gen import identify_files
 from tests.support import BIN
 from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import changed_currents
 
-__all__ = ["PRESS", "T0", "our_capture", "press_capture", "run_identify"]
+__all__ = ["PRESS", "T0", "identify_zoo_rig", "our_capture", "press_capture", "run_identify"]
 
 PRESS = TEST_RIGS / "press.toml"
 T0 = 1.7e9
@@ -64,3 +68,15 @@ def run_identify(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     """`motor-monitor identify ARGS` in `cwd`, its output captured."""
     return subprocess.run([str(BIN / "motor-monitor"), "identify", *args], cwd=cwd,
                           capture_output=True, text=True, timeout=300)
+
+
+def identify_zoo_rig(seed: int, d: Path, *args: str
+                     ) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
+    """`identify` as the rig zoo runs it on rig `seed`'s healthy minute (written to `d`), its
+    first node, into learned.toml (more options `args`): the command's result and the report
+    it wrote (empty where none)."""
+    rig = identify_files(seed, d)
+    res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
+                       "--node", str(rig.nodes[0]), *args, cwd=d)
+    report = d / "learned.identify.json"
+    return res, (json.loads(report.read_text()) if report.exists() else {})
