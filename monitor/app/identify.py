@@ -383,7 +383,9 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     template = DCMotorParameters(**rig.model.motor) \
         if rig.model is not None and rig.model.kind == "dc_motor" else DCMotorParameters()
     # the step each output is decoded in: its R is floored at the rounding's variance
+    # (only where the rig gives one per output, else none is known)
     steps = output_quantisation(options.database(args, rig), node)
+    known_steps = steps if len(steps) == len(rig.outputs) else None
     kind = model_kind(rig, args.model)
 
     def fit(order: int | None, friction: str | None = None,
@@ -391,7 +393,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         ident = identify(u, y, T, kind="state_space" if friction else kind, order=order,
                          template=template, input_names=[r.signal for r in rig.inputs],
                          output_names=[r.signal for r in rig.outputs],
-                         output_steps=steps if len(steps) == len(rig.outputs) else None,
+                         output_steps=known_steps,
                          friction=friction, input_delay=delay)
         ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
                                    "frames": counts, "period_s": T,
@@ -451,9 +453,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         nis, band = replay.get("mean_nis"), replay.get("nis_band")
         if not (failed and isinstance(nis, float) and band and 0.0 < nis < band[0]):
             return ident, failed
-        calibrated = nis_calibrated(ident, nis, [None if s is None else s[0] for s in steps]
-                                    if len(steps) == len(rig.outputs) else
-                                    [None] * len(rig.outputs))
+        calibrated = nis_calibrated(ident, nis, [None if s is None else s[0] for s in
+                                                 known_steps or [None] * len(rig.outputs)])
         calibrated.report["noise"]["calibrated"]["failed_before"] = [c.check for c in failed]
         return calibrated, check_and_write(calibrated, keep_failed)
 
