@@ -102,7 +102,9 @@ class FuzzyUKFConfig:
         on the part of the consequents common to all rules.
     growth_share: cap on that growth per second, as a share of the information a sample
         gives on gamma (M' P_yy^-1 M): keeps gamma's share of the innovation covariance
-        near sqrt(growth_share dt), so that the NIS stays calibrated at any scale.
+        near sqrt(growth_share dt), so that the NIS stays calibrated at any scale. The
+        growth is also at most twice what the sample's evidence takes away, so that a
+        sample which shows nothing of gamma widens nothing (`kernel`, (f)).
     var0: initial variance of the common part of the consequents (gamma^2).
     var_reopen: the same on a structure-learning event.
     var_rule: variance of each rule's own part, initially and on an event (small: the
@@ -111,7 +113,7 @@ class FuzzyUKFConfig:
         (`start_state`, when the steady state of the first input does not explain it):
         small, so that the start-up transient goes to the widely uncertain state and not
         to gamma^; a fault present from the start is found by the structure test (20).
-    var_max: cap on the common variance (no excitation, u = 0, does not grow it forever).
+    var_max: cap on the common variance.
     nis_window: time constant of the innovation average, seconds.
     nis_threshold: structure-learning threshold on the chi-square statistic of the averaged
         whitened innovation (p degrees of freedom; 14 is 3.7 sigma for one output).

@@ -14,7 +14,8 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
 3. UKF measurement update (44)-(49): the innovation nu = y - y^- (the output error e of
    (20) between the plant and the fault model (53)) and its covariance P_yy.
 4. The random walk of the fault (11), (14), (54) adds q_gamma dt to the variance of
-   gamma, but at most growth_share dt / (M' P_yy^-1 M): see (e) below. The innovation
+   gamma, but at most growth_share dt / (M' P_yy^-1 M), and at most twice what the
+   sample's evidence takes away: see (e) and (f) below. The innovation
    covariance with the fault's uncertainty is S_tot = P_yy + M pg M', M = C V^- - D diag(u)
    (nu ~ M (gamma - gamma^)), pg the variance of gamma^; NIS = nu' S_tot^-1 nu.
 5. Structure-learning test (20), before the adaptation: the paper's test |e| > 1e-5 on
@@ -81,6 +82,17 @@ the failures on a stiff servo that led here; (a), (b), (g) are the structure eve
     the two-stage filter of a constant gamma whose old evidence fades; with one rule,
     q_gamma = 0, var_rule = 0, no projection and no events it is the augmented Kalman
     filter's gamma update to round-off (tested).
+(f) No evidence, no forgetting: where the output shows nothing of gamma (M = 0: a motor
+    idle at 0 V, a speed held by a spring between its input's steps), q_gamma dt a sample
+    would widen gamma's variance without bound ("covariance windup" of a forgetting
+    estimator, Kulhavy 1987, Automatica 23(5)), and the first noisy samples after the next
+    command move gamma^ as far as that variance allows: a healthy paper's motor idle for
+    30 s read 0.35-0.54 on its restart, and a spring-held speed held 9 s read 0.149. So the
+    growth is capped at twice the variance the sample's evidence removes (M' P_yy^-1 M
+    vc^2, for a scalar gamma directional forgetting): in the information-rich steady state
+    the random walk's own level holds (there the growth equals the removal), below it the
+    variance still climbs, and without evidence it stays. An abrupt change during a silence
+    of evidence is the structure test's (20) to find when evidence returns (b).
 
 A missed sample is a step with dt = k T: the ZOH model for that span holds the last
 voltage, which is what the ECU does, and the covariance grows accordingly.
@@ -125,6 +137,12 @@ _log = logging.getLogger(__name__)
 # (this - 1) times itself, times the forgetting weight: a burst the mean-shift test has not
 # caught yet moves R by a bounded step, and a fitting model loses < 1 % to the cap.
 _NOISE_CLIP = 9.0
+
+# The random walk of gamma (step 4) adds at most this many times the variance the sample's
+# evidence takes away (M' P_yy^-1 M vc^2): old evidence fades as new evidence comes in, and
+# a sample that shows nothing of gamma widens nothing (directional forgetting, (f) below).
+# Above 1 the variance still climbs from below to the random walk's own level.
+_FORGET_PER_EVIDENCE = 2.0
 
 # Where each field starts in `layout.offsets` (its end is the next entry): globals, which
 # numba compiles in as constants. numba keys its cache by this file's source, so an edit of
@@ -414,6 +432,9 @@ def fuzzy_ukf_step(
                 vis += M[r, a] * acc
             if vis * grow > share * dt:
                 grow = share * dt / vis
+            fade = _FORGET_PER_EVIDENCE * vis * vc[a] * vc[a]
+            if fade < grow:
+                grow = fade
             v = vc[a] + grow
             vc[a] = v if v < var_max else (vc[a] if vc[a] > var_max else var_max)
             pg[a] = vc[a] + _rule_variance(var, rule_idx, rule_w, nf, a)

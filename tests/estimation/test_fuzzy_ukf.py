@@ -412,3 +412,25 @@ def test_step_many_is_step_row_by_row_with_events_and_loss(chunk: int) -> None:
     assert sum(int(p.structure_event.sum()) for p in parts) == a.structure_events
     np.testing.assert_array_equal(a._st, b._st)
     assert a.steps == b.steps and a._time == b._time
+
+
+def test_gamma_variance_does_not_wind_up_while_the_output_shows_nothing_of_it() -> None:
+    # At 0 V the current carries no information on the loss (M = 0): the random walk (54)
+    # may not widen gamma's variance for lack of evidence ("covariance windup"), or the
+    # first noisy samples after the next command move gamma^ by as much as that variance
+    # allows: a healthy motor idle for 30 s then restarted read 0.35-0.54 (seeds 0-3)
+    model = dc_motor()
+    run = simulate(model, scenario_from_dict({
+        "name": "idle", "duration": 40.0,
+        "voltage": {"steps": [[0.0, 220.0], [5.0, 0.0], [35.0, 220.0]]}}), 0.01, seed=0)
+    est = FuzzyUKF(model.discretize(0.01), x0=run.x[0])
+    held: list[float] = []
+    g = np.zeros(len(run.t))
+    for k in range(len(run.t)):
+        g[k] = est.step(run.u[k], run.y[k], run.T).gamma[0]
+        if k in (_at(run, 4.9), _at(run, 34.9)):
+            held.append(float(est.common_var[0]))
+    before, after = held
+    assert after < 10 * before  # q_gamma * 30 s would add 0.15: 200 times
+    k = _at(run, 35.0)
+    assert np.max(np.abs(g[k:k + 100])) < 0.12  # the alarm threshold f1 is 0.15
