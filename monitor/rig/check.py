@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Final
 
+import numpy as np
 from cantools.database.can import Database, Message, Signal
 
 from monitor.bus.codec import MotorDatabase
@@ -29,12 +30,14 @@ from monitor.bus.rigcodec import (
 )
 from monitor.bus.secoc import SecOCLayout, SyncLayout
 from monitor.errors import MonitorError, one_line
+from monitor.estimation.friction import Friction
 from monitor.estimation.model import (
     BIAS_WINDOW_S,
     ContinuousDescriptor,
     DCMotorParameters,
     ModelError,
     dc_motor,
+    model_from_matrices,
 )
 from monitor.rig.errors import RigError
 from monitor.rig.spec import ProtectionSpec, Rig, SignalRef, builtin_rig, model_of
@@ -549,11 +552,6 @@ def build_model(rig: Rig, fail: Fail | None = None) -> ContinuousDescriptor:
             params = replace(DCMotorParameters(), **spec.motor)
             return dc_motor(params, q=spec.process_noise, r=spec.output_sigma[0] ** 2,
                             speed_noise_ratio=spec.speed_noise_ratio)
-        import numpy as np
-
-        from monitor.estimation.friction import Friction
-        from monitor.estimation.model import model_from_matrices
-
         fr = spec.friction
         return model_from_matrices(
             domain=spec.domain, T=1.0 / rate, fault_inputs=spec.fault_inputs,
