@@ -425,9 +425,11 @@ def _limit_ambiguity(dm: DiscreteModel, u: Array, y: Array, m: int, T: float,
     two meets the model wrong by g (clip(b) - a)(b - clip(b)) / (b - a) at the knee, which
     is c (clip(b) - a) / a, at most |c| |b - a| / |a| and at most the output's swing.
 
-    c is the median over the capture's last three quarters (past the start's transient) of
-    the output less the model's response from rest to the rig's first m inputs (a
-    friction's phi, a further input of `dm`, is left out: its constant is an offset too).
+    c is the constant of the output less the model's response from rest to the rig's first
+    m inputs, fitted by least squares beside a multiple of that response (a gain a few per
+    cent off is no offset), over the capture's last three quarters (past the start's
+    transient); a friction's phi, a further input of `dm`, is left out: its constant is an
+    offset too.
     Where the output does not settle at a level the input sets (the model's DC gain
     `dc_gain` moves the settled output by less than LIMIT_NOISE innovation standard
     deviations between the two levels: a speed held by a spring, a high-pass sensor), no
@@ -455,7 +457,12 @@ def _limit_ambiguity(dm: DiscreteModel, u: Array, y: Array, m: int, T: float,
     A, B, _ = dm.at(T)
     rest = dsim(A, B[:, :m], dm.C, u[:, :m])
     tail = slice(y.shape[0] // 4, None)
-    c = np.abs(np.median(y[tail] - rest[tail], axis=0))
+    # the offset c and a gain error k apart: y - rest = c + k rest (a fit's gain a few
+    # per cent off moves the difference with the level, an offset does not)
+    c = np.empty(y.shape[1])
+    for i in range(y.shape[1]):
+        X = np.column_stack([np.ones(rest[tail].shape[0]), rest[tail, i]])
+        c[i] = abs(np.linalg.lstsq(X, y[tail, i] - rest[tail, i], rcond=None)[0][0])
     error = np.minimum(c * abs(b - a) / abs(a), np.ptp(y, axis=0))
     sd = np.asarray(innovation_std, dtype=float)
     worst = float(np.max(error / sd))
