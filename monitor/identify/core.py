@@ -48,6 +48,11 @@ MAX_GROWING_SHARE = 0.01
 through a growing mode of a fitted model (`_growing_input_share`): an offset the mode
 carries on its initial state drives nothing; a gain it carries drove 25 % (see
 `_identify`)."""
+LIMIT_BLOCKS = 8
+"""`_limit_ambiguity`: the blocks of the capture whose offsets' spread says how far the
+offset is known."""
+LIMIT_SE = 3.0
+"""`_limit_ambiguity`: standard errors of the offset taken off it before it counts."""
 LIMIT_NOISE = 1.0
 """`_limit_ambiguity`: the largest error, in innovation standard deviations, that an
 actuator limit a two-level capture cannot tell from a smaller gain with an offset may make
@@ -427,9 +432,11 @@ def _limit_ambiguity(dm: DiscreteModel, u: Array, y: Array, m: int, T: float,
 
     c is the constant of the output less the model's response from rest to the rig's first
     m inputs, fitted by least squares beside a multiple of that response (a gain a few per
-    cent off is no offset), over the capture's last three quarters (past the start's
-    transient); a friction's phi, a further input of `dm`, is left out: its constant is an
-    offset too.
+    cent off is no offset) in each of LIMIT_BLOCKS blocks of the capture's last three
+    quarters (past the start's transient), their mean less LIMIT_SE standard errors of it
+    (process noise makes a slow plant's output wander; the paper's motor under a two-level
+    PRBS gave 1-2 noise units without it); a friction's phi, a further input of `dm`, is
+    left out: its constant is an offset too.
     Where the output does not settle at a level the input sets (the model's DC gain
     `dc_gain` moves the settled output by less than LIMIT_NOISE innovation standard
     deviations between the two levels: a speed held by a spring, a high-pass sensor), no
@@ -458,11 +465,16 @@ def _limit_ambiguity(dm: DiscreteModel, u: Array, y: Array, m: int, T: float,
     rest = dsim(A, B[:, :m], dm.C, u[:, :m])
     tail = slice(y.shape[0] // 4, None)
     # the offset c and a gain error k apart: y - rest = c + k rest (a fit's gain a few
-    # per cent off moves the difference with the level, an offset does not)
-    c = np.empty(y.shape[1])
+    # per cent off moves the difference with the level, an offset does not), per block
+    # of the tail: the spread of the blocks' c is the wander process noise gives it
+    c = np.zeros(y.shape[1])
     for i in range(y.shape[1]):
-        X = np.column_stack([np.ones(rest[tail].shape[0]), rest[tail, i]])
-        c[i] = abs(np.linalg.lstsq(X, y[tail, i] - rest[tail, i], rcond=None)[0][0])
+        cs = []
+        for r in np.array_split(np.arange(y.shape[0])[tail], LIMIT_BLOCKS):
+            X = np.column_stack([np.ones(r.size), rest[r, i]])
+            cs.append(float(np.linalg.lstsq(X, y[r, i] - rest[r, i], rcond=None)[0][0]))
+        se = float(np.std(cs, ddof=1)) / math.sqrt(LIMIT_BLOCKS)
+        c[i] = max(abs(float(np.mean(cs))) - LIMIT_SE * se, 0.0)
     error = np.minimum(c * abs(b - a) / abs(a), np.ptp(y, axis=0))
     sd = np.asarray(innovation_std, dtype=float)
     worst = float(np.max(error / sd))
