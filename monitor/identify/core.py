@@ -48,11 +48,8 @@ MAX_GROWING_SHARE = 0.01
 through a growing mode of a fitted model (`_growing_input_share`): an offset the mode
 carries on its initial state drives nothing; a gain it carries drove 25 % (see
 `_identify`)."""
-LIMIT_BLOCKS = 8
-"""`_limit_ambiguity`: the blocks of the capture whose offsets' spread says how far the
-offset is known."""
-LIMIT_SE = 3.0
-"""`_limit_ambiguity`: standard errors of the offset taken off it before it counts."""
+LIMIT_SHARE = 0.01
+"""`_limit_ambiguity`: the least error, as a share of the output's swing, that counts."""
 LIMIT_NOISE = 1.0
 """`_limit_ambiguity`: the largest error, in innovation standard deviations, that an
 actuator limit a two-level capture cannot tell from a smaller gain with an offset may make
@@ -430,13 +427,14 @@ def _limit_ambiguity(dm: DiscreteModel, u: Array, y: Array, m: int, T: float,
     two meets the model wrong by g (clip(b) - a)(b - clip(b)) / (b - a) at the knee, which
     is c (clip(b) - a) / a, at most |c| |b - a| / |a| and at most the output's swing.
 
-    c is the constant of the output less the model's response from rest to the rig's first
-    m inputs, fitted by least squares beside a multiple of that response (a gain a few per
-    cent off is no offset) in each of LIMIT_BLOCKS blocks of the capture's last three
-    quarters (past the start's transient), their mean less LIMIT_SE standard errors of it
-    (process noise makes a slow plant's output wander; the paper's motor under a two-level
-    PRBS gave 1-2 noise units without it); a friction's phi, a further input of `dm`, is
-    left out: its constant is an offset too.
+    c is the model's own offset: the median, over the capture's last three quarters (past
+    the start's transient), of its simulation from the initial state that fits the capture
+    (with every input: a friction's phi, a further input of `dm`, adds its constant) less
+    its response from rest to the rig's first m inputs. It is the model's, not the data's:
+    the output less the model's response also holds the fit's gain error, process noise's
+    wander and the residue of the samples' timing, which at two levels a line through them
+    cannot tell from an offset (the paper's motor and a quantised first-order plant read
+    1-8 noise units that way).
     Where the output does not settle at a level the input sets (the model's DC gain
     `dc_gain` moves the settled output by less than LIMIT_NOISE innovation standard
     deviations between the two levels: a speed held by a spring, a high-pass sensor), no
@@ -464,19 +462,15 @@ def _limit_ambiguity(dm: DiscreteModel, u: Array, y: Array, m: int, T: float,
     A, B, _ = dm.at(T)
     rest = dsim(A, B[:, :m], dm.C, u[:, :m])
     tail = slice(y.shape[0] // 4, None)
-    # the offset c and a gain error k apart: y - rest = c + k rest (a fit's gain a few
-    # per cent off moves the difference with the level, an offset does not), per block
-    # of the tail: the spread of the blocks' c is the wander process noise gives it
-    c = np.zeros(y.shape[1])
-    for i in range(y.shape[1]):
-        cs = []
-        for r in np.array_split(np.arange(y.shape[0])[tail], LIMIT_BLOCKS):
-            X = np.column_stack([np.ones(r.size), rest[r, i]])
-            cs.append(float(np.linalg.lstsq(X, y[r, i] - rest[r, i], rcond=None)[0][0]))
-        se = float(np.std(cs, ddof=1)) / math.sqrt(LIMIT_BLOCKS)
-        c[i] = max(abs(float(np.mean(cs))) - LIMIT_SE * se, 0.0)
+    # the model's own offset: its simulation from the initial state that fits the
+    # capture, with every input (a friction's phi too), less its response from rest to the
+    # rig's inputs; what a slow mode's initial state or a friction's constant adds
+    own = V.fitted_x0_sim(A, B, dm.C, u, y) - rest
+    c = np.abs(np.median(own[tail], axis=0))
     error = np.minimum(c * abs(b - a) / abs(a), np.ptp(y, axis=0))
     sd = np.asarray(innovation_std, dtype=float)
+    # below LIMIT_SHARE of the output's swing an error is within a fit's own gain error
+    error = np.where(error > LIMIT_SHARE * np.ptp(rest[tail], axis=0), error, 0.0)
     worst = float(np.max(error / sd))
     blind = False
     if dc_gain is not None:
