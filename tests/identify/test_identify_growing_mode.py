@@ -10,8 +10,6 @@ answers the refusal with a fit with Coulomb friction (`monitor.identify.friction
 
 from __future__ import annotations
 
-import json
-import re
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +21,7 @@ from monitor.app.identify import collect, fit_series
 from monitor.estimation.model import ContinuousDescriptor
 from monitor.identify import identify, prbs
 from monitor.identify.core import MAX_GROWING_SHARE, _growing_input_share
-from monitor.identify.errors import GrowingModeError
+from monitor.identify.errors import GrowingModeError, IdentifyError
 from monitor.identify.lti import c2d, dsim
 from tests.bench.zoo.gen import identify_files
 from tests.support.identify import run_identify
@@ -89,21 +87,21 @@ def _series(d: Path) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def test_the_zoo_rig_that_needs_one_is_refused_in_one_line(tmp_path: Path) -> None:
-    """The linear fit of seed 6 is refused; identify then answers the growing mode with
-    the friction's refit (a speed output), whose constant term carries the offset the
-    saturated gain needs, and writes that model (the rig zoo diagnoses it right)."""
+    """Seed 6's capture (an actuator saturating at the top of a two-level input) is
+    refused before its growing mode is: its two levels cannot tell the limit from a smaller
+    gain plus an offset (`test_limit_ambiguity`), which the growing mode, and the
+    friction's constant term that once answered it, carried; so identify does not try the
+    friction's refit (its model was diagnosed right, with the mismatch flag up 11 % of a
+    healthy run, at the levels the zoo's fresh runs happen to take)."""
     identify_files(6, tmp_path)
     u, y, T = _series(tmp_path)
-    with pytest.raises(GrowingModeError) as err:
+    with pytest.raises(IdentifyError) as err:
         identify(u, y, T, kind="state_space", run_filter=False)
     line = str(err.value)
     assert "\n" not in line
-    assert re.search(r"growing mode \(a pole at s = [0-9.]+ 1/s\) that the input drives "
-                     r"\([0-9.e+]+ % of the output's swing", line), line
-    assert "several levels" in line
+    assert not isinstance(err.value, GrowingModeError)
+    assert "two levels alone" in line and "several levels" in line
     out = tmp_path / "learned.toml"
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, cwd=tmp_path)
-    assert res.returncode == 0, res.stdout + res.stderr
-    report = json.loads(out.with_suffix(".identify.json").read_text())
-    assert "growing mode" in report["friction_retry"]["refused"]
-    assert report["friction"]["speed"] == "output"
+    assert res.returncode != 0 and not out.exists()
+    assert "two levels alone" in res.stderr.strip().splitlines()[-1]

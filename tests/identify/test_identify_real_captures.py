@@ -63,10 +63,20 @@ def _motor_current(p: DCMotorParameters, u: Array, T: float, *, coulomb: float =
 SMALL = DCMotorParameters(J=2e-5, b=1e-5, Ke=0.03, Ki=0.03, Ra=1.0, La=1e-3)
 
 
+def _steps(seconds: float, T: float, level: float, amplitude: float, clock: float,
+           rng: np.random.Generator) -> Array:
+    """(N, 1) random steps within level +- amplitude, one every `clock` seconds."""
+    hold = round(clock / T)
+    values = rng.uniform(-1.0, 1.0, size=round(seconds / T) // hold + 1)
+    return (level + amplitude * np.repeat(values, hold)[:round(seconds / T)])[:, None]
+
+
 def _friction_capture(seconds: float = 40.0, T: float = 1e-3) -> tuple[Array, Array]:
-    """A small motor with Coulomb friction, a current-sensor offset and quantisation."""
+    """A small motor with Coulomb friction, a current-sensor offset and quantisation, under
+    steps between several levels (two alone cannot tell the friction and the offset from an
+    actuator limit: `test_limit_ambiguity`)."""
     rng = np.random.default_rng(5)
-    u = prbs(seconds, T, level=12.0, amplitude=6.0, clock=0.03, seed=5)
+    u = _steps(seconds, T, 12.0, 6.0, 0.03, rng)
     y = _motor_current(SMALL, u, T, coulomb=2e-3) + 0.05
     y = 0.01 * np.round((y + 0.02 * rng.standard_normal(y.shape)) / 0.01)
     return u, y
@@ -138,8 +148,10 @@ def test_motor_captures_get_a_black_box(case: str) -> None:
         load = np.repeat(rng.choice([0.0, 5e-3], len(u) // 2000 + 1), 2000)[:len(u)]
         y = _motor_current(SMALL, u, T, load=load)
     else:
+        # steps between several levels: its current settles near zero whatever the
+        # voltage, so a two-level capture cannot tell a voltage limit from a smaller gain
         p = DCMotorParameters(J=1e-4, b=5e-5, Ke=0.08, Ki=0.08, Ra=0.5, La=2e-3)
-        u = prbs(40.0, T, level=30.0, amplitude=8.0, clock=0.05, seed=2)
+        u = _steps(40.0, T, 30.0, 8.0, 0.05, rng)
         y = _motor_current(p, u, T)
     y = y + 0.02 * float(np.std(y)) * rng.standard_normal(y.shape)
     ident = identify(u, y, T, kind="state_space", run_filter=False)
