@@ -428,7 +428,7 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         for _ in range(2):
             self.step(np.zeros(m), np.zeros(p), self.model.T)
         k = self.steps - 1
-        j, _, models = self._onset(k)
+        j, _, _, models = self._onset(k)
         self._reprocess(j, k, k - len(models[2]) + 1, models)
         self.step_many(np.zeros((2, m)), np.zeros((2, p)), np.full(2, self.model.T))
 
