@@ -282,3 +282,42 @@ def test_a_loss_under_load_steps_keeps_its_size(loss: float) -> None:
     after = t > 15.3
     assert float(np.mean(g[after] < DEFAULT_THRESHOLDS.f1)) < 0.05
     assert float(np.mean(g[t > 16.0])) == pytest.approx(loss, abs=0.04)
+
+
+def test_the_conversion_looks_at_most_max_onsets_input_changes() -> None:
+    """An input that changes at every sample (a float command, 2 kHz): the conversion's
+    search starts at most `max_onsets` candidates per structure event (the largest
+    changes), so an event's cost stays bounded whatever the input does."""
+    T = 5e-4
+    n = 12000
+    rng = np.random.default_rng(0)
+    t = np.arange(n) * T
+    u = 5.0 + 2.0 * np.sin(2.0 * np.pi * 3.0 * t) + 0.3 * rng.normal(size=n)
+    load = np.where(t > 4.0, 1.0, 0.0)
+    a = np.exp(-T / TAU)
+    x, y = 5.0 * GAIN, np.empty(n)
+    for k in range(n):
+        y[k] = x + rng.normal(0.0, SIGMA)
+        x = a * x + (1.0 - a) * GAIN * (u[k] - load[k])
+    model = model_from_matrices("continuous", A=[[-1.0 / TAU]], B=[[GAIN / TAU]], C=[[1.0]],
+                                Q=[[1e-2]], R=[[SIGMA**2]], T=T)
+    est = FuzzyUKF(model)
+    starts: list[int] = []
+    searches: list[int] = []
+    start, search = est._conversion_start, est._conversion
+
+    def counted_start(j: int) -> Array:
+        starts.append(j)
+        return start(j)
+
+    def counted_search(first: int, k: int) -> tuple[float, int, Array]:
+        before = len(starts)
+        found = search(first, k)
+        searches.append(len(starts) - before)
+        return found
+
+    est._conversion_start = counted_start  # type: ignore[method-assign]
+    est._conversion = counted_search  # type: ignore[method-assign]
+    est.step_many(u[:, None], y[:, None], np.full(n, T))
+    assert searches, "no structure event"
+    assert max(searches) == est.config.max_onsets  # every sample changed: the cap binds
