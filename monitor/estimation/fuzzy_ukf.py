@@ -321,6 +321,8 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         self.structure_events = 0
         self.bias_events = 0  # changes of a load or an offset (step 8)
         self._bias_armed_until = -math.inf  # a first sight of one waits for a second
+        # gamma^ before the last structure event of gamma: a conversion undoes that event
+        self._gamma_before = np.zeros(len(self._faulty))
 
     def _block(self, dt: float) -> tuple[Array, float]:
         """Model matrices for a step of dt packed flat, and the NIS averaging coefficient."""

@@ -48,7 +48,8 @@ J = 2e-5, b = 1e-5, Ke = Ki = 0.03, Ra = 1, La = 1e-3, sensor sigma 0.01 A):
     With bias states the event also weighs a conversion of gamma^ into a bias
     (`_conversion`) at the input's changes in the window, at most `max_onsets` of them,
     propagated together in numpy: O(ring_len max_onsets n^2), 31 ms on a 2 kHz ring whose
-    input changes at every sample (the cap binding). The estimator's restart after a long gap reuses the model's stationary covariance.
+    input changes at every sample (the cap binding). The estimator's restart after a long
+    gap reuses the model's stationary covariance.
 """
 
 from __future__ import annotations
@@ -67,7 +68,17 @@ from monitor.jit import njit
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["StructureLearning", "onset_glr", "onset_scores"]
+__all__ = ["CONVERT_SHARE", "StructureLearning", "onset_glr", "onset_scores"]
+
+CONVERT_SHARE = 0.5
+"""A conversion of gamma^ into a bias (`StructureLearning._conversion`) undoes at least this
+share of what gamma^ moved at the last structure event of gamma: the load step that was
+read as a loss is what it takes back. Over one window after an input change, a jump of
+gamma and a conversion have the same signature (a constant change of the input's effect),
+so any jump located at an input change has a conversion that explains it as well; only
+the one that returns gamma^ to where it was before the event tells a story of a load (an
+outage's gamma^ of 0.92 rising to 1 at an input change is explained as well by 0.3 of it
+becoming a bias, which a healthy run's load steps never ask for)."""
 
 # Where the fields onset_glr reads start in `layout.offsets` (numba compiles them in)
 _R_U, _R_K, _R_STI, _R_NU = (RING.at(f) for f in ("u", "K", "Sti", "nu"))
@@ -385,6 +396,15 @@ class StructureLearning(FilterState):
             except np.linalg.LinAlgError:
                 continue
             c = np.clip(c, np.maximum(g_j - hi, lo - g_j), g_j - lo)
+            # gamma^ on its upper bound is no load's: a drive that its input no longer
+            # moves is an outage to report, whatever the input's changes show next
+            c[g_j >= hi - self.config.min_jump] = 0.0
+            # it undoes the last structure event of gamma (or the start's), at least
+            # CONVERT_SHARE of what gamma^ has moved since, in that direction
+            moved = g_j - self._gamma_before
+            c = np.clip(c, np.minimum(moved, 0.0), np.maximum(moved, 0.0))
+            if np.all(np.abs(c) < CONVERT_SHARE * np.abs(moved)):
+                continue
             score = float(g[c_i] @ c - 0.5 * c @ info[c_i] @ c)
             if score > best[0]:
                 best = (score, j, c)
@@ -416,6 +436,7 @@ class StructureLearning(FilterState):
             # gamma^ held a load or an offset that the input's change shows does not scale
             # with it: that part becomes a bias at the change (step 8), gamma^ keeps the rest
             self._reprocess(jc, k, first, models, bias=True, convert=c)
+            self._gamma_before = self.out.gamma[self._faulty].copy()  # nothing left to undo
             self._onset_floor = jc + 1
             self._last_event = self._time
             self._bias_armed_until = -math.inf
@@ -444,6 +465,7 @@ class StructureLearning(FilterState):
                 self._onset_floor = j + 1
                 self.bias_events += 1
             return False
+        self._gamma_before = g_j[self._faulty].copy()
         self._reprocess(j, k, first, models)
         self._onset_floor = j + 1
         self._last_event = self._time
