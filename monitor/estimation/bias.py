@@ -31,10 +31,13 @@ not Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    where that explains the innovations better than the jump of gamma the onset search
    found (which pays its prior's cost, the conversion does not: c is what gamma^ holds).
    The biases are re-opened there and the samples since processed again; gamma^ keeps
-   the rest. c may be negative (a load that helps pulled gamma^ of a loss down) only where
-   gamma^ is off its lower bound, and by at most gamma^: at the bound the bias holds what
-   gamma^ could not take. A loss keeps its size through input changes (its scaling is
-   what the model predicts), so a fault does not become a bias. Between events a bias
+   the rest. Over the window after a change, a jump of gamma and a conversion have the
+   same signature, so the conversion must tell the story of a load: it undoes at least
+   half (`CONVERT_SHARE`) of what gamma^ moved at the last structure event of gamma, in
+   that direction (negative where a load that helps pulled gamma^ of a loss down, then
+   only where gamma^ is off its lower bound); none starts from gamma^ on its upper bound
+   (an outage). A loss keeps its size through input changes (its scaling is what the
+   model predicts), so a fault does not become a bias. Between events a bias
    barely moves: a faster
    random walk integrates the innovations' small positive mean that the bound of gamma
    leaves on a healthy plant (noise below 0 is clipped), lifting gamma^ off its bound
