@@ -215,3 +215,140 @@ def test_the_monitor_learns_a_sensor_offset_and_lowers_its_flag() -> None:
     raw = [db.decode_can(m).raw for m in sent]  # type: ignore[union-attr]
     assert int(raw[-1]["ModelMismatch"]) == 0
     assert int(raw[-1]["HealthState"]) == HealthState.FAULT_FREE
+
+
+# A torque drives one inertia against viscous friction and the load; the speed is measured
+# (tau 0.2 s, 1 kHz): the load enters where the input does, so at a constant input a load
+# step and a loss of effectiveness are the same constant, and only the input's next change
+# tells them apart (a loss scales with the input, a load does not).
+TAU, GAIN, SIGMA, T_SHAFT = 0.2, 2.0, 0.05, 1e-3
+SHAFT_LOADS = [(0.0, 0.0), (5.3, 1.0), (12.1, 0.2), (19.7, -0.6), (27.5, 0.8), (33.2, 0.0)]
+
+
+def _shaft(seed: int, faults: list[tuple[float, float]], duration: float = 40.0
+           ) -> tuple[Array, Array, FuzzyUKF]:
+    """Torque 5 +- 2 (a PRBS clocked at 0.8 s) -> speed with the load steps SHAFT_LOADS
+    (in the torque's units) that the model lacks: (t, gamma^, the estimator)."""
+    rng = np.random.default_rng(seed)
+    n = round(duration / T_SHAFT)
+    t = np.asarray(np.arange(n) * T_SHAFT, dtype=np.float64)
+    clock = round(0.8 / T_SHAFT)
+    u = np.repeat(5.0 + 2.0 * rng.choice([-1.0, 1.0], size=n // clock + 1), clock)[:n]
+    load = np.zeros(n)
+    for t0, level in SHAFT_LOADS:
+        load[t >= t0] = level
+    gamma = np.zeros(n)
+    for t0, g in faults:
+        gamma[t >= t0] = g
+    a = np.exp(-T_SHAFT / TAU)
+    x, y = 5.0 * GAIN, np.empty(n)
+    for k in range(n):
+        y[k] = x + rng.normal(0.0, SIGMA)
+        x = a * x + (1.0 - a) * GAIN * (u[k] * (1.0 - gamma[k]) - load[k]) \
+            + rng.normal(0.0, 0.002)
+    model = model_from_matrices("continuous", A=[[-1.0 / TAU]], B=[[GAIN / TAU]], C=[[1.0]],
+                                Q=[[0.002**2 / T_SHAFT]], R=[[SIGMA**2]], T=T_SHAFT)
+    est = FuzzyUKF(model)
+    res = est.step_many(u[:, None], y[:, None], np.full(n, T_SHAFT))
+    return t, res.gamma[:, 0], est
+
+
+def test_a_load_step_taken_for_a_loss_goes_to_the_bias_at_the_next_input_change() -> None:
+    """The loads of 1.0 and 0.8 look like losses of 0.14-0.5 at a constant input: gamma^
+    takes them (no monitor tells them apart there), and at the input's next change the
+    part of gamma^ that does not scale with it becomes the bias. Before, gamma^ followed
+    the load at every input level: 34-40 % of the run above the fault threshold, all the
+    time from 2 s after the step of 0.8 to the next; now 2-6 %, at most a fifth of a
+    segment's settled part (the step's size in loss units changes with the input level,
+    and a conversion undoes only the last jump of gamma^: `CONVERT_SHARE`)."""
+    f1 = DEFAULT_THRESHOLDS.f1
+    for seed in (1, 3, 4):
+        t, g, est = _shaft(seed, [])
+        assert est.bias_plan.kind == "output"
+        assert float(np.mean(g[t > 2.0] > f1)) < 0.08, seed
+        # what is left above the threshold lies mostly between a step and the input's
+        # next change
+        for t0, t1 in zip([s[0] for s in SHAFT_LOADS[1:]],
+                          [*(s[0] for s in SHAFT_LOADS[2:]), 40.0], strict=True):
+            settled = (t > t0 + 2.0) & (t < t1)
+            assert float(np.mean(g[settled] > f1)) < 0.25, (seed, t0)
+
+
+@pytest.mark.parametrize("loss", [0.3, 0.6])
+def test_a_loss_under_load_steps_keeps_its_size(loss: float) -> None:
+    """A loss at 15 s, then load steps that help and hinder: gamma^ stays at the loss (the
+    part a load moved it by goes to the bias at the input's next change). Before, a load
+    that helps (19.7 s on) pulled gamma^ of a 0.3 loss below the threshold 9.6 % of the time
+    (4.7 % now)."""
+    t, g, _ = _shaft(2, [(15.0, loss)])
+    after = t > 15.3
+    assert float(np.mean(g[after] < DEFAULT_THRESHOLDS.f1)) < 0.07
+    assert float(np.mean(g[t > 16.0])) == pytest.approx(loss, abs=0.04)
+
+
+def test_the_conversion_looks_at_most_max_onsets_input_changes() -> None:
+    """An input that changes at every sample (a float command, 2 kHz): the conversion's
+    search starts at most `max_onsets` candidates per structure event (the largest
+    changes), so an event's cost stays bounded whatever the input does."""
+    T = 5e-4
+    n = 12000
+    rng = np.random.default_rng(0)
+    t = np.arange(n) * T
+    u = 5.0 + 2.0 * np.sin(2.0 * np.pi * 3.0 * t) + 0.3 * rng.normal(size=n)
+    load = np.where(t > 4.0, 1.0, 0.0)
+    a = np.exp(-T / TAU)
+    x, y = 5.0 * GAIN, np.empty(n)
+    for k in range(n):
+        y[k] = x + rng.normal(0.0, SIGMA)
+        x = a * x + (1.0 - a) * GAIN * (u[k] - load[k])
+    model = model_from_matrices("continuous", A=[[-1.0 / TAU]], B=[[GAIN / TAU]], C=[[1.0]],
+                                Q=[[1e-2]], R=[[SIGMA**2]], T=T)
+    est = FuzzyUKF(model)
+    starts: list[int] = []
+    searches: list[int] = []
+    start, search = est._conversion_start, est._conversion
+
+    def counted_start(j: int) -> Array:
+        starts.append(j)
+        return start(j)
+
+    def counted_search(first: int, k: int) -> tuple[float, int, Array]:
+        before = len(starts)
+        found = search(first, k)
+        searches.append(len(starts) - before)
+        return found
+
+    est._conversion_start = counted_start  # type: ignore[method-assign]
+    est._conversion = counted_search  # type: ignore[method-assign]
+    est.step_many(u[:, None], y[:, None], np.full(n, T))
+    assert searches, "no structure event"
+    assert max(searches) == est.config.max_onsets  # every sample changed: the cap binds
+
+
+@pytest.mark.parametrize(("level", "spread", "seed"), [(0.0, 2.0, 3), (5.0, 1.0, 0),
+                                                        (2.0, 2.0, 2)])
+def test_an_outage_is_not_converted_into_a_bias(level: float, spread: float,
+                                                seed: int) -> None:
+    """An outage (12-24 s) of the torque-driven inertia under random input steps: gamma^
+    sits on or near its upper bound, and at an input change a jump of it towards 1 has a
+    conversion of equal likelihood (a constant change of the input's effect either way).
+    No conversion happens: none starts from gamma^ on its bound, and one must undo at
+    least `CONVERT_SHARE` of the last jump. Before, these runs made 3-5 conversions (the
+    rig zoo's seeds 6 and 7 then left their outage for a fault, 82-97 % accuracy)."""
+    rng = np.random.default_rng(seed)
+    n = round(30.0 / T_SHAFT)
+    t = np.arange(n) * T_SHAFT
+    clock = round(0.8 / T_SHAFT)
+    u = np.repeat(level + spread * rng.uniform(-1.0, 1.0, size=n // clock + 1), clock)[:n]
+    out = (t >= 12.0) & (t < 24.0)
+    a = np.exp(-T_SHAFT / TAU)
+    x, y = level * GAIN, np.empty(n)
+    for k in range(n):
+        y[k] = x + rng.normal(0.0, SIGMA)
+        x = a * x + (1.0 - a) * GAIN * u[k] * (0.0 if out[k] else 1.0) + rng.normal(0.0, 0.002)
+    model = model_from_matrices("continuous", A=[[-1.0 / TAU]], B=[[GAIN / TAU]], C=[[1.0]],
+                                Q=[[0.002**2 / T_SHAFT]], R=[[SIGMA**2]], T=T_SHAFT)
+    est = FuzzyUKF(model)
+    g = est.step_many(u[:, None], y[:, None], np.full(n, T_SHAFT)).gamma[:, 0]
+    assert est.bias_events == 0
+    assert float(g[(t > 12.3) & out].min()) > DEFAULT_THRESHOLDS.f2
