@@ -11,7 +11,8 @@ name. Example::
     process = 1.0              # scale on the model's process-noise intensity
     [voltage]
     steps = [[0.0, 220.0], [8.0, 180.0]]   # piecewise-constant command [t, V], or
-    # prbs = { level = 220.0, amplitude = 15.0, clock = 0.5, seed = 0 }  # +-15 V every 0.5 s
+    # prbs = { level = 220.0, amplitude = 15.0, clock = 0.5, seed = 0, levels = 5 }  # 5 levels
+    #   over 205-235 V, drawn every 0.5 s (levels: 2 by default, +-15 V)
     [[fault]]                  # abrupt: gamma from start until end
     start = 3.0
     end = 6.0
@@ -135,8 +136,9 @@ def _number(table: Mapping[str, Any], key: str, where: str, default: float | Non
 
 
 def _prbs_steps(table: object, duration: float, where: str) -> list[list[float]]:
-    """The steps of a pseudo-random binary command: level +- amplitude, the sign drawn anew
-    every `clock` seconds (`monitor.identify.prbs`), the excitation `identify` wants."""
+    """The steps of a pseudo-random command: level + amplitude s, s drawn anew every `clock`
+    seconds from `levels` (2 by default: +-amplitude) evenly spaced values over [-1, 1]
+    (`monitor.identify.prbs`), the excitation `identify` wants."""
     from monitor.identify import prbs
 
     if not isinstance(table, dict):
@@ -145,9 +147,14 @@ def _prbs_steps(table: object, duration: float, where: str) -> list[list[float]]
     amplitude = _number(table, "amplitude", where)
     clock = _number(table, "clock", where)
     seed = int(_number(table, "seed", where, 0.0))
+    levels = _number(table, "levels", where, 2.0)
     if not (clock > 0 and amplitude >= 0):
         raise ScenarioError(f"{where}: needs clock > 0 and amplitude >= 0")
-    values = prbs(duration, clock, level=level, amplitude=amplitude, clock=clock, seed=seed)
+    if not (levels >= 2 and levels == int(levels) and levels <= 1000):
+        raise ScenarioError(f"{where}: levels must be a whole number from 2 to 1000, "
+                            f"got {levels:g}")
+    values = prbs(duration, clock, level=level, amplitude=amplitude, clock=clock, seed=seed,
+                  levels=int(levels))
     return [[k * clock, float(v)] for k, v in enumerate(values[:, 0])]
 
 
