@@ -18,27 +18,8 @@ not Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    (a burst of noise fires the test too, and what a bias learns from one stays: gamma^,
    faster, takes up the difference). Then the biases are re-opened at the onset (their
    variance raised by that of BIAS_SIGMA0 output sigmas) and the samples since are
-   processed again (mode 0: gamma is not re-opened). Every other change goes to gamma^:
-   a load that moves the outputs as a loss would (one that slows a drive) is taken by
-   gamma^ at first, and at a constant input no estimator can do otherwise (where the load
-   enters as the input does, a loss of gamma at u is the load -gamma u, the same constant).
-   A loss scales with the input, a load does not: when the input changes, gamma^ learnt at
-   the input before predicts the outputs wrong by gamma^ times the change where it holds
-   a load, and right where it holds a loss. At a structure event the part c of gamma^
-   that the samples since an input change in the onset window say does not scale with
-   the input (`StructureLearning._conversion`: the likelihood of moving c of gamma^ into
-   the biases, learnt at the input before the change, `conversion_start`) becomes a bias
-   where that explains the innovations better than the jump of gamma the onset search
-   found (which pays its prior's cost, the conversion does not: c is what gamma^ holds).
-   The biases are re-opened there and the samples since processed again; gamma^ keeps
-   the rest. Over the window after a change, a jump of gamma and a conversion have the
-   same signature, so the conversion must tell the story of a load: it undoes at least
-   half (`CONVERT_SHARE`) of what gamma^ moved at the last structure event of gamma, in
-   that direction (negative where a load that helps pulled gamma^ of a loss down, then
-   only where gamma^ is off its lower bound); none starts from gamma^ on its upper bound
-   (an outage). A loss keeps its size through input changes (its scaling is what the
-   model predicts), so a fault does not become a bias. Between events a bias
-   barely moves: a faster
+   processed again (mode 0: gamma is not re-opened). Every other change goes to gamma^,
+   so a fault is never learnt as a bias. Between events a bias barely moves: a faster
    random walk integrates the innovations' small positive mean that the bound of gamma
    leaves on a healthy plant (noise below 0 is clipped), lifting gamma^ off its bound
    with it -- with a 1 s window a healthy motor's gamma^ crept from 0.013 to 0.04 within 5
@@ -63,7 +44,7 @@ from monitor.estimation.model import BiasPlan, DiscreteModel
 
 Array = NDArray[np.float64]
 
-__all__ = ["BIAS_CONFIRM", "augmented_matrices", "beyond_bounds", "conversion_start"]
+__all__ = ["BIAS_CONFIRM", "augmented_matrices", "beyond_bounds"]
 
 BIAS_CONFIRM = 10.0
 """A bias event needs the change gamma cannot take seen twice, the second time within this
@@ -96,29 +77,3 @@ def beyond_bounds(gamma: Array, jump: Array, lower: Array, upper: Array,
     g = gamma[faulty] + jump
     out = np.maximum(lower[faulty] - g, g - upper[faulty])
     return bool(faulty) and bool(np.any(out > min_jump))
-
-
-def conversion_start(kind: str, A: Array, B: Array, C: Array, D: Array, nx: int,
-                     faulty: list[int], u_ref: Array) -> Array:
-    """(n, f): how the filter's state [x; b] moves when one unit of gamma^ of each fault
-    actuator is taken to be a bias instead, learnt at the held input u_ref (A, B, C, D: the
-    filter's augmented matrices, `augmented_matrices`; nx plant states).
-
-    A loss takes u gamma off the input, a load or an offset does not scale with u: at u_ref
-    the two are the same constant, so the change keeps the outputs the filter predicts at
-    u_ref. kind "input": the actuator's bias takes -u_ref of it (x does not move). kind
-    "output": the plant's steady state at u_ref rises by what the loss held it down,
-    (I - A)^-1 B u_ref, and the offset takes the loss's settled effect on the outputs,
-    -(C (I - A)^-1 B + D) u_ref (the plant is stable where an output bias is observable).
-    After the change the input's effect is B u (1 - gamma^ + c): the conversion's
-    signature is a jump of gamma^ by -c from this start (`StructureLearning._conversion`)."""
-    n = A.shape[0]
-    W0 = np.zeros((n, len(faulty)))
-    for i, a in enumerate(faulty):
-        if kind == "input":
-            W0[nx + a, i] = -u_ref[a]
-        elif kind == "output":
-            xs = np.linalg.solve(np.eye(nx) - A[:nx, :nx], B[:nx, a] * u_ref[a])
-            W0[:nx, i] = xs
-            W0[nx:, i] = -(C[:, :nx] @ xs + D[:, a] * u_ref[a])
-    return W0

@@ -323,8 +323,6 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         self.structure_events = 0
         self.bias_events = 0  # changes of a load or an offset (step 8)
         self._bias_armed_until = -math.inf  # a first sight of one waits for a second
-        # gamma^ before the last structure event of gamma: a conversion undoes that event
-        self._gamma_before = np.zeros(len(self._faulty))
 
     def _block(self, dt: float) -> tuple[Array, float]:
         """Model matrices for a step of dt packed flat, and the NIS averaging coefficient."""
@@ -432,7 +430,7 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         for _ in range(2):
             self.step(np.zeros(m), np.zeros(p), self.model.T)
         k = self.steps - 1
-        j, _, _, models = self._onset(k)
+        j, _, models = self._onset(k)
         self._reprocess(j, k, k - len(models[2]) + 1, models)
         self.step_many(np.zeros((2, m)), np.zeros((2, p)), np.full(2, self.model.T))
 

@@ -64,7 +64,6 @@ class FilterState:
         _last_event: float
         _onset_floor: int
         _bias_armed_until: float
-        _gamma_before: Array
 
         def _field(self, k: int, name: str) -> Array: ...
         def _block(self, dt: float) -> tuple[Array, float]: ...

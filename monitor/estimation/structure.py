@@ -7,9 +7,7 @@ fires, `structure_event` locates the change's onset over the ring of past sample
 the state before it and processes the samples since again with the event first
 (`reprocess`), then inserts a membership function (`SelfConstructingFuzzySystem.insert`,
 output-preserving (23)-(27)). A jump the bounds of (28) cannot take is a bias event
-(`monitor.estimation.bias`, step 8), and so is one where a part of gamma^ that does not
-scale with the input explains the innovations since an input change better than a jump
-(`_conversion`). Why (Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1),
+(`monitor.estimation.bias`, step 8). Why (Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1),
 2020, made sound on a small, stiff, back-EMF dominated motor -- a 24 V servo at 1 kHz:
 J = 2e-5, b = 1e-5, Ke = Ki = 0.03, Ra = 1, La = 1e-3, sensor sigma 0.01 A):
 
@@ -45,11 +43,7 @@ J = 2e-5, b = 1e-5, Ke = Ki = 0.03, Ra = 1, La = 1e-3, sensor sigma 0.01 A):
     is O(ring_len^2) up to `max_onsets` samples and two-stage above (a coarse grid of onsets,
     then around its best: O(ring_len (max_onsets + 2 ring_len / max_onsets))); with the JIT
     it and the re-processing (at most ring_len kernel calls) run compiled, one call each.
-    With bias states the event also weighs a conversion of gamma^ into a bias
-    (`_conversion`) at the input's changes in the window, at most `max_onsets` of them,
-    propagated together in numpy: O(ring_len max_onsets n^2), 31 ms on a 2 kHz ring whose
-    input changes at every sample (the cap binding). The estimator's restart after a long
-    gap reuses the model's stationary covariance.
+    The estimator's restart after a long gap reuses the model's stationary covariance.
 """
 
 from __future__ import annotations
@@ -59,7 +53,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from monitor.estimation.bias import BIAS_CONFIRM, beyond_bounds, conversion_start
+from monitor.estimation.bias import BIAS_CONFIRM, beyond_bounds
 from monitor.estimation.kernel import reprocess_loop
 from monitor.estimation.layout import MODEL, RING
 from monitor.estimation.state import FilterState
@@ -68,17 +62,7 @@ from monitor.jit import njit
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["CONVERT_SHARE", "StructureLearning", "onset_glr", "onset_scores"]
-
-CONVERT_SHARE = 0.5
-"""A conversion of gamma^ into a bias (`StructureLearning._conversion`) undoes at least this
-share of what gamma^ moved at the last structure event of gamma: the load step that was
-read as a loss is what it takes back. Over one window after an input change, a jump of
-gamma and a conversion have the same signature (a constant change of the input's effect),
-so any jump located at an input change has a conversion that explains it as well; only
-the one that returns gamma^ to where it was before the event tells a story of a load (an
-outage's gamma^ of 0.92 rising to 1 at an input change is explained as well by 0.3 of it
-becoming a bias, which a healthy run's load steps never ask for)."""
+__all__ = ["StructureLearning", "onset_glr", "onset_scores"]
 
 # Where the fields onset_glr reads start in `layout.offsets` (numba compiles them in)
 _R_U, _R_K, _R_STI, _R_NU = (RING.at(f) for f in ("u", "K", "Sti", "nu"))
@@ -236,11 +220,10 @@ class StructureLearning(FilterState):
             W[:t + 1] = (eye - K @ C) @ Wm + K @ Du
         return ga[cands], ia[cands]
 
-    def _onset(self, k: int) -> tuple[int, Array, float, tuple[Array, Array, IntArray]]:
+    def _onset(self, k: int) -> tuple[int, Array, tuple[Array, Array, IntArray]]:
         """The most likely onset of the change detected at sample k (20), the jump of
-        gamma there (one entry per fault actuator), its score (the log marginal likelihood
-        ratio below) and the model blocks of the samples from the window's first to k
-        (`ring_models`, for `reprocess`).
+        gamma there (one entry per fault actuator), and the model blocks of the samples from
+        the window's first to k (`ring_models`, for `reprocess`).
 
         For every candidate onset j in the ring (after the previous event's), a jump of
         gamma there would have shown in the innovations since as nu_i = M_i(j) dgamma, with
@@ -277,16 +260,14 @@ class StructureLearning(FilterState):
         # the best of both
         score, sol = onset_scores(*self._onset_stats(first, count, cands, models), vr)
         best = int(np.argmax(score))
-        return first + int(cands[best]), sol[best], float(score[best]), models
+        return first + int(cands[best]), sol[best], models
 
     def _reprocess(self, j: int, k: int, first: int,
-                  models: tuple[Array, Array, IntArray], bias: bool = False,
-                  convert: Array | None = None) -> None:
+                  models: tuple[Array, Array, IntArray], bias: bool = False) -> None:
         """Back to the state before sample j, a structure event there -- of gamma, or with
         bias True of the biases (their variance raised by var0, step 8) -- and samples j..k
-        again (k - j < ring_len samples; in one compiled call with the JIT). `convert` (with
-        bias True; one entry per fault actuator): that much of gamma^ becomes a bias at
-        j (`_conversion`). models: the model blocks of samples first..k (`ring_models`)."""
+        again (k - j < ring_len samples; in one compiled call with the JIT). models: the
+        model blocks of samples first..k (`ring_models`)."""
         n, m, p = self._dims
         nx = self._nx
         self.x[:] = self._field(j, "x")
@@ -297,9 +278,6 @@ class StructureLearning(FilterState):
         self._zall[:] = self._field(j, "z")
         self._ebar[:] = self._field(j, "ebar")
         self.out.gamma[:] = self._field(j, "gamma")
-        if convert is not None:
-            self.x[:] += self._conversion_start(j) @ convert
-            self.out.gamma[self._faulty] -= convert
         self.common_var[:] = self._field(j, "vc")
         self.noise_excess[:] = self._field(j, "rx")
         # the event re-opens every consequent at that output: do it before the rules fire,
@@ -316,99 +294,6 @@ class StructureLearning(FilterState):
             self._u[:] = self._field(i, "u")
             self._y[:] = self._field(i, "y")
             self._run(i, float(self._field(i, "dt")[0]), 2.0 if i == j and not bias else 0.0)
-
-    def _conversion_start(self, j: int) -> Array:
-        """`conversion_start` at sample j: the input held before it is u_ref."""
-        u_ref = self._field(j - 1 if j > 0 else j, "u")
-        A, B, _, C, D = self._matrices(float(self._field(j, "dt")[0]))
-        return conversion_start(self.bias_plan.kind, A, B, C, D, self._nx, self._faulty, u_ref)
-
-    def _conversion(self, first: int, k: int) -> tuple[float, int, Array]:
-        """The best conversion of gamma^ into a bias (step 8) over ring samples first..k:
-        (its log likelihood ratio, its onset, how much of gamma^ per fault actuator).
-
-        A load that appeared at a constant input was taken by gamma^ (at one input they are
-        the same constant); when the input changes, a loss scales with it and a load does
-        not. For a sample j where a fault actuator's held input changed, the hypothesis
-        "part c of gamma^ at j is a bias learnt at the input before j" moves the filter's
-        state by `conversion_start` c and the input's effect from then on by B u c; its
-        signature M_i (propagated through the filter as it ran, like the onset search's)
-        against the innovations since gives g = sum M' S^-1 nu, I = sum M' S^-1 M and, with
-        c = I^-1 g, the log likelihood ratio g' c - c' I c / 2. c is not free as a jump is:
-        it is what gamma^ already holds, so it pays no prior's cost against the jump of
-        `_onset`. It is clipped so that gamma^ stays in its bounds, and where negative (a
-        bias becomes a loss) to at most gamma^ - lower: a bias becomes a loss only where
-        gamma^ already sees one, off its bound (at the bound, the bias holds what gamma^
-        could not take). Cost: the input's changes in the window, at most `max_onsets` of
-        them (the largest), propagated together: O(window max_onsets n^2) flops."""
-        F = self._faulty
-        f = len(F)
-        best: tuple[float, int, Array] = (-math.inf, -1, np.zeros(f))
-        if not f or self.bias_plan.count == 0:
-            return best
-        n, m, p = self._dims
-        j0 = max(first, 1)
-        if j0 > k:
-            return best
-        L = self._ring_len
-        rows = self._ring[(j0 - 1 + np.arange(k - j0 + 2)) % L]  # samples j0 - 1 .. k
-
-        def col(name: str) -> Array:
-            a, b = RING.span(name, n, m, p)
-            return rows[:, a:b]
-
-        u_all = col("u")[:, F]
-        step = np.max(np.abs(np.diff(u_all, axis=0)), axis=1)  # at samples j0 .. k
-        cands = j0 + np.flatnonzero(step > 0.0)
-        if cands.size == 0:
-            return best
-        cap = max(1, self.config.max_onsets)
-        if cands.size > cap:
-            cands = np.sort(cands[np.argsort(-step[cands - j0], kind="stable")[:cap]])
-        dts, Ks, Stis, nus = col("dt")[:, 0], col("K"), col("Sti"), col("nu")
-        mats: dict[float, tuple[Array, Array, Array, Array, Array]] = {}
-        nc = cands.size
-        W = np.zeros((nc, n, f))
-        g = np.zeros((nc, f))
-        info = np.zeros((nc, f, f))
-        for i in range(int(cands[0]), k + 1):
-            r = i - j0 + 1
-            start = np.flatnonzero(cands == i)
-            if start.size:
-                W[start[0]] = self._conversion_start(i)
-            on = slice(0, int(np.searchsorted(cands, i, side="right")))
-            dt = float(dts[r])
-            if dt not in mats:
-                mats[dt] = self._matrices(dt)
-            A, B, _, C, D = mats[dt]
-            u = u_all[r]
-            Wm = A @ W[on] + B[:, F] * u
-            Mi = C @ Wm + D[:, F] * u
-            SM = Stis[r].reshape(p, p) @ Mi
-            g[on] += np.einsum("cpa,p->ca", SM, nus[r])
-            info[on] += np.einsum("cpa,cpb->cab", Mi, SM)
-            W[on] = Wm - Ks[r].reshape(n, p) @ Mi
-        lo, hi = self._lower[F], self._upper[F]
-        for c_i, j in enumerate(cands.tolist()):
-            g_j = self._field(j, "gamma")[F]
-            try:
-                c = np.linalg.solve(info[c_i] + 1e-12 * np.eye(f), g[c_i])
-            except np.linalg.LinAlgError:
-                continue
-            c = np.clip(c, np.maximum(g_j - hi, lo - g_j), g_j - lo)
-            # gamma^ on its upper bound is no load's: a drive that its input no longer
-            # moves is an outage to report, whatever the input's changes show next
-            c[g_j >= hi - self.config.min_jump] = 0.0
-            # it undoes the last structure event of gamma (or the start's), at least
-            # CONVERT_SHARE of what gamma^ has moved since, in that direction
-            moved = g_j - self._gamma_before
-            c = np.clip(c, np.minimum(moved, 0.0), np.maximum(moved, 0.0))
-            if np.all(np.abs(c) < CONVERT_SHARE * np.abs(moved)):
-                continue
-            score = float(g[c_i] @ c - 0.5 * c @ info[c_i] @ c)
-            if score > best[0]:
-                best = (score, j, c)
-        return best
 
     def _negligible(self, gamma: Array, jump: Array) -> bool:
         """Whether the jump, projected on the bounds of (28), is below min_jump for every
@@ -429,19 +314,7 @@ class StructureLearning(FilterState):
         the input with the largest |z| (output-preserving).
         """
         k = self.steps
-        j, jump, score, models = self._onset(k)
-        first = k - len(models[2]) + 1
-        conv, jc, c = self._conversion(first, k)
-        if conv > max(score, 0.0) and float(np.max(np.abs(c))) >= self.config.min_jump:
-            # gamma^ held a load or an offset that the input's change shows does not scale
-            # with it: that part becomes a bias at the change (step 8), gamma^ keeps the rest
-            self._reprocess(jc, k, first, models, bias=True, convert=c)
-            self._gamma_before = self.out.gamma[self._faulty].copy()  # nothing left to undo
-            self._onset_floor = jc + 1
-            self._last_event = self._time
-            self._bias_armed_until = -math.inf
-            self.bias_events += 1
-            return False
+        j, jump, models = self._onset(k)
         g_j = self._field(j, "gamma")
         if self._negligible(g_j, jump):
             # a jump that the bounds of (28) reduce to less than min_jump -- typically
@@ -461,12 +334,11 @@ class StructureLearning(FilterState):
                     self._bias_armed_until = self._time + BIAS_CONFIRM * self.config.dwell
                     return False
                 self._bias_armed_until = -math.inf
-                self._reprocess(j, k, first, models, bias=True)
+                self._reprocess(j, k, k - len(models[2]) + 1, models, bias=True)
                 self._onset_floor = j + 1
                 self.bias_events += 1
             return False
-        self._gamma_before = g_j[self._faulty].copy()
-        self._reprocess(j, k, first, models)
+        self._reprocess(j, k, k - len(models[2]) + 1, models)
         self._onset_floor = j + 1
         self._last_event = self._time
         self._bias_armed_until = -math.inf
