@@ -86,8 +86,8 @@ the failures on a stiff servo that led here; (a), (b), (g) are the structure eve
     idle at 0 V, a speed held by a spring between its input's steps), q_gamma dt a sample
     would widen gamma's variance without bound ("covariance windup" of a forgetting
     estimator, Kulhavy 1987, Automatica 23(5)), and the first noisy samples after the next
-    command move gamma^ as far as that variance allows: a healthy paper's motor idle for
-    30 s read 0.35-0.54 on its restart, and a spring-held speed held 9 s read 0.149. So the
+    command move gamma^ as far as that variance allows: the paper's motor, healthy, idle
+    30 s, read 0.35-0.54 on its restart, and a spring-held speed held 9 s read 0.149. So the
     growth is capped at twice the variance the sample's evidence removes (M' P_yy^-1 M
     vc^2, for a scalar gamma directional forgetting): in the information-rich steady state
     the random walk's own level holds (there the growth equals the removal), below it the

@@ -451,10 +451,9 @@ def _limit_ambiguity(dm: DiscreteModel, u: Array, y: Array, m: int, T: float,
     if m != 1:
         return None
     col = u[:, 0]
-    a, b = float(np.min(col)), float(np.max(col))
-    step = V.LEVEL_RESOLUTION * (b - a)
-    if int(np.unique(np.round((col - a) / (step + 1e-300))).size) != 2:
+    if V.level_count(col) != 2:
         return None
+    a, b = float(np.min(col)), float(np.max(col))
     if abs(a) > abs(b):
         a, b = b, a  # a: the level of the smaller size, the one a limit leaves alone
     if abs(abs(b) - abs(a)) <= 0.1 * abs(b - a) or a == 0.0:

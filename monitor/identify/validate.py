@@ -57,6 +57,7 @@ __all__ = [
     "cross_correlation_test",
     "fitted_x0_sim",
     "holdout_sim",
+    "level_count",
     "nrmse",
     "resolved_time_constant",
     "whiteness_test",
@@ -131,6 +132,13 @@ def check_capture(u: Array, y: Array, T: float, holdout: float) -> tuple[Array, 
     return ua, ya
 
 
+def level_count(col: Array) -> int:
+    """How many distinct levels an input took: values LEVEL_RESOLUTION of its range apart
+    are one level."""
+    step = LEVEL_RESOLUTION * (float(np.ptp(col)) + 1e-300)
+    return int(np.unique(np.round((col - col.min()) / step)).size)
+
+
 def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, object]:
     """Refuse an input that cannot identify a model of `order` states; report PE and how
     many distinct levels each input took (`LEVEL_RESOLUTION`)."""
@@ -148,7 +156,7 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
         if changes < MIN_CHANGES:
             raise IdentifyError(
                 f"input '{names[j]}' changes only {changes} times: {RECORDING_ADVICE}")
-        levels.append(int(np.unique(np.round((u[:, j] - u[:, j].min()) / step[j])).size))
+        levels.append(level_count(u[:, j]))
     L = 2 * order + 1
     uc = (u - u.mean(axis=0)) / sd
     N, m = uc.shape
