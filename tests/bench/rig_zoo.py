@@ -50,7 +50,9 @@ transitions into fault or outage at a time the node is truly healthy (outside th
 *Delay* is the time from each onset of a loss >= 0.3 (the outage's included) to the first
 fault or outage state; missed is infinite. A rig is *diagnosed right* if identify accepted
 it, every replay exited 0, accuracy >= 99 % in every run, the healthy run had no false
-alarm and every loss was detected within 0.3 s. *snr03* is what any detector could see:
+alarm and every loss was detected within 0.3 s where the input excites it (a loss whose
+run's snr03, below, is under `SNR_VISIBLE` may be detected later: a note, not a
+verdict). *snr03* is what any detector could see:
 the fault's effect on the output over the first 0.3 s after the onset, sqrt(sum dy^2) in
 units of the sensor noise (with the quantum's), the least over the loss runs; below about
 5 the 0.3 s target is beyond what the sensor shows. *self* (not part of the verdict) is
@@ -194,6 +196,7 @@ class RigResult:
     runs: list[RunResult] = field(default_factory=list)
     self_check: RunResult | None = None  # the learned rig replayed on identify.log
     snr03: float = math.nan
+    snr03_by_run: dict[str, float] = field(default_factory=dict)  # per run with a loss
     tau_s: float = math.nan  # the plant's slowest non-integrating time constant
     verdict: str = ""
     why: list[str] = field(default_factory=list)
@@ -250,7 +253,7 @@ def prepare(seed: int, d: Path) -> tuple[gen.Rig, list[gen.Timeline], RigResult,
                               "load_changes": {n: runs[n].load_changes for n in rig.nodes}})
     (d / "truth.json").write_text(json.dumps(truth, indent=1))
     # what any detector could see in 0.3 s after a loss onset
-    snrs = []
+    snrs: dict[str, float] = {}
     sig_eff = math.sqrt(rig.sigma**2 + rig.quantum**2 / 12.0)
     for tl, runs in zip(tls, sims, strict=True):
         if tl.faulted_node is None:
@@ -259,13 +262,13 @@ def prepare(seed: int, d: Path) -> tuple[gen.Rig, list[gen.Timeline], RigResult,
         k0 = math.ceil(tl.steps[0][0] * rig.rate)
         k1 = k0 + round(0.3 * rig.rate)
         dy = nr.y[k0:k1] - nr.y_free[k0:k1]
-        snrs.append(float(np.sqrt(np.sum(dy**2))) / sig_eff)
+        snrs[tl.name] = float(np.sqrt(np.sum(dy**2))) / sig_eff
     res = RigResult(seed=seed, layout=rig.layout + ("/29-bit" if rig.extended else ""),
                     rate=rig.rate, order=rig.plant.order, kinds=rig.kinds,
                     structure=rig.plant.structure.describe(), extras=list(rig.extras),
                     nodes=list(rig.nodes), frames=_frames_desc(rig), directory=str(d),
-                    tau_s=rig.plant.dominant_tau())
-    return rig, tls, res, min(snrs) if snrs else math.nan
+                    tau_s=rig.plant.dominant_tau(), snr03_by_run=snrs)
+    return rig, tls, res, min(snrs.values()) if snrs else math.nan
 
 
 def beyond_the_zoo(r: RigResult) -> list[str]:
@@ -417,7 +420,14 @@ def judge(res: RigResult) -> None:
             if math.isinf(dl):
                 why.append(f"{r.name}: loss missed")
             elif dl > 0.3:
-                why.append(f"{r.name}: detected after {dl:.2f} s")
+                # the target asks for 0.3 s where the input excites the loss: where its
+                # effect over 0.3 s is within the sensor's noise, late is a note
+                snr = res.snr03_by_run.get(r.name, math.inf)
+                if snr >= SNR_VISIBLE:
+                    why.append(f"{r.name}: detected after {dl:.2f} s")
+                else:
+                    res.notes.append(f"{r.name}: detected after {dl:.2f} s, where the loss "
+                                     f"moved the output {snr:.1f} noise units in 0.3 s")
     res.why = why
     res.verdict = "right" if not why else "wrong"
 
