@@ -495,9 +495,10 @@ def report_checks(report: Mapping[str, Any], replay: ReplayFigures,
               V.MIN_INPUT_LEVELS,
               "the input took two levels: the model is checked between them alone, and a gain "
               "that changes with the level (an actuator or drive that saturates at one of "
-              "them) looks like a smaller gain plus an offset, which runs at other levels "
-              "then meet as model mismatch or false alarms; record steps between several "
-              "levels (random steps or a multi-level PRBS)", gating=False),
+              "them) looks like a smaller gain plus an offset, and friction, whose share of "
+              "a step changes with the step's size, like a smaller gain; runs at other "
+              "levels then meet them as model mismatch or false alarms; record steps "
+              "between several levels (random steps or a multi-level PRBS)", gating=False),
         _steady_check(report, replay.f1),
         *_replay_checks(replay, structure, faults),
     ]

@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 import scipy.signal
-import scipy.stats
 from numpy.typing import ArrayLike, NDArray
 from threadpoolctl import threadpool_limits
 
@@ -52,7 +51,7 @@ carries on its initial state drives nothing; a gain it carries drove 25 % (see
 LIMIT_SHARE = 0.01
 """`_limit_ambiguity`: the least error, as a share of the output's swing, that counts."""
 OFFSET_STRETCHES = 8
-"""`_shown_offset`: the stretches whose intercepts give the offset's confidence."""
+"""`_shown_offset`: the stretches whose intercepts a sign test compares."""
 LIMIT_NOISE = 1.0
 """`_limit_ambiguity`: the largest error, in innovation standard deviations, that an
 actuator limit a two-level capture cannot tell from a smaller gain with an offset may make
@@ -418,8 +417,9 @@ def _shown_offset(rest: Array, settled: NDArray[np.bool_], y: Array, tail: slice
     """Per output, the offset of the data's own line through the model's settled response:
     the intercept c of y = s r + c over the samples of the stretch `tail` where the
     model's response from rest r (`rest`) has settled (`settled`, a mask per sample and
-    output), as far as the capture shows it at 99 % confidence (the lower bound of |c|, 0
-    where the bound is not above 0 or too few stretches hold both levels settled).
+    output), as far as the capture shows it: the least |c| of OFFSET_STRETCHES stretches
+    where all have one sign (a sign test: were the median 0, all of 8 would share a sign
+    with chance 2^-7, 0.8 %, and the median is at least the least), 0 otherwise.
 
     A fit that averages a limit into its gain leaves no offset of its own (the rig zoo's
     seed 52: a second-order speed, the top level of two clipped by 5 %, fitted through
@@ -429,25 +429,27 @@ def _shown_offset(rest: Array, settled: NDArray[np.bool_], y: Array, tail: slice
     takes the fit's gain error, so only what no line through zero gives is left. Settled
     samples only: within the transients a slightly wrong pole leaves errors that a line
     through r takes partly as an offset (a quantised first-order plant read 8 noise units
-    that way). The confidence is from OFFSET_STRETCHES stretches' intercepts (batch
-    means, Student's t), since a slow mode's wander under process noise also moves a
-    stretch's intercept (the paper's motor: -2 to 8 noise units from stretch to stretch)."""
+    that way). Stretches, since a slow mode's wander under process noise also moves a
+    stretch's intercept (the paper's motor: -2 to 8 noise units from stretch to stretch);
+    a sign test rather than the stretches' mean, since one stretch can be far off (the
+    zoo's seed 85: seven at -1.2 to -3.4, one at -71)."""
     N, p = y.shape
     shown = np.zeros(p)
     for i in range(p):
         cs = []
         for rows in np.array_split(np.arange(N)[tail], OFFSET_STRETCHES):
             rows = rows[settled[rows, i]]
-            if rows.size < 4 or np.ptp(rest[rows, i]) <= 0.0:
-                continue
+            r = rest[rows, i]
+            upper = r > 0.5 * (float(np.min(r)) + float(np.max(r))) if r.size else r > 0
+            if min(int(np.sum(upper)), int(np.sum(~upper))) < max(4, r.size // 10):
+                continue  # a line through one level's samples is no line
             X = np.column_stack([rest[rows, i], np.ones(rows.size)])
             coef, *_ = np.linalg.lstsq(X, y[rows, i], rcond=None)
             cs.append(float(coef[1]))
-        if len(cs) < OFFSET_STRETCHES // 2:
-            continue
-        t99 = float(scipy.stats.t.ppf(0.995, len(cs) - 1))
-        se = float(np.std(cs, ddof=1)) / math.sqrt(len(cs))
-        shown[i] = max(0.0, abs(float(np.mean(cs))) - t99 * se)
+        # the sign test's bound on the median: all of them one sign has chance 2^(1 - n)
+        # if the median is 0 (0.8 % for 8), and then the median is at least the least
+        if len(cs) == OFFSET_STRETCHES and (min(cs) > 0.0 or max(cs) < 0.0):
+            shown[i] = min(abs(c) for c in cs)
     return shown
 
 
