@@ -440,7 +440,9 @@ def _shown_offset(rest: Array, settled: NDArray[np.bool_], y: Array, tail: slice
         for rows in np.array_split(np.arange(N)[tail], OFFSET_STRETCHES):
             rows = rows[settled[rows, i]]
             r = rest[rows, i]
-            upper = r > 0.5 * (float(np.min(r)) + float(np.max(r))) if r.size else r > 0
+            if r.size < 8:
+                continue
+            upper = r > 0.5 * (float(np.min(r)) + float(np.max(r)))
             if min(int(np.sum(upper)), int(np.sum(~upper))) < max(4, r.size // 10):
                 continue  # a line through one level's samples is no line
             X = np.column_stack([rest[rows, i], np.ones(rows.size)])
