@@ -219,7 +219,7 @@ def _frames_desc(rig: gen.Rig) -> str:
     return f"2 frames ({order}), input {in_rate:g} Hz +{rig.in_msg.phase}/4 T"
 
 
-def prepare(seed: int, d: Path) -> tuple[gen.Rig, list[gen.Timeline], RigResult, float]:
+def prepare(seed: int, d: Path) -> tuple[gen.Rig, list[gen.Timeline], RigResult]:
     """Make the rig, simulate every run, write the DBC, rig file and captures."""
     rig = gen.make_rig(seed)
     tls = gen.timelines(rig)
@@ -267,8 +267,9 @@ def prepare(seed: int, d: Path) -> tuple[gen.Rig, list[gen.Timeline], RigResult,
                     rate=rig.rate, order=rig.plant.order, kinds=rig.kinds,
                     structure=rig.plant.structure.describe(), extras=list(rig.extras),
                     nodes=list(rig.nodes), frames=_frames_desc(rig), directory=str(d),
-                    tau_s=rig.plant.dominant_tau(), snr03_by_run=snrs)
-    return rig, tls, res, min(snrs.values()) if snrs else math.nan
+                    tau_s=rig.plant.dominant_tau(), snr03_by_run=snrs,
+                    snr03=min(snrs.values()) if snrs else math.nan)
+    return rig, tls, res
 
 
 def beyond_the_zoo(r: RigResult) -> list[str]:
@@ -328,8 +329,7 @@ def _note_cmd(res: RigResult, c: Cmd) -> None:
 
 
 def _zoo_rig(seed: int, d: Path) -> RigResult:
-    rig, tls, res, snr = prepare(seed, d)
-    res.snr03 = snr
+    rig, tls, res = prepare(seed, d)
     node_arg = ["--node", str(rig.nodes[0])] if len(rig.nodes) > 1 else []
     ident = ["identify", "identify.log", "--rig", "rig.toml", "--out", "learned.toml",
              *node_arg]
