@@ -318,7 +318,8 @@ def _continuous_oe(A: Array, B: Array, C: Array, u: Array, y: Array, T: float,
     th = res.x if res.cost <= 0.5 * float(np.sum(resid(th0) ** 2)) else th0
     r = resid(th)
     if r is bad:
-        raise IdentifyError("the continuous-time output-error fit found no stable simulation")
+        raise IdentifyError("the continuous-time output-error fit found no stable simulation: "
+                            "record at a lower sample rate, with an anti-aliased output")
     Ac, Bc, Cc, _ = _oe_unpack(th, n, m, p)
     Ad, Bd = c2d(Ac, Bc, T)
     Jac = np.asarray(res.jac)
@@ -405,8 +406,8 @@ def fit_state_space(u: Array, y: Array, T: float, order: int | None, ntr: int,
             raise IdentifyError(
                 f"order {n} is more than the capture supports ({dec.max_order}): record a "
                 "longer capture with a richer input, or ask for a smaller order")
-        sub = _raw(dec.model(n), utr, ytr)
         try:
+            sub = _raw(dec.model(n), utr, ytr)
             forms[n] = _screen(sub, u, y, ntr, T)
         except (IdentifyError, np.linalg.LinAlgError, ValueError) as exc:
             failed = str(exc)
@@ -414,9 +415,9 @@ def fit_state_space(u: Array, y: Array, T: float, order: int | None, ntr: int,
         bic[n] = _bic(sub, utr, ytr)
         hold[n], indep[n] = _holdout(forms[n].A, forms[n].B, forms[n].C, u, y, ntr)
     if not forms:
-        raise IdentifyError(f"no model of order {', '.join(map(str, orders))} has a "
-                            f"continuous-time form ({failed}): record at a lower sample rate, "
-                            "with an anti-aliased output")
+        # each failure's own line says what to record instead
+        raise IdentifyError(f"no model of order {', '.join(map(str, orders))} is usable, the "
+                            f"last because {failed}")
     best = max(hold.values())
     n = min(k for k in hold if hold[k] >= best - ORDER_MARGIN)
     screened = forms[n]

@@ -28,11 +28,16 @@ import scipy.linalg
 from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
+from monitor.identify.errors import IdentifyError
 from monitor.identify.lti import dsim
 
 Array = NDArray[np.float64]
 
 __all__ = ["N4SID", "SubspaceModel", "n4sid", "output_error_b"]
+
+# The largest growth (natural log) of a mode over a record whose responses output_error_b
+# fits: e^300 leaves float64 room for the products of its least squares.
+MAX_LOG_GROWTH = 300.0
 
 
 @dataclass(frozen=True)
@@ -65,9 +70,19 @@ def _hankel(x: Array, s: int, j: int, start: int) -> Array:
 
 def output_error_b(A: Array, C: Array, u: Array, y: Array) -> tuple[Array, Array, float]:
     """B and x0 minimising sum |y - C (zI - A)^-1 (B u) - C A^k x0|^2 for fixed A, C (linear
-    least squares on the responses to each entry of B and of x0). Returns (B, x0, SSE)."""
+    least squares on the responses to each entry of B and of x0). Returns (B, x0, SSE).
+
+    Raises IdentifyError where a mode of A grows beyond what float64 holds over the record
+    (a spurious mode of a high order, |z| = 1.02 over 45,000 samples: the responses
+    overflow and the least squares cannot be solved)."""
     n, m = A.shape[0], u.shape[1]
     N = y.shape[0]
+    radius = float(np.max(np.abs(np.linalg.eigvals(A)))) if n else 0.0
+    if radius > 1.0 and N * math.log(radius) > MAX_LOG_GROWTH:
+        raise IdentifyError(
+            f"the order-{n} subspace model has a mode at |z| = {radius:.4g}, which grows by "
+            f"e^{N * math.log(radius):.0f} over the {N} samples: record the plant in open "
+            "loop, its input not computed from its output")
     cols = []
     for j in range(m):
         for i in range(n):
@@ -119,18 +134,26 @@ class N4SID:
         return int(min(self.s * self.p, np.sum(self.singular_values > 1e-12 *
                                                 self.singular_values[0])))
 
-    def model(self, n: int) -> SubspaceModel:
+    def _states(self, n: int) -> tuple[Array, Array, Array, Array]:
+        """(X, Z = [X u], [A B]' of step 3, the scaled outputs) of order n."""
         s, j = self.s, self.j
         Sn = self.singular_values[:n]
         M = (self._U[:, :n] / np.sqrt(Sn)).T @ self._Ob  # (n, s(m+p))
         X = self._Wp @ M.T  # (j, n): states at samples s..s+j-1
         us = self._us[s:s + j]
-        ys = self._ys[s:s + j]
         Z = np.hstack([X[:-1], us[:-1]])
         AB, *_ = np.linalg.lstsq(Z, X[1:], rcond=None)
+        return X, Z, AB, self._ys[s:s + j]
+
+    def transition(self, n: int) -> Array:
+        """A of the order-n model (step 3 alone)."""
+        return np.asarray(self._states(n)[2][:n].T)
+
+    def model(self, n: int) -> SubspaceModel:
+        X, Z, AB, ys = self._states(n)
         A = AB[:n].T
         Ct, *_ = np.linalg.lstsq(X, ys, rcond=None)
-        C = Ct.T
+        C = np.asarray(Ct.T, dtype=float)
         # Step 4: B and x0 of the deterministic part, on the whole (scaled) record.
         B, x0, _ = output_error_b(A, C, self._us, self._ys)
         W = X[1:] - Z @ AB
@@ -161,15 +184,13 @@ def n4sid(u: Array, y: Array, s: int) -> N4SID:
     return N4SID(u, y, s)
 
 
-
-
 def horizon(u: Array, y: Array, cap_rows: int = 240) -> int:
     """Block rows for N4SID: about one dominant time constant (from a first-order fit with
     10 rows), at least 10, at most what keeps the data matrix to `cap_rows` columns. A
     horizon much shorter than the dominant time constant biases the states under noise."""
     m, p = u.shape[1], y.shape[1]
     cap = max(10, cap_rows // (2 * (m + p)))
-    z = float(np.real(np.linalg.eigvals(N4SID(u, y, 10).model(1).A)[0]))
+    z = float(np.real(np.linalg.eigvals(N4SID(u, y, 10).transition(1))[0]))
     if not 0.0 < z < 1.0:
         return cap
     return int(min(cap, max(10, math.ceil(-1.0 / math.log(z)))))
