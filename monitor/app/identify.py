@@ -388,8 +388,26 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     known_steps = steps if len(steps) == len(rig.outputs) else None
     kind = model_kind(rig, args.model)
 
+    friction_fits: dict[tuple[int | None, int | None], Identification | IdentifyError] = {}
+
     def fit(order: int | None, friction: str | None = None,
             delay: int | None = None) -> Identification:
+        if friction is None:
+            return fit_once(order, None, delay)
+        # a friction's fit is made once for its order and delay (the probe's is the retry's)
+        key = (order, delay)
+        if key not in friction_fits:
+            try:
+                friction_fits[key] = fit_once(order, friction, delay)
+            except IdentifyError as exc:
+                friction_fits[key] = exc
+        made = friction_fits[key]
+        if isinstance(made, IdentifyError):
+            raise made
+        return made
+
+    def fit_once(order: int | None, friction: str | None, delay: int | None
+                 ) -> Identification:
         ident = identify(u, y, T, kind="state_space" if friction else kind, order=order,
                          template=template, input_names=[r.signal for r in rig.inputs],
                          output_names=[r.signal for r in rig.outputs],
@@ -443,11 +461,30 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             pass
         return failed
 
+    def probe_friction(ident: Identification) -> None:
+        """A linear black box of a speed or position learned from an input of two levels
+        alone gets `friction_probe`: the friction's refit, whose size the check
+        `friction_two_levels` weighs (two levels show one share of a friction)."""
+        motion = _motion(rig)
+        levels = ident.report.get("excitation", {}).get("input_levels") or []
+        if ident.kind != "state_space" or "friction" in ident.report or motion is None \
+                or min(levels, default=0) != 2:
+            return
+        try:
+            probe = fit(args.order, friction=motion, delay=ident.input_delay)
+        except IdentifyError as exc:
+            ident.report["friction_probe"] = {"refused": one_line(exc)}
+            return
+        ident.report["friction_probe"] = {
+            "order": probe.order, "holdout_fit_pct": probe.report["fit"]["nrmse_holdout_pct"],
+            **{k: probe.report["friction"][k] for k in ("response_noise_units", "width")}}
+
     def checked(ident: Identification, keep_failed: bool
                 ) -> tuple[Identification, list[Check]]:
         """`check_and_write`; where the replay's mean NIS lies below its band, once more with
         the noise calibrated by it (`nis_calibrated`: the monitor's filter explains the
         capture better than the noise was fitted for), which is then the model."""
+        probe_friction(ident)
         failed = check_and_write(ident, keep_failed)
         replay = ident.report.get("replay", {})
         nis, band = replay.get("mean_nis"), replay.get("nis_band")

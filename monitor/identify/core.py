@@ -301,7 +301,13 @@ def _friction_box(held: Array, y_held: Array, delay: int, ntr: int, T: float,
     if ev["dc_gain"] is not None:  # the settled output's loss: the rig's inputs only
         ev["steady_state_loss"] = _steady_state_loss([row[:m] for row in ev["dc_gain"]],
                                                      u_f[:, :m], ev["innovation_std"])
+    # the friction's own share of the output: the model's response to phi alone, its
+    # standard deviation over the capture in innovation standard deviations
+    A, B, _ = cand.model.discretize(T).at(T)
+    share = dsim(A, B[:, m:], cand.model.C, u_f[:, m:])
+    share_sd = np.std(share, axis=0) / np.asarray(ev["innovation_std"], dtype=float)
     info = {"speed": speed, "width": width, "iterations": FRICTION_ITERATIONS,
+            "response_noise_units": float(np.max(share_sd)),
             "holdout_fit_pct_per_iteration": fits,
             "phi_mean": float(np.mean(held_f[:, m])),
             "phi_sign_changes": int(np.count_nonzero(np.diff(np.sign(held_f[:, m])))),
@@ -788,6 +794,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
     t = time.perf_counter()
     excitation = V.check_excitation(utr, 2 if kind != "state_space" or order is None
                                     else order, names[0])
+    V.check_holdout_changes(u, ntr, names[0])
     V.check_outputs(y, names[1])
     cands: list[tuple[_Candidate, dict[str, Any], dict[str, Array]]] = []
     auto_note: dict[str, Any] = {}

@@ -69,3 +69,25 @@ def test_a_two_level_capture_of_a_one_signed_friction_is_refused(tmp_path: Path)
     assert res.returncode != 0
     last = res.stderr.strip().splitlines()[-1]
     assert "two levels alone" in last and "friction" in last and "several levels" in last
+
+
+def test_a_two_level_capture_of_a_friction_that_matters_is_refused(tmp_path: Path) -> None:
+    """The rig zoo's seed 84 (a voltage in, a free position out, Coulomb friction, a PRBS
+    of +-6.65 V): the linear model passed every check on its capture, and fresh runs of
+    random steps inside the same band met the friction's other shares as false alarms (4
+    in the healthy run; 147 with the friction's refit, which passed every check too). The
+    friction's refit, probed because the input took two levels, moves the output by 52
+    noise units: refused in one line, whichever model, saying to record several levels.
+    Seed 94 (a spring-held position, friction of 4.3 noise units) is accepted."""
+    for seed in (84, 94):
+        (tmp_path / str(seed)).mkdir()
+    res, report = identify_zoo_rig(84, tmp_path / "84")
+    assert res.returncode == 1
+    last = res.stderr.strip().splitlines()[-1]
+    assert "friction_two_levels" in last and "several levels" in last
+    assert report["friction_probe"]["response_noise_units"] > 10.0
+    assert not (tmp_path / "84" / "learned.toml").exists()
+    res, report = identify_zoo_rig(94, tmp_path / "94")
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert report["friction_probe"]["response_noise_units"] < 10.0
+    assert {c["check"]: c["passed"] for c in report["checks"]}["friction_two_levels"]
