@@ -477,7 +477,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             return
         ident.report["friction_probe"] = {
             "order": probe.order, "holdout_fit_pct": probe.report["fit"]["nrmse_holdout_pct"],
-            **{k: probe.report["friction"][k] for k in ("response_noise_units", "width")}}
+            **{k: probe.report["friction"][k] for k in ("response_noise_units",
+                                                         "holdout_error_cut", "width")}}
 
     def checked(ident: Identification, keep_failed: bool
                 ) -> tuple[Identification, list[Check]]:

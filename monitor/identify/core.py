@@ -285,6 +285,7 @@ def _friction_box(held: Array, y_held: Array, delay: int, ntr: int, T: float,
     m = held.shape[1]
     u, y, _ = fit_rows(held, y_held, delay)
     cand = _fit_black_box(u, y, ntr, T, order, names)
+    linear_fit = float(cand.extra["order_selection"]["holdout_fit_pct"][str(cand.order)])
     _, width = speed_estimate(cand.model, held, y_held, T, delay, speed)
     names_f = (names[0] + ("friction",), names[1])
     fits: list[float] = []
@@ -308,7 +309,10 @@ def _friction_box(held: Array, y_held: Array, delay: int, ntr: int, T: float,
     share_sd = np.std(share, axis=0) / np.asarray(ev["innovation_std"], dtype=float)
     info = {"speed": speed, "width": width, "iterations": FRICTION_ITERATIONS,
             "response_noise_units": float(np.max(share_sd)),
+            "linear_holdout_fit_pct": linear_fit,
             "holdout_fit_pct_per_iteration": fits,
+            # the share of the linear model's hold-out error that the friction removes
+            "holdout_error_cut": (fits[-1] - linear_fit) / max(100.0 - linear_fit, 1e-9),
             "phi_mean": float(np.mean(held_f[:, m])),
             "phi_sign_changes": int(np.count_nonzero(np.diff(np.sign(held_f[:, m])))),
             "rule": "Coulomb friction b_f phi, phi = -tanh(v / width), v the model's "

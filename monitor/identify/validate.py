@@ -12,9 +12,9 @@ Refusals (each an IdentifyError with one line saying what to record instead):
 * not exciting enough: an input that does not move (std below 1e-6 of its RMS), that
   changes fewer than MIN_CHANGES times in the training part or not at all in the held-out
   part (`check_holdout_changes`: its fit would judge a flat record), or that is not
-  persistently exciting of the order
-  the model needs (the smallest singular value of the block Hankel matrix of the centred
-  inputs with 2 n + 1 rows below 1e-7 of the largest: a sine is exciting of order 2 only);
+  persistently exciting of the order the model needs (the smallest singular value of the
+  block Hankel matrix of the centred inputs with 2 n + 1 rows below 1e-7 of the largest: a
+  sine is exciting of order 2 only);
   and, after the fit, a training fit below MIN_FIT % (the input moves the output too
   little against the noise);
 * an output that cannot show the response (`check_outputs`): stuck at one value,
@@ -177,7 +177,7 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
             raise IdentifyError(
                 f"input '{names[j]}' is constant ({u[0, j]:.4g}) over the capture, so nothing "
                 f"can be identified: {RECORDING_ADVICE}")
-        changes = int(_changes(u[:, j], step[j]))
+        changes = _changes(u[:, j], float(step[j]))
         if changes < MIN_CHANGES:
             raise IdentifyError(
                 f"input '{names[j]}' changes only {changes} times: {RECORDING_ADVICE}")

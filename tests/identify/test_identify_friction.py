@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from monitor.app.identify_check import FRICTION_SHOWN, ReplayFigures, report_checks
 from monitor.identify import identify, prbs
 from monitor.rig import build_model, load_rig
 from tests.support.identify import identify_zoo_rig
@@ -34,8 +35,12 @@ def test_a_position_with_friction_is_learned_with_it(tmp_path: Path) -> None:
     assert "[model.friction]" in (tmp_path / "learned.toml").read_text()
 
 
-def test_identify_with_friction_finds_its_size() -> None:
-    T, J, b, tc, width = 0.005, 0.01, 0.05, 0.15, 0.05
+T_SPEED = 0.005
+
+
+def _speed_under_prbs(tc: float) -> tuple[np.ndarray, np.ndarray]:
+    """A speed (J 0.01, b 0.05) under a +-1 PRBS, Coulomb friction `tc` (N*m), noise 0.01."""
+    T, J, b, width = T_SPEED, 0.01, 0.05, 0.05
     u = prbs(40.0, T, level=0.0, amplitude=1.0, clock=0.4, seed=5)
     sub, w = 20, 0.0
     ys = np.empty(u.shape[0])
@@ -44,7 +49,12 @@ def test_identify_with_friction_finds_its_size() -> None:
         for _ in range(sub):
             w += T / sub * (-b * w + u[min(k + 1, u.shape[0] - 1), 0]
                             - tc * math.tanh(w / width)) / J
-    y = ys[:, None] + np.random.default_rng(3).normal(0.0, 0.01, (u.shape[0], 1))
+    return u, ys[:, None] + np.random.default_rng(3).normal(0.0, 0.01, (u.shape[0], 1))
+
+
+def test_identify_with_friction_finds_its_size() -> None:
+    T, tc = T_SPEED, 0.15
+    u, y = _speed_under_prbs(tc)
     ident = identify(u, y, T, kind="state_space", order=1, input_delay=0, friction="output")
     fr = ident.model.friction
     assert fr is not None and fr.speed == "output"
@@ -55,6 +65,27 @@ def test_identify_with_friction_finds_its_size() -> None:
     assert plain.model.friction is None  # the linear fit takes the friction in part
     assert ident.report["fit"]["nrmse_holdout_pct"][0] > \
         plain.report["fit"]["nrmse_holdout_pct"][0] + 1.0
+    # the refit shows the friction: it removes most of the linear model's hold-out error
+    assert ident.report["friction"]["holdout_error_cut"] > FRICTION_SHOWN
+
+
+def test_a_friction_refit_of_a_plant_without_friction_shows_none() -> None:
+    """Under two levels the friction's phi follows the input's sign, so the refit of a plant
+    without friction splits the gain between the two: a friction of any size that fits no
+    better, which the gate friction_two_levels does not count (the rig zoo's seed 87)."""
+    u, y = _speed_under_prbs(0.0)
+    ident = identify(u, y, T_SPEED, kind="state_space", order=1, input_delay=0,
+                     friction="output")
+    assert ident.report["excitation"]["input_levels"] == [2]
+    assert ident.report["friction"]["holdout_error_cut"] < FRICTION_SHOWN
+    replay = ReplayFigures([], 2.0, 100, 1.0, {"fault_free": 1.0}, 0.0, 1.0, (0.8, 1.2),
+                           gamma_max=0.01, f1=0.15)
+    checks = {c.check: c for c in report_checks(ident.report, replay)}
+    assert checks["friction_two_levels"].passed and checks["friction_two_levels"].value == 0.0
+    shown = dict(ident.report, friction=dict(ident.report["friction"], holdout_error_cut=0.5,
+                                              response_noise_units=20.0))
+    checks = {c.check: c for c in report_checks(shown, replay)}
+    assert not checks["friction_two_levels"].passed and checks["friction_two_levels"].gating
 
 
 def test_a_two_level_capture_of_a_one_signed_friction_is_refused(tmp_path: Path) -> None:
@@ -86,6 +117,7 @@ def test_a_two_level_capture_of_a_friction_that_matters_is_refused(tmp_path: Pat
     last = res.stderr.strip().splitlines()[-1]
     assert "friction_two_levels" in last and "several levels" in last
     assert report["friction_probe"]["response_noise_units"] > 10.0
+    assert report["friction_probe"]["holdout_error_cut"] > FRICTION_SHOWN
     assert not (tmp_path / "84" / "learned.toml").exists()
     res, report = identify_zoo_rig(94, tmp_path / "94")
     assert res.returncode == 0, res.stdout + res.stderr
