@@ -47,6 +47,7 @@ from monitor.app.identify_check import (
     failure_cause,
     fault_detection,
     gating_failures,
+    input_levels,
     replay_capture,
     report_checks,
 )
@@ -466,9 +467,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         alone gets `friction_probe`: the friction's refit, whose size the check
         `friction_two_levels` weighs (two levels show one share of a friction)."""
         motion = _motion(rig)
-        levels = ident.report.get("excitation", {}).get("input_levels") or []
         if ident.kind != "state_space" or "friction" in ident.report or motion is None \
-                or min(levels, default=0) != 2:
+                or input_levels(ident.report) != 2:
             return
         try:
             probe = fit(args.order, friction=motion, delay=ident.input_delay)

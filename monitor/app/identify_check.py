@@ -55,7 +55,7 @@ from monitor.sinks.base import Sink
 
 __all__ = ["DETECT_S", "MAX_MISMATCH_SHARE", "START_SHARE", "STEADY_LOSS_NOISE", "Check",
            "FaultFigures", "ReplayFigures", "added_loss", "failure_cause", "fault_detection",
-           "gating_failures", "replay_capture", "report_checks"]
+           "gating_failures", "input_levels", "replay_capture", "report_checks"]
 
 MAX_MISMATCH_SHARE = 0.01
 """The largest share of the replayed time the model-mismatch flag may be up. A fitting
@@ -489,7 +489,7 @@ def report_checks(report: Mapping[str, Any], replay: ReplayFigures,
     cross = report.get("cross_correlation", {})
     drops = report.get("consistency", {}).get("halves_nrmse_drop_pct", [])
     excitation = report.get("excitation", {})
-    levels = float(min(excitation.get("input_levels") or [math.nan]))
+    levels = input_levels(report)
     holdout = min(fit.get("nrmse_holdout_pct") or [math.nan])
     p_floor = 1.0 - V.CONFIDENCE
     structure = _structure_advice(report)
@@ -526,6 +526,12 @@ def report_checks(report: Mapping[str, Any], replay: ReplayFigures,
     # advice is for what failed: a passing check has nothing to do
     return [c if not c.passed else Check(c.check, True, c.value, c.limit, "", c.gating)
             for c in checks]
+
+
+def input_levels(report: Mapping[str, Any]) -> float:
+    """The fewest levels an input of the capture took (the report's excitation), NaN where
+    the report has none."""
+    return float(min(report.get("excitation", {}).get("input_levels") or [math.nan]))
 
 
 def _friction_check(report: Mapping[str, Any], levels: float) -> list[Check]:

@@ -99,12 +99,7 @@ def subspace_model(u: Array, y: Array, n: int, s: int | None = None) -> tuple[Su
     re-fitted on the raw data)."""
     ud, yd = u - u.mean(axis=0), y - y.mean(axis=0)
     dec = N4SID(ud, yd, s or horizon(ud, yd))
-    return _raw(dec.model(n), u, y), dec
-
-
-def _raw(sub: SubspaceModel, u: Array, y: Array) -> SubspaceModel:
-    B, x0, _ = output_error_b(sub.A, sub.C, u, y)
-    return SubspaceModel(A=sub.A, B=B, C=sub.C, K=sub.K, Re=sub.Re, x0=x0)
+    return dec.model(n, u, y), dec
 
 
 def continuous_intensity(Ac: Array, Qd: Array, T: float) -> Array:
@@ -407,7 +402,7 @@ def fit_state_space(u: Array, y: Array, T: float, order: int | None, ntr: int,
                 f"order {n} is more than the capture supports ({dec.max_order}): record a "
                 "longer capture with a richer input, or ask for a smaller order")
         try:
-            sub = _raw(dec.model(n), utr, ytr)
+            sub = dec.model(n, utr, ytr)
             forms[n] = _screen(sub, u, y, ntr, T)
         except (IdentifyError, np.linalg.LinAlgError, ValueError) as exc:
             failed = str(exc)

@@ -13,8 +13,9 @@ Van Overschee & De Moor's N4SID (Automatica 30(1), 1994) in its state-sequence f
    A, B, C by least squares on X(k+1) = A X(k) + B u(k), y(k) = C X(k) (no feed-through
    D: ContinuousDescriptor has none and a zero-order-hold sample has none);
 4. B and the initial state re-estimated by linear least squares on the simulated output
-   (given A and C, y is linear in B and x0): this removes the bias of step 3's B under
-   coloured noise and is what an output-error fit would give for the deterministic part;
+   (given A and C, y is linear in B and x0), on the record `model` is given (the raw one,
+   means kept): this removes the bias of step 3's B under coloured noise and is what an
+   output-error fit would give for the deterministic part;
 5. K from the residual covariances (Q, R, S) by the Riccati equation.
 """
 
@@ -149,13 +150,13 @@ class N4SID:
         """A of the order-n model (step 3 alone)."""
         return np.asarray(self._states(n)[2][:n].T)
 
-    def model(self, n: int) -> SubspaceModel:
+    def model(self, n: int, u: Array, y: Array) -> SubspaceModel:
+        """The order-n model, its B and x0 (step 4) fitted on the record u (N, m), y (N, p)
+        in engineering units (the decomposition's may have had its means removed)."""
         X, Z, AB, ys = self._states(n)
         A = AB[:n].T
         Ct, *_ = np.linalg.lstsq(X, ys, rcond=None)
         C = np.asarray(Ct.T, dtype=float)
-        # Step 4: B and x0 of the deterministic part, on the whole (scaled) record.
-        B, x0, _ = output_error_b(A, C, self._us, self._ys)
         W = X[1:] - Z @ AB
         V = ys[:-1] - X[:-1] @ C.T
         k = W.shape[0]
@@ -169,9 +170,11 @@ class N4SID:
             Re = Rd
         # Back to engineering units: u = su * us, y = sy * ys.
         Dy = np.diag(self.sy)
+        # Step 4: B and x0 of the deterministic part, on the record given.
+        B, x0, _ = output_error_b(A, Dy @ C, u, y)
         return SubspaceModel(
             A=A,
-            B=B / self.su,
+            B=B,
             C=Dy @ C,
             K=K / self.sy,
             Re=Dy @ (0.5 * (Re + Re.T)) @ Dy,

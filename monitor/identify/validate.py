@@ -140,11 +140,16 @@ def check_capture(u: Array, y: Array, T: float, holdout: float) -> tuple[Array, 
     return ua, ya
 
 
+def _resolution(u: Array) -> Array:
+    """The least move of an input that counts as a change, or sets two levels apart:
+    LEVEL_RESOLUTION of its range over `u` (per column of (N, m), or of a column)."""
+    return np.asarray(LEVEL_RESOLUTION * (np.ptp(u, axis=0) + 1e-300))
+
+
 def level_count(col: Array) -> int:
     """How many distinct levels an input took: values LEVEL_RESOLUTION of its range apart
     are one level."""
-    step = LEVEL_RESOLUTION * (float(np.ptp(col)) + 1e-300)
-    return int(np.unique(np.round((col - col.min()) / step)).size)
+    return int(np.unique(np.round((col - col.min()) / float(_resolution(col)))).size)
 
 
 def _changes(col: Array, step: float) -> int:
@@ -154,9 +159,10 @@ def _changes(col: Array, step: float) -> int:
 
 def check_holdout_changes(u: Array, ntr: int, names: Sequence[str]) -> None:
     """Refuse an input that does not change in the held-out rows u[ntr:] (a change is
-    LEVEL_RESOLUTION of the input's range over the whole capture, as for the training
-    part): the hold-out's fit would judge the model on a flat record."""
-    step = LEVEL_RESOLUTION * (np.ptp(u, axis=0) + 1e-300)
+    LEVEL_RESOLUTION of the input's range over the whole capture u; `check_excitation`
+    takes the range over the training part it is given): the hold-out's fit would judge
+    the model on a flat record."""
+    step = _resolution(u)
     for j in range(u.shape[1]):
         if _changes(u[ntr:, j], float(step[j])) == 0:
             raise IdentifyError(
@@ -169,8 +175,7 @@ def check_excitation(u: Array, order: int, names: Sequence[str]) -> dict[str, ob
     many distinct levels each input took (`LEVEL_RESOLUTION`)."""
     rms = np.sqrt(np.mean(u**2, axis=0))
     sd = np.std(u, axis=0)
-    # a change, and a level apart from another, is LEVEL_RESOLUTION of the input's range
-    step = LEVEL_RESOLUTION * (np.ptp(u, axis=0) + 1e-300)
+    step = _resolution(u)
     levels: list[int] = []
     for j in range(u.shape[1]):
         if sd[j] <= 1e-6 * max(float(rms[j]), 1e-300):
