@@ -67,7 +67,7 @@ from monitor.identify import (
     validate,
 )
 from monitor.identify.core import MAX_ORDER
-from monitor.identify.errors import GrowingModeError
+from monitor.identify.errors import GrowingModeError, PlantChangeError
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
 from monitor.pipeline.samples import HeldInputs, held_at, input_window_of
@@ -392,9 +392,9 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     friction_fits: dict[tuple[int | None, int | None], Identification | IdentifyError] = {}
 
     def fit(order: int | None, friction: str | None = None,
-            delay: int | None = None) -> Identification:
+            delay: int | None = None, load: bool = False) -> Identification:
         if friction is None:
-            return fit_once(order, None, delay)
+            return fit_once(order, None, delay, load)
         # a friction's fit is made once for its order and delay (the probe's is the retry's)
         key = (order, delay)
         if key not in friction_fits:
@@ -407,13 +407,14 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             raise made
         return made
 
-    def fit_once(order: int | None, friction: str | None, delay: int | None
-                 ) -> Identification:
-        ident = identify(u, y, T, kind="state_space" if friction else kind, order=order,
+    def fit_once(order: int | None, friction: str | None, delay: int | None,
+                 load: bool = False) -> Identification:
+        ident = identify(u, y, T, kind="state_space" if friction or load else kind,
+                         order=order,
                          template=template, input_names=[r.signal for r in rig.inputs],
                          output_names=[r.signal for r in rig.outputs],
                          output_steps=known_steps,
-                         friction=friction, input_delay=delay)
+                         friction=friction, load=load, input_delay=delay)
         ident.report["capture"] = {"files": [str(p) for p in paths], "node": node,
                                    "frames": counts, "period_s": T,
                                    "segment": [seg.start, seg.stop],
@@ -508,27 +509,45 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             return None
         return checked(other, keep_failed=False)
 
-    grown: GrowingModeError | None = None
+    # a refusal of the linear fit that a refit may answer: a growing mode the input drives
+    # (a friction that keeps one sign: the rig zoo's seed 203, a speed with friction 10 %
+    # of the input's level, the fit's slow mode driven by 4.9 % of the swing) or halves
+    # that fit differently (a load that steps while the capture runs: the rig zoo's seeds
+    # 55, 61, 91); the refit is checked like any model, and the refusal stands where it
+    # fails
+    refused: IdentifyError | None = None
+    answered: dict[str, Any] = {}
     try:
         ident = fit(args.order)
     except GrowingModeError as exc:
-        # a growing mode the input drives stands in for what the linear model lacks; a
-        # friction that keeps one sign is one (the rig zoo's seed 203: a speed, friction
-        # 10 % of the input's level, the fit's slow mode driven by 4.9 % of the swing):
-        # the friction's refit is tried, and the refusal stands where it fails
         motion = _motion(rig)
         if motion is None:
             raise
-        grown = exc
+        refused, answered = exc, {"friction_retry": {"speed": motion}}
         try:
             ident = fit(args.order, friction=motion)
         except IdentifyError:
             raise exc from None
-    if grown is not None:
-        ident, failed = checked(ident, keep_failed=False)
-        if failed:  # the refusal stands, as without the refit (--force does not write)
-            raise grown
-        ident.report["friction_retry"] = {"speed": motion, "refused": one_line(grown)}
+    except PlantChangeError as exc:
+        refused, answered = exc, {"load_retry": {}}
+        try:
+            ident = fit(args.order, load=True)
+        except IdentifyError as load_exc:
+            raise PlantChangeError(f"{one_line(exc)} (a refit with load steps: "
+                                   f"{one_line(load_exc)})") from None
+    if refused is not None:
+        ident, failed = checked(ident, keep_failed=args.force)
+        if failed and not args.force:  # the refusal stands, as without the refit
+            load = "load_retry" in answered
+            raise type(refused)(
+                f"{one_line(refused)} (a refit with {'load steps' if load else 'friction'} "
+                "fails on its own capture: "
+                + "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})"
+                            for c in failed)
+                + (_load_advice(ident.report.get("load")) if load else "") + ")") from None
+        for name, note in answered.items():
+            ident.report[name] = {**note, "refused": one_line(refused),
+                                  **({"failed": [c.check for c in failed]} if failed else {})}
     else:
         # A black box whose order the data chose (the lowest within a margin of the best
         # hold-out fit) may fall one state short of what the monitor needs, e.g. an input that
@@ -607,6 +626,16 @@ def _cmd_identify(args: argparse.Namespace) -> int:
               file=sys.stderr)
     print(f"wrote {out}, {reports}")
     return 0
+
+
+def _load_advice(load: dict[str, Any] | None) -> str:
+    """What a load refit that fails its replay says: how large a loss the capture's largest
+    load step looks like, and what to record."""
+    if not load or not load.get("changes"):
+        return ""
+    share = max(load["largest_step_of_input"])
+    return (f"; its load steps by up to {share:.2g} of the input's level, which the monitor "
+            "reads as a loss until the input next changes: record at one load")
 
 
 def _motion(rig: Rig) -> str | None:

@@ -30,9 +30,10 @@ from monitor.identify import validate as V
 from monitor.identify.blackbox import ORDER_MARGIN, fit_state_space, subspace_model
 from monitor.identify.dcmotor import fit_dc_motor, oe_refit
 from monitor.identify.delay import MAX_ESTIMATED_DELAY, estimate_input_delay
-from monitor.identify.errors import GrowingModeError, IdentifyError
+from monitor.identify.errors import GrowingModeError, IdentifyError, PlantChangeError
 from monitor.identify.excitation import RECORDING_ADVICE
 from monitor.identify.friction import FRICTION_ITERATIONS, friction_column, speed_estimate
+from monitor.identify.load import LOAD_ITERATIONS, LoadSteps, load_steps, settled
 from monitor.identify.lti import dsim, integrating, kalman, predict, steady_state_x0
 from monitor.identify.noise import process_noise_scale
 from monitor.pipeline.samples import MAX_INPUT_DELAY, delayed, fit_rows, no_past
@@ -319,6 +320,71 @@ def _friction_box(held: Array, y_held: Array, delay: int, ntr: int, T: float,
                     "speed over the step; fitted by refitting with phi from the previous "
                     "model's filter"}
     return cand, ev, tr, held_f, info
+
+
+LOAD_INPUT_CORRELATION = 0.2
+"""A load refit whose innovations correlate with the input by more than this is refused:
+a load does not follow the command, a change of the input's effect does."""
+
+
+def _load_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
+              names: tuple[tuple[str, ...], tuple[str, ...]]
+              ) -> tuple[_Candidate, dict[str, Any], dict[str, Array], Array, dict[str, Any]]:
+    """The black box with unmeasured load steps (`monitor.identify.load`): the linear fit,
+    then refits on u + d, d from the previous model's filter, until d settles (at most
+    LOAD_ITERATIONS; the order chosen by the first refit, which the rest keep: a fit of
+    one order instead of six, and no order hopping while the load settles). Returns the
+    candidate, its evaluation and traces on u + d, u + d itself and the report's "load"
+    entry. d is estimated over the whole capture, the hold-out part too: the monitor's
+    bias states follow a load online the same way."""
+    cand = _fit_black_box(u, y, ntr, T, order, names)
+    linear_fit = float(cand.extra["order_selection"]["holdout_fit_pct"][str(cand.order)])
+    fits: list[float] = []
+    found: LoadSteps | None = None
+    chosen = order  # the first refit chooses the order (unless given), the rest keep it
+    selection: dict[str, Any] | None = None
+    confirmed = order is not None
+    for _ in range(LOAD_ITERATIONS):
+        last, found = found, load_steps(cand.model, u, y, T)
+        if last is not None and settled(last, found):
+            if confirmed:
+                break
+            # settled at the order the first refit chose: chosen once more on the settled
+            # load (a slow mode that carried the steps early on has given way), and the
+            # iteration goes on at that order where it differs
+            confirmed = True
+            cand = _fit_black_box(u + found.d, y, ntr, T, None, names)
+            fits.append(float(cand.extra["order_selection"]["holdout_fit_pct"][
+                str(cand.order)]))
+            selection = cand.extra["order_selection"]
+            if cand.order == chosen:
+                break
+            chosen = cand.order
+            continue
+        cand = _fit_black_box(u + found.d, y, ntr, T, chosen, names)
+        if chosen is None:
+            chosen, selection = cand.order, cand.extra["order_selection"]
+        fits.append(float(cand.extra["order_selection"]["holdout_fit_pct"][str(cand.order)]))
+    assert found is not None
+    if selection is not None:  # the refits after the first were of its order
+        cand.extra["order_selection"] = selection
+    u_d = u + found.d
+    ev, tr = _evaluate(cand.model, u_d, y, ntr, T)
+    info = {"changes": len(found.changes),
+            "change_times_s": [round(r * T, 4) for r in found.changes],
+            "levels": _floats(found.levels),
+            "q_d": found.q_d, "refits": len(fits),
+            # a load step of this share of the input's mean level looks like a loss of
+            # that size until the input next changes
+            "largest_step_of_input": _floats(
+                np.max(np.abs(np.diff(found.levels, axis=0)), axis=0, initial=0.0)
+                / np.maximum(np.mean(np.abs(u), axis=0), 1e-300)),
+            "linear_holdout_fit_pct": linear_fit, "holdout_fit_pct_per_iteration": fits,
+            "rule": "a piecewise-constant input bias d (y = G (u + d)): the augmented "
+                    "model's RTS smoother, change points by binary segmentation, levels "
+                    "by least squares on the model's innovations, their count by BIC; "
+                    "refitted with u + d"}
+    return cand, ev, tr, u_d, info
 
 
 def _without_friction_input(model: ContinuousDescriptor, m: int, friction: Friction
@@ -694,6 +760,7 @@ def identify(
     input_delay: int | None = None,
     output_steps: Sequence[tuple[float, str] | None] | None = None,
     friction: str | None = None,
+    load: bool = False,
 ) -> Identification:
     """Identify a model of one node from a healthy capture of inputs u (N, m) and outputs
     y (N, p) sampled every T seconds.
@@ -722,6 +789,10 @@ def identify(
     `friction` ("output": the output is a speed; "rate": a position; None: none) fits the
     black box with Coulomb friction (`monitor.estimation.friction`, `_friction_box`), of one
     output only; the model's `friction` then holds it and the report's "friction" says how.
+    `load` fits the black box with unmeasured load steps (`monitor.identify.load`, `_load_box`):
+    a piecewise-constant input bias estimated from the model's filter and added to the
+    input for the fit and every check; the model written lacks it (the monitor's bias
+    states carry a load at run time) and the report's "load" says what was found.
 
     report keys: fit (hold-out and training NRMSE %, by simulation), whiteness (innovation
     autocorrelation, 99 % band, Ljung-Box p), cross_correlation (innovation x input, band,
@@ -746,7 +817,7 @@ def identify(
         try:
             ident = _identify(u, y, T, kind, order, holdout, template or DCMotorParameters(),
                               input_names, output_names, run_filter, input_delay,
-                              output_steps, friction)
+                              output_steps, friction, load)
         except IdentifyError:
             raise
         except NUMERIC_FAILURES as exc:  # a degenerate record no check above foresaw
@@ -763,7 +834,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
               output_names: Sequence[str] | None, run_filter: bool,
               input_delay: int | None = None,
               output_steps: Sequence[tuple[float, str] | None] | None = None,
-              friction: str | None = None,
+              friction: str | None = None, load: bool = False,
               ) -> Identification:
     requested = kind
     if kind not in KINDS:
@@ -823,6 +894,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                 auto_note["reason"] = "dc_motor residuals independent of the input"
                 kind = "dc_motor"
     friction_info: dict[str, Any] | None = None
+    load_info: dict[str, Any] | None = None
     if friction is not None:
         if kind != "state_space" or p != 1:
             raise IdentifyError("friction is fitted for a state_space model of one output")
@@ -832,6 +904,25 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         # every figure below is the friction model's, its phi a known input
         u, y, rows = fit_rows(held, y_held, delay["samples"])
         utr, ytr = u[:ntr], y[:ntr]
+    elif load:
+        if kind != "state_space" or m != 1:
+            raise IdentifyError("a load is fitted for a state_space model of one input")
+        c, ev, tr, u, load_info = _load_box(u, y, ntr, T, order, names)
+        worst = float(np.max(np.abs(ev["cross_correlation"]["correlation"])))
+        load_info["innovation_input_correlation"] = worst
+        if worst > LOAD_INPUT_CORRELATION:
+            # steps placed to follow the input stand in for a change of its effect: a loss
+            # in the middle of a capture gave 0.49, a load's refit 0.05
+            raise PlantChangeError(
+                f"the load steps a refit finds follow the input (its innovations correlate "
+                f"with the input by up to {worst:.2f}): the input's effect changes within "
+                "the capture (a fault or outage?); record a capture of the healthy node only")
+        cands.append((c, ev, tr))
+        # every figure below is the model's with the load added to its input
+        held = held.copy()
+        first = rows.start + 1 - delay["samples"]
+        held[first:first + u.shape[0]] = u
+        utr = u[:ntr]
     elif kind == "state_space" or kind == "auto":
         try:
             c, ev, tr = _black_box(u, y, ntr, T, order, names)
@@ -869,12 +960,12 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
             "state_space or a larger order")
     if max(drops) > V.CONSISTENCY_DROP:
         half = "first" if drops[0] < drops[1] else "second"
-        raise IdentifyError(
+        raise PlantChangeError(
             f"the plant changes within the capture (a fault or outage?): the model of the "
             f"{half} half fits the other half {max(drops):.0f} points worse than its own; "
             "record a capture of the healthy node only")
     if fit_va < fit_tr - V.HOLDOUT_DROP:
-        raise IdentifyError(
+        raise PlantChangeError(
             f"the hold-out fit ({fit_va:.0f} %) is far below the training fit ({fit_tr:.0f} %): "
             "the plant changes near the end of the capture (a fault or outage?); record a "
             "capture of the healthy node only")
@@ -971,6 +1062,8 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
             B=np.zeros(0), speed=friction_info["speed"], output=0,
             width=friction_info["width"]))
         friction_info["B"] = _floats(model.friction.B if model.friction else np.zeros(0))
+    if load_info is not None:
+        report["load"] = load_info
     if requested == "auto":
         report["auto"] = auto_note
     if run_filter:

@@ -1,10 +1,11 @@
-"""The one error of the identification, and the refusal a model with friction may answer."""
+"""The one error of the identification, and the refusals a model with friction or a load
+may answer."""
 
 from __future__ import annotations
 
 from monitor.errors import MonitorError
 
-__all__ = ["GrowingModeError", "IdentifyError"]
+__all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError"]
 
 
 class IdentifyError(MonitorError, ValueError):
@@ -16,3 +17,9 @@ class GrowingModeError(IdentifyError):
     """A fit refused for a growing mode the input drives (`monitor.identify.core`): the
     linear model's stand-in for a nonlinearity, which may be a friction that keeps one sign
     (`identify`'s friction refit answers it where the output is a speed or a position)."""
+
+
+class PlantChangeError(IdentifyError):
+    """A fit refused because the capture's halves, or its hold-out part, fit differently
+    (`monitor.identify.core`): a fault or an outage, or a load that steps while the capture
+    runs (`identify`'s load refit answers that one)."""
