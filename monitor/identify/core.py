@@ -322,6 +322,9 @@ def _friction_box(held: Array, y_held: Array, delay: int, ntr: int, T: float,
     return cand, ev, tr, held_f, info
 
 
+LOAD_FIT_GAIN = 0.1
+"""The load's refits stop once one improves the hold-out fit by less than this (points)."""
+
 LOAD_INPUT_CORRELATION = 0.2
 """A load refit whose innovations correlate with the input by more than this is refused:
 a load does not follow the command, a change of the input's effect does."""
@@ -331,9 +334,10 @@ def _load_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
               names: tuple[tuple[str, ...], tuple[str, ...]]
               ) -> tuple[_Candidate, dict[str, Any], dict[str, Array], Array, dict[str, Any]]:
     """The black box with unmeasured load steps (`monitor.identify.load`): the linear fit,
-    then refits on u + d, d from the previous model's filter, until d settles (at most
-    LOAD_ITERATIONS; the order chosen by the first refit, which the rest keep: a fit of
-    one order instead of six, and no order hopping while the load settles). Returns the
+    then refits on u + d, d from the previous model's filter, until d settles or a refit
+    improves the hold-out fit by less than LOAD_FIT_GAIN (at most LOAD_ITERATIONS; the
+    order chosen by the first refit, which the rest keep: a fit of one order instead of
+    six, and no order hopping while the load settles). Returns the
     candidate, its evaluation and traces on u + d, u + d itself and the report's "load"
     entry. d is estimated over the whole capture, the hold-out part too: the monitor's
     bias states follow a load online the same way."""
@@ -365,6 +369,10 @@ def _load_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
         if chosen is None:
             chosen, selection = cand.order, cand.extra["order_selection"]
         fits.append(float(cand.extra["order_selection"]["holdout_fit_pct"][str(cand.order)]))
+        if len(fits) > 1 and fits[-1] - fits[-2] < LOAD_FIT_GAIN:
+            # the refits no longer improve the fit: more of them cost minutes at kHz rates
+            # (the rig zoo's seed 41, 2 kHz: 10 minutes) and change nothing a check sees
+            break
     assert found is not None
     if selection is not None:  # the refits after the first were of its order
         cand.extra["order_selection"] = selection
