@@ -337,10 +337,10 @@ def _load_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
     then refits on u + d, d from the previous model's filter, until d settles or a refit
     improves the hold-out fit by less than LOAD_FIT_GAIN (at most LOAD_ITERATIONS; the
     order chosen by the first refit, which the rest keep: a fit of one order instead of
-    six, and no order hopping while the load settles). Returns the
-    candidate, its evaluation and traces on u + d, u + d itself and the report's "load"
-    entry. d is estimated over the whole capture, the hold-out part too: the monitor's
-    bias states follow a load online the same way."""
+    six, and no order hopping while the load settles). Returns the candidate, its
+    evaluation and traces on u + d, u + d itself and the report's "load" entry. d is
+    estimated over the whole capture, the hold-out part too: the monitor's bias states
+    follow a load online the same way."""
     cand = _fit_black_box(u, y, ntr, T, order, names)
     linear_fit = float(cand.extra["order_selection"]["holdout_fit_pct"][str(cand.order)])
     fits: list[float] = []
@@ -390,8 +390,8 @@ def _load_box(u: Array, y: Array, ntr: int, T: float, order: int | None,
             "linear_holdout_fit_pct": linear_fit, "holdout_fit_pct_per_iteration": fits,
             "rule": "a piecewise-constant input bias d (y = G (u + d)): the augmented "
                     "model's RTS smoother, change points by binary segmentation, levels "
-                    "by least squares on the model's innovations, their count by BIC; "
-                    "refitted with u + d"}
+                    "(with a correction of the input's gain) by least squares on the "
+                    "model's innovations, their count by BIC; refitted with u + d"}
     return cand, ev, tr, u_d, info
 
 
@@ -920,7 +920,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         load_info["innovation_input_correlation"] = worst
         if worst > LOAD_INPUT_CORRELATION:
             # steps placed to follow the input stand in for a change of its effect: a loss
-            # in the middle of a capture gave 0.49, a load's refit 0.05
+            # in the middle of a capture gave 0.51, a load's refit 0.05
             raise PlantChangeError(
                 f"the load steps a refit finds follow the input (its innovations correlate "
                 f"with the input by up to {worst:.2f}): the input's effect changes within "
