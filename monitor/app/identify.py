@@ -516,20 +516,20 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     # 55, 61, 91); the refit is checked like any model, and the refusal stands where it
     # fails
     refused: IdentifyError | None = None
-    answered: dict[str, Any] = {}
+    retry_key, retry_note = "", {}  # the report's entry for the refit that answered it
     try:
         ident = fit(args.order)
     except GrowingModeError as exc:
         motion = _motion(rig)
         if motion is None:
             raise
-        refused, answered = exc, {"friction_retry": {"speed": motion}}
+        refused, retry_key, retry_note = exc, "friction_retry", {"speed": motion}
         try:
             ident = fit(args.order, friction=motion)
         except IdentifyError:
             raise exc from None
     except PlantChangeError as exc:
-        refused, answered = exc, {"load_retry": {}}
+        refused, retry_key = exc, "load_retry"
         try:
             ident = fit(args.order, load=True)
         except IdentifyError as load_exc:
@@ -538,16 +538,13 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     if refused is not None:
         ident, failed = checked(ident, keep_failed=args.force)
         if failed and not args.force:  # the refusal stands, as without the refit
-            load = "load_retry" in answered
+            load = retry_key == "load_retry"
             raise type(refused)(
                 f"{one_line(refused)} (a refit with {'load steps' if load else 'friction'} "
-                "fails on its own capture: "
-                + "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})"
-                            for c in failed)
+                f"fails on its own capture: {_failed_checks(failed)}"
                 + (_load_advice(ident.report.get("load")) if load else "") + ")") from None
-        for name, note in answered.items():
-            ident.report[name] = {**note, "refused": one_line(refused),
-                                  **({"failed": [c.check for c in failed]} if failed else {})}
+        ident.report[retry_key] = {**retry_note, "refused": one_line(refused),
+                                   **({"failed": [c.check for c in failed]} if failed else {})}
     else:
         # A black box whose order the data chose (the lowest within a margin of the best
         # hold-out fit) may fall one state short of what the monitor needs, e.g. an input that
@@ -611,8 +608,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         # a cause the checks name comes first: a line cut at the limit keeps it
         why = (f"node {node}'s learned model fails on its own capture: "
                + (f"{cause}: " if cause else "")
-               + "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})"
-                           for c in failed) + f": {failed[0].advice}")
+               + _failed_checks(failed) + f": {failed[0].advice}")
         if not args.force:
             print(f"wrote {reports}")
             # what to record or try comes last: a line cut at the limit loses only advice
@@ -626,6 +622,11 @@ def _cmd_identify(args: argparse.Namespace) -> int:
               file=sys.stderr)
     print(f"wrote {out}, {reports}")
     return 0
+
+
+def _failed_checks(failed: list[Check]) -> str:
+    """The failed checks in one line: each with its value and limit."""
+    return "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})" for c in failed)
 
 
 def _load_advice(load: dict[str, Any] | None) -> str:

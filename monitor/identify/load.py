@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 
 from monitor.estimation.model import ContinuousDescriptor
 from monitor.identify.errors import IdentifyError
-from monitor.identify.lti import dsim, kalman, steady_state_x0
+from monitor.identify.lti import dsim, kalman, predict, steady_state_x0
 
 Array = NDArray[np.float64]
 
@@ -66,13 +66,13 @@ _NUMERIC = (np.linalg.LinAlgError, ValueError, FloatingPointError, ZeroDivisionE
 @dataclass(frozen=True)
 class LoadSteps:
     """A piecewise-constant input bias: `d` per row (N, m), its change rows and levels
-    (K + 1 rows of m), and the figures that chose them."""
+    (K + 1 rows of m), and the bias's random-walk variance per step in the filter that
+    placed them."""
 
     d: Array
     changes: list[int]
     levels: Array
     q_d: float
-    bic: dict[int, float]
 
 
 def _augmented(A: Array, B: Array, C: Array, Qd: Array, q_d: float
@@ -112,7 +112,7 @@ def _smoothed_bias(A: Array, B: Array, C: Array, Qd: Array, R: Array, u: Array, 
         try:
             Aa, Ba, Ca, Qa = _augmented(A, B, C, Qd, scale * 10.0 ** log_q)
             kf = kalman(Aa, Ca, Qa, R)
-            value = _neg_loglik(y - _predictor(Aa, Ba, Ca, kf.K, u, y) @ Ca.T, kf.S)
+            value = _neg_loglik(predict(Aa, Ba, Ca, kf.K, u, y), kf.S)
         except _NUMERIC:
             return math.inf
         return value if math.isfinite(value) else math.inf
@@ -120,7 +120,7 @@ def _smoothed_bias(A: Array, B: Array, C: Array, Qd: Array, R: Array, u: Array, 
     best = scipy.optimize.minimize_scalar(cost, bounds=(-14.0, 0.0), method="bounded",
                                           options={"xatol": 0.05})
     log_q = float(best.x)
-    if not math.isfinite(cost(log_q)):
+    if not math.isfinite(float(best.fun)):
         raise IdentifyError("the load's filter has no steady state (an input bias the "
                             "output cannot see: a plant whose output settles at zero)")
     Aa, Ba, Ca, Qa = _augmented(A, B, C, Qd, scale * 10.0 ** log_q)
@@ -199,8 +199,7 @@ def load_steps(model: ContinuousDescriptor, u: Array, y: Array, T: float) -> Loa
     # the predictor's response to a unit step of each input from each change row (and from
     # row 0: the level before the first change); innovations are linear in the levels
     Ap = A - kf.K @ C
-    x0 = steady_state_x0(A, B, C, u[0], y[0])
-    e0 = y - dsim(Ap, np.hstack([B, kf.K]), C, np.hstack([u, y]), x0)
+    e0 = predict(A, B, C, kf.K, u, y)
     L = np.linalg.cholesky(np.linalg.inv(kf.S))  # whitening: e' S^-1 e = |L' e|^2
     # with a column per input for a correction of the input's gain: the model's gain error
     # and a constant load trade off where the input has a mean level, which an alternation
@@ -234,7 +233,7 @@ def load_steps(model: ContinuousDescriptor, u: Array, y: Array, T: float) -> Loa
     d = np.zeros((N, m))
     for i, r in enumerate([0, *changes]):
         d[r:] = levels[i]
-    return LoadSteps(d=d, changes=changes, levels=levels, q_d=q_d, bic=bic)
+    return LoadSteps(d=d, changes=changes, levels=levels, q_d=q_d)
 
 
 def settled(before: LoadSteps, after: LoadSteps) -> bool:
