@@ -448,7 +448,6 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                     # a loss is added to a capture that replays fault-free: where it does
                     # not, whether the loss is reported says nothing
                     faults = fault_detection(learned, paths, node, series.t, u, series.where,
-                                             ident.report.get("innovation_std") or [1.0],
                                              outputs=y)
                     ident.report["fault_detection"] = faults.as_dict()
                 checks = report_checks(ident.report, figures, faults)

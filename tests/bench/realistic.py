@@ -77,6 +77,13 @@ def _coulomb(tc: float) -> Callable[[float, Array], float]:
     return load
 
 
+def sensor_reading(r: Run, y: Array) -> Array:
+    """What the current sensor of run `r` reads of the plant's noisy output `y`: its offset,
+    then its quantisation."""
+    out = y + r.offset
+    return np.round(out / r.lsb) * r.lsb if r.lsb > 0.0 else out
+
+
 def runs() -> list[Run]:
     return [
         Run("noise-x3", 30.0, 101, sigma=3.0 * MODEL_SIGMA),
@@ -100,9 +107,7 @@ def run_one(r: Run, cfg: FuzzyUKFConfig) -> dict[str, Any]:
     # a load torque T_L enters the speed equation as -T_L / J
     sim = simulate(plant, scenario, T, seed=r.seed, disturbance=[0.0, -1.0 / params.J, 0.0],
                    load=r.load)
-    y = sim.y + r.offset
-    if r.lsb > 0.0:
-        y = np.round(y / r.lsb) * r.lsb
+    y = sensor_reading(r, sim.y)
     model = dc_motor(params, q=1.44, r=MODEL_SIGMA**2).discretize(T)
     est = FuzzyUKF(model, cfg)
     N = len(sim.t)
