@@ -30,7 +30,12 @@ from monitor.identify import validate as V
 from monitor.identify.blackbox import ORDER_MARGIN, fit_state_space, subspace_model
 from monitor.identify.dcmotor import fit_dc_motor, oe_refit
 from monitor.identify.delay import MAX_ESTIMATED_DELAY, estimate_input_delay
-from monitor.identify.errors import GrowingModeError, IdentifyError, PlantChangeError
+from monitor.identify.errors import (
+    GrowingModeError,
+    IdentifyError,
+    PlantChangeError,
+    SlowModeError,
+)
 from monitor.identify.excitation import RECORDING_ADVICE
 from monitor.identify.friction import FRICTION_ITERATIONS, friction_column, speed_estimate
 from monitor.identify.load import LOAD_ITERATIONS, LoadSteps, load_steps, settled
@@ -1029,7 +1034,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                                    cand.params.get("poles_real_std"))
     if math.isfinite(tau) and ntr * T < V.MIN_TIME_CONSTANTS * tau:
         need = V.MIN_TIME_CONSTANTS * tau / (1.0 - holdout)
-        raise IdentifyError(
+        raise SlowModeError(
             f"capture too short for this plant (slowest time constant {tau:.3g} s): record "
             f"at least {need:.3g} s with the input varying")
     if fit_tr < V.MIN_FIT:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from monitor.errors import MonitorError
 
-__all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError"]
+__all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError", "SlowModeError"]
 
 
 class IdentifyError(MonitorError, ValueError):
@@ -23,3 +23,10 @@ class PlantChangeError(IdentifyError):
     """A fit refused because the capture's halves, or its hold-out part, fit differently
     (`monitor.identify.core`): a fault or an outage, or a load that steps while the capture
     runs (`identify`'s load refit answers that one)."""
+
+
+class SlowModeError(IdentifyError):
+    """A fit refused because its slowest mode is too slow for the capture to span
+    (`monitor.identify.core`): a plant that needs a longer capture, or a load that steps
+    while the capture runs, which a linear fit explains with a slow mode (`identify`'s load
+    refit answers that one)."""
