@@ -29,8 +29,8 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    sample that lasts -- a loss of 0.3 at a quarter of the paper's motor's voltage, where
    the filter follows part of the loss's effect as process noise: at 100 Hz the short
    average missed such a loss at one onset of three and the long one found it in 0.14 s,
-   for about twice the healthy crossings (each an onset search that finds no jump). What
-   an event does is below (b).
+   for about twice the healthy crossings of the threshold (each an onset search, whose
+   jump is no event below min_jump). What an event does is below (b).
 5b. Adaptive output noise (`adaptive_noise`): a real sensor is noisier than the model's R
    (the NIS then sits near the ratio and the model-mismatch flag stays up). The measurement
    update uses R + diag(rx), rx learnt by innovation-based covariance matching (the

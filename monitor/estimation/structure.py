@@ -64,7 +64,10 @@ IntArray = NDArray[np.int64]
 
 __all__ = ["StructureLearning", "onset_glr", "onset_scores"]
 
-# Where the fields onset_glr reads start in `layout.offsets` (numba compiles them in)
+# Where the fields onset_glr reads start in `layout.offsets`. numba compiles them in and
+# caches the result against this file alone: a change of layout's tables that moves them
+# (a field added to any table before RING) must come with an edit of this file, or a
+# cache from before keeps the old places
 _R_U, _R_K, _R_STI, _R_NU = (RING.at(f) for f in ("u", "K", "Sti", "nu"))
 _A, _B, _C, _D = (MODEL.at(f) for f in ("A", "B", "C", "D"))
 
