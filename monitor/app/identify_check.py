@@ -97,13 +97,14 @@ FAULT_S = 3.0
 
 SNR_VISIBLE = 5.0
 """The least effect of the added loss on the model's innovations over DETECT_S
-(`FaultFigures.snr`) at which an onset must be reported within DETECT_S. Below it the loss
-is within a few samples' noise of the model's own filter (a loss at a low input, or where
-the filter takes most of its effect for process noise), so that no detector could be
-sure of it in time: an optimal one's statistic at the true onset has mean 1 + snr^2,
-against the structure test's threshold of 14. Such an onset must be reported within
-FAULT_S and stay reported; and the loss must show at half the onsets at least, or the
-capture's input level hides it (`FaultFigures.passed`)."""
+(`FaultFigures.snr`) at which a loss shows at an onset. Below it the loss is within a few
+samples' noise of the model's own filter (a loss at a low input, or where the filter takes
+most of its effect for process noise), so that no detector could be sure of it in time:
+an optimal one's statistic at the true onset has mean 1 + snr^2, against the structure
+test's threshold of 14. The report counts such onsets (`FaultFigures.visible`); they are
+held to DETECT_S all the same: excused, they let through a model of the rig zoo (seed 18,
+a position whose loss shows 3 noise units at one onset, reported after 0.31 s there) that
+then raised false alarms in fresh runs."""
 
 STEADY_LOSS_NOISE = 1.0
 """The least change of the settled output, in innovation standard deviations, that the
@@ -306,12 +307,11 @@ class FaultFigures:
 
     delays_s: per onset, the time to the first fault or outage report (inf: none within
     FAULT_S, or not fault-free at the onset); held_share: per onset, the share of the time
-    from DETECT_S after it (or from the first report, if later) to the end reported as
-    fault; snr: per onset, the loss's effect on the innovations of the model's own
-    steady-state Kalman filter over the first DETECT_S, sqrt(sum |L^-1 de|^2) (L L' = S,
-    their covariance) -- in noise units, what any detector has to go on (the part of the
-    output's change that the filter takes for process noise is not there to see); where:
-    the onsets ("capture.log at 12.30 s")."""
+    from DETECT_S after it to the end reported as fault; snr: per onset, the loss's effect
+    on the innovations of the model's own steady-state Kalman filter over the first
+    DETECT_S, sqrt(sum |L^-1 de|^2) (L L' = S, their covariance) -- in noise units, what
+    any detector has to go on (the part of the output's change that the filter takes for
+    process noise is not there to see); where: the onsets ("capture.log at 12.30 s")."""
 
     loss: float
     delays_s: list[float]
@@ -321,12 +321,9 @@ class FaultFigures:
 
     @property
     def in_time(self) -> int:
-        """Onsets reported in time and held for HELD_SHARE of the time after: within
-        DETECT_S where the loss shows (snr >= SNR_VISIBLE), within FAULT_S where not."""
-        return sum((d <= DETECT_S or (snr < SNR_VISIBLE and math.isfinite(d)))
-                   and h >= HELD_SHARE
-                   for d, h, snr in zip(self.delays_s, self.held_share, self.snr,
-                                        strict=True))
+        """Onsets reported within DETECT_S and held for HELD_SHARE of the time after."""
+        return sum(d <= DETECT_S and h >= HELD_SHARE
+                   for d, h in zip(self.delays_s, self.held_share, strict=True))
 
     @property
     def visible(self) -> int:
@@ -335,8 +332,7 @@ class FaultFigures:
 
     @property
     def passed(self) -> bool:
-        n = len(self.delays_s)
-        return bool(n) and self.in_time == n and 2 * self.visible >= n
+        return bool(self.delays_s) and self.in_time == len(self.delays_s)
 
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -484,7 +480,7 @@ def fault_detection(rig: Rig, paths: Sequence[Path], node: int, times: NDArray[n
         hits = np.flatnonzero(np.isin(state, bad) & after)
         ok_before = before.size > 0 and int(before[-1]) == int(HealthState.FAULT_FREE)
         delays.append(float(t[hits[0]] - t_on) if hits.size and ok_before else math.inf)
-        late = t >= max(t_on + DETECT_S, float(t[hits[0]]) if hits.size else -math.inf)
+        late = t >= t_on + DETECT_S
         held_share.append(float(np.mean(state[late] == int(HealthState.FAULT)))
                           if late.any() else 0.0)
         snrs.append(snr)

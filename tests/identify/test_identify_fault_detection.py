@@ -106,24 +106,15 @@ def test_the_fault_check_gates_and_says_how_far_the_loss_moves_the_output() -> N
     assert "fault_detection" not in {c.check for c in report_checks(empty, near)}
 
 
-def test_a_loss_hidden_at_one_onset_may_be_reported_later() -> None:
-    # Where the loss shows (snr >= SNR_VISIBLE) it must be reported within DETECT_S; where
-    # the input's level hides it (the paper's motor at a quarter of its voltage: 4 noise
-    # units in the innovations) it must be reported within the replayed stretch and held,
-    # as long as it shows at half the onsets at least.
-    late = 0.43
-    hidden = SNR_VISIBLE - 0.7
-    one_hidden = FaultFigures(0.3, [0.12, 0.18, 0.26, late], [1.0, 1.0, 1.0, 1.0],
-                              [8.8, 9.3, 7.2, hidden], list("abcd"))
-    assert one_hidden.visible == 3 and one_hidden.in_time == 4 and one_hidden.passed
-    # the same delay where the loss shows is late
-    shown = dataclasses.replace(one_hidden, snr=[8.8, 9.3, 7.2, SNR_VISIBLE + 0.1])
-    assert shown.in_time == 3 and not shown.passed
-    # never reported, or not held, is no report
-    lost = dataclasses.replace(one_hidden, delays_s=[0.12, 0.18, 0.26, math.inf])
-    flicker = dataclasses.replace(one_hidden, held_share=[1.0, 1.0, 1.0, 0.9])
-    assert not lost.passed and not flicker.passed
-    # a capture whose input hides the loss at most onsets shows nothing to trust
-    mostly_hidden = dataclasses.replace(one_hidden, snr=[8.8, hidden, hidden, hidden])
-    assert mostly_hidden.in_time == 4 and mostly_hidden.visible == 1
-    assert not mostly_hidden.passed
+def test_every_onset_is_held_to_the_detection_time() -> None:
+    # An onset where the input's level hides the loss (under SNR_VISIBLE in the model's
+    # innovations) is counted apart, and held to DETECT_S like the others: excused, it let
+    # through a model of the rig zoo (seed 18) that raised false alarms in fresh runs.
+    hidden = SNR_VISIBLE - 2.0
+    one_late = FaultFigures(0.3, [0.31, 0.21, 0.26, 0.22], [1.0, 1.0, 1.0, 1.0],
+                            [hidden, 19.6, 12.0, 21.2], list("abcd"))
+    assert one_late.visible == 3 and one_late.in_time == 3 and not one_late.passed
+    on_time = dataclasses.replace(one_late, delays_s=[0.29, 0.21, 0.26, 0.22])
+    assert on_time.passed
+    figures = on_time.as_dict()
+    assert figures["visible"] == 3 and figures["snr_visible"] == SNR_VISIBLE
