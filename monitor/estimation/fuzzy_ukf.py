@@ -115,14 +115,8 @@ class FuzzyUKFConfig:
         to gamma^; a fault present from the start is found by the structure test (20).
     var_max: cap on the common variance.
     nis_window: time constant of the innovation average, seconds.
-    nis_window_long: time constant of a second, longer innovation average, seconds (0:
-        none). The test (20) fires on either: the short one finds a large change within a
-        few samples, the long one a change whose effect stays within a sample's noise but
-        lasts (a loss at a low input, a plant whose filter follows part of it as process
-        noise), which the short one would find late or not at all.
     nis_threshold: structure-learning threshold on the chi-square statistic of the averaged
-        whitened innovation (p degrees of freedom; 14 is 3.7 sigma for one output), of the
-        short and of the long average.
+        whitened innovation (p degrees of freedom; 14 is 3.7 sigma for one output).
     dwell: minimum time between two structure-learning events, seconds.
     onset_window: how far back, in seconds, an event looks for the onset of the change.
     min_jump: a located jump of gamma smaller than this after the bounds of (28) is not
@@ -157,7 +151,6 @@ class FuzzyUKFConfig:
     var_rule: float = 1e-4
     var_start: float = 1e-4
     nis_window: float = 0.05
-    nis_window_long: float = 0.1
     nis_threshold: float = 14.0
     dwell: float = 0.2
     growth_share: float = 0.5
@@ -255,9 +248,6 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         # one weight per received sample, as the innovation average's (`_block`)
         noise_coef = (1.0 - math.exp(-model.T / cfg.noise_window)) if cfg.adaptive_noise \
             else 0.0
-        # the long innovation average's weight, one per received sample as the short one's
-        nis_coef_long = (1.0 - math.exp(-model.T / cfg.nis_window_long)) \
-            if cfg.nis_window_long > 0.0 else 0.0
         # the flat buffers (`monitor.estimation.layout`); every view below is one of them
         self._lay = offsets(n, m, p)
         self._prm = np.zeros(PRM.size(n, m, p))
@@ -265,8 +255,7 @@ class FuzzyUKF(StructureLearning, ManyStepping):
                             ("var_max", cfg.var_max), ("var_reopen", cfg.var_reopen),
                             ("nis_threshold", cfg.nis_threshold),
                             ("growth_share", cfg.growth_share), ("var_rule", cfg.var_rule),
-                            ("lower", lower), ("upper", upper), ("noise_coef", noise_coef),
-                            ("nis_coef_long", nis_coef_long)):
+                            ("lower", lower), ("upper", upper), ("noise_coef", noise_coef)):
             PRM.view(self._prm, name, n, m, p)[:] = value
         self._lower = PRM.view(self._prm, "lower", n, m, p)
         self._upper = PRM.view(self._prm, "upper", n, m, p)
@@ -309,7 +298,7 @@ class FuzzyUKF(StructureLearning, ManyStepping):
             return OUT.view(self._out, name, n, m, p)
 
         self._stats = out("stats")
-        self._ebar = out("ebar").reshape(-1)  # the short average, then the long one
+        self._ebar = out("ebar")
         self.out = EstimatorOutput(
             x_hat=self.x[:nx],
             x_tilde=out("x_tilde")[:nx],

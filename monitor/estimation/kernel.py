@@ -20,17 +20,11 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    (nu ~ M (gamma - gamma^)), pg the variance of gamma^; NIS = nu' S_tot^-1 nu.
 5. Structure-learning test (20), before the adaptation: the paper's test |e| > 1e-5 on
    the raw current error fires every sample (noise sigma is 0.5 A). Here e is whitened
-   (w = L^-1 nu, L L' = S_tot) and averaged exponentially over a short window (0.05 s)
-   and a long one (0.1 s); either average's chi-square statistic (p degrees of freedom
-   when the model fits, at any sample rate) must exceed a threshold, with a dwell time
-   between two events. Keeping the sign makes a persistent bias -- what a changed fault
-   produces -- far more visible than the squared NIS would. The short window finds a
-   large change within a few samples; the long one a change of about one noise unit a
-   sample that lasts -- a loss of 0.3 at a quarter of the paper's motor's voltage, where
-   the filter follows part of the loss's effect as process noise: at 100 Hz the short
-   average missed such a loss at one onset of three and the long one found it in 0.14 s,
-   for about twice the healthy crossings of the threshold (each an onset search, whose
-   jump is no event below min_jump). What an event does is below (b).
+   (w = L^-1 nu, L L' = S_tot) and averaged exponentially over a short window; the
+   average's chi-square statistic (p degrees of freedom when the model fits, at any
+   sample rate) must exceed a threshold, with a dwell time between two events. Keeping
+   the sign makes a persistent bias -- what a changed fault produces -- far more visible
+   than the squared NIS would. What an event does is below (b).
 5b. Adaptive output noise (`adaptive_noise`): a real sensor is noisier than the model's R
    (the NIS then sits near the ratio and the model-mismatch flag stays up). The measurement
    update uses R + diag(rx), rx learnt by innovation-based covariance matching (the
@@ -157,10 +151,9 @@ _FORGET_PER_EVIDENCE = 2.0
 _MODEL_END = MODEL.at("R") + 1  # the model block's size: its FRICTION follows
 (_F, _S, _FR) = FRICTION.at_each("F", "S", "fr")
 (_DT, _DELTA, _WI, _QG, _VMAX, _NISC, _VREOPEN, _THR, _MODE, _SHARE, _SLOT, _VRULE, _LO, _HI,
- _NOISEC, _NISCL) = PRM.at_each(
+ _NOISEC) = PRM.at_each(
     "dt", "delta", "wi", "q_gamma", "var_max", "nis_coef", "var_reopen", "nis_threshold",
-    "mode", "growth_share", "slot", "var_rule", "lower", "upper", "noise_coef",
-    "nis_coef_long")
+    "mode", "growth_share", "slot", "var_rule", "lower", "upper", "noise_coef")
 (_X, _P, _V, _Z, _VC, _RX) = STATE.at_each("x", "P", "V", "z", "vc", "rx")
 _STATE_END = STATE.base + len(STATE)
 (_R_X, _R_P, _R_V, _R_Z, _R_EBAR, _R_GAMMA, _R_VC, _R_U, _R_Y, _R_DT, _R_K, _R_STI, _R_NU,
@@ -238,7 +231,6 @@ def fuzzy_ukf_step(
     q_gamma = prm[lay[_QG]]
     var_max = prm[lay[_VMAX]]
     nis_coef = prm[lay[_NISC]]
-    nis_coef_long = prm[lay[_NISCL]]
     var_reopen = prm[lay[_VREOPEN]]
     threshold = prm[lay[_THR]]
     mode = prm[lay[_MODE]]
@@ -316,9 +308,8 @@ def fuzzy_ukf_step(
             r_P[r, c] = P[r, c]
         for a in range(m):
             r_V[r, a] = V[r, a]
-    for r in range(2 * p):
-        r_ebar[r] = ebar[r]
     for r in range(p):
+        r_ebar[r] = ebar[r]
         r_y[r] = y[r]
         r_rx[r] = rx[r]
     for a in range(m):
@@ -371,7 +362,7 @@ def fuzzy_ukf_step(
                         P[c, r] = v
                 for r in range(n):
                     V[r, a] *= f
-        for r in range(2 * p):
+        for r in range(p):
             ebar[r] = 0.0
     # fault function (10) and the input after the loss of effectiveness
     for a in range(m):
@@ -469,20 +460,12 @@ def fuzzy_ukf_step(
         innov[r] = acc / Ls[r, r]
     # 5. structure-learning test (20), before the adaptation: the exponentially weighted
     # mean of w is N(0, c/(2-c) I) under a fitting model, so its statistic is chi-square
-    # with p degrees of freedom at any sample rate; the larger of the short and the long
-    # average's (ebar[:p], ebar[p:])
+    # with p degrees of freedom at any sample rate
     chi = 0.0
-    chi_long = 0.0
     for r in range(p):
         ebar[r] += nis_coef * (innov[r] - ebar[r])
         chi += ebar[r] * ebar[r]
-        ebar[p + r] += nis_coef_long * (innov[r] - ebar[p + r])
-        chi_long += ebar[p + r] * ebar[p + r]
     stat = chi * (2.0 - nis_coef) / nis_coef
-    if nis_coef_long > 0.0:
-        stat_long = chi_long * (2.0 - nis_coef_long) / nis_coef_long
-        if stat_long > stat:
-            stat = stat_long
     stats[3] = 1.0 if (mode == 1.0 and stat > threshold) else 0.0
     # 5b. adaptive output noise, innovation-based covariance matching (Sage-Husa; Mohamed
     # and Schwarz 1999): rx <- max(0, rx + d (min(nu_r^2, c S_rr) - S_rr)), which drives

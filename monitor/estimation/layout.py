@@ -115,26 +115,24 @@ def _tables() -> tuple[Table, ...]:
         # the innovation average; mode 0: no structure test, 1: test, 2: a structure event at
         # the start of the sample; slot: the sample's place in the onset ring; lower, upper:
         # the bounds of (28) (lower == upper: a known actuator); noise_coef: the forgetting
-        # weight of the adaptive output noise (0: the model's R); nis_coef_long: the weight
-        # of the long innovation average (0: none)
+        # weight of the adaptive output noise (0: the model's R)
         ("PRM", [("dt", "1"), ("delta", "1"), ("wi", "1"), ("q_gamma", "1"),
                  ("var_max", "1"), ("nis_coef", "1"), ("var_reopen", "1"),
                  ("nis_threshold", "1"), ("mode", "1"), ("growth_share", "1"), ("slot", "1"),
-                 ("var_rule", "1"), ("lower", "m"), ("upper", "m"), ("noise_coef", "1"),
-                 ("nis_coef_long", "1")]),
+                 ("var_rule", "1"), ("lower", "m"), ("upper", "m"), ("noise_coef", "1")]),
         # x^, P, V = d x^ / d gamma, the averaged fuzzy input z, the consequents' common
         # variance vc (per actuator), the adapted output-noise excess rx (per output)
         ("STATE", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("vc", "m"),
                    ("rx", "p")]),
         # one sample of the onset ring: the state before it (x, P, V, z, the innovation
-        # averages, gamma^, vc), the sample (u, y, dt), the filter's view of it under the old
+        # average, gamma^, vc), the sample (u, y, dt), the filter's view of it under the old
         # fault (K, S_tot^-1, nu) and the adapted output noise before it
-        ("RING", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("ebar", "2", "p"),
+        ("RING", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("ebar", "p"),
                   ("gamma", "m"), ("vc", "m"), ("u", "m"), ("y", "p"), ("dt", "1"),
                   ("K", "n", "p"), ("Sti", "p", "p"), ("nu", "p"), ("rx", "p")]),
         # stats: [NIS, test statistic, Cholesky repairs, structure test fired]
         ("OUT", [("gamma", "m"), ("fault", "n"), ("x_tilde", "n"), ("x_e", "n"),
-                 ("y_hat", "p"), ("innovation", "p"), ("stats", "4"), ("ebar", "2", "p"),
+                 ("y_hat", "p"), ("innovation", "p"), ("stats", "4"), ("ebar", "p"),
                  ("y_est", "p")]),
         ("WORK", [("uf", "m"), ("dg", "m"), ("pg", "m"), ("b", "n"), ("xq", "n"),
                   ("yoff", "p"), ("nu", "p"), ("Pq", "n", "n"), ("St", "p", "p"),
@@ -167,10 +165,9 @@ def offsets(n: int, m: int, p: int) -> IntArray:
 
 
 # What the buffers mean beyond their fields' order and sizes (bump it when that changes:
-# 8 made ebar the short and the long innovation average; 7 added the FRICTION table after
-# the model block; 6, the layout of these tables; 5 added
+# 7 added the FRICTION table after the model block; 6, the layout of these tables; 5 added
 # the bias states after the plant's in x, P, V, z).
-_SEMANTICS = 8
+_SEMANTICS = 7
 
 
 
