@@ -50,6 +50,7 @@ from monitor.estimation.model import DCMotorParameters, dc_motor
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import scenario_from_dict
 from tests.bench.realistic import MODEL_SIGMA, RATE, Run, runs, sensor_reading
+from tests.bench.rig_zoo import monitor_exe
 from tests.bench.zoo.score import NodeTruth, read_events, score_node
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -137,8 +138,9 @@ def write_log(path: Path, t: np.ndarray, u: np.ndarray, y: np.ndarray) -> None:
 
 
 def motor_monitor(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(ROOT / ".venv" / "bin" / "motor-monitor"), *args], cwd=cwd,
-                          capture_output=True, text=True, timeout=1800)
+    """`motor-monitor ARGS` in `cwd`, as a user runs it (the rig zoo's executable)."""
+    return subprocess.run([monitor_exe(), *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=1800)
 
 
 def identify(motor: Motor, d: Path) -> dict[str, Any]:
