@@ -400,11 +400,12 @@ def loss_effect(cfg: MonitorConfig, held: NDArray[np.float64], start: int, stop:
     return out
 
 
-def innovation_effect(cfg: MonitorConfig, dy: NDArray[np.float64]) -> NDArray[np.float64]:
+def innovation_effect(cfg: MonitorConfig) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
     """The whitened change L^-1 de(k) (L L' = S) of the innovations of the model's
-    steady-state Kalman filter when its outputs change by `dy` (rows from a loss's onset,
-    `loss_effect`): the filter is linear, so de is its innovations of dy alone, without
-    input and from rest. Where the filter has no steady state, dy in units of R."""
+    steady-state Kalman filter when its outputs change by dy (rows from a loss's onset,
+    `loss_effect`), as a function of dy: the filter is linear, so de is its innovations of
+    dy alone, without input and from rest. The filter is solved once, here. Where it has
+    no steady state, dy in units of R."""
     T = 1.0 / cfg.rate
     dm = cfg.plant().discretize(T)
     A, _, Q = dm.at(T)
@@ -413,10 +414,17 @@ def innovation_effect(cfg: MonitorConfig, dy: NDArray[np.float64]) -> NDArray[np
     try:
         kf = kalman(A, C, Q, R)
     except (np.linalg.LinAlgError, ValueError):
-        return np.asarray(np.linalg.solve(np.linalg.cholesky(R), dy.T).T)
-    de = predict(A, np.zeros((A.shape[0], 1)), C, kf.K, np.zeros((dy.shape[0], 1)), dy,
-                 x0=np.zeros(A.shape[0]))
-    return np.asarray(np.linalg.solve(np.linalg.cholesky(kf.S), de.T).T)
+        LR = np.linalg.cholesky(R)
+        return lambda dy: np.asarray(np.linalg.solve(LR, dy.T).T)
+    LS = np.linalg.cholesky(kf.S)
+    none_in = np.zeros((A.shape[0], 1))
+    rest = np.zeros(A.shape[0])
+
+    def whitened(dy: NDArray[np.float64]) -> NDArray[np.float64]:
+        de = predict(A, none_in, C, kf.K, np.zeros((dy.shape[0], 1)), dy, x0=rest)
+        return np.asarray(np.linalg.solve(LS, de.T).T)
+
+    return whitened
 
 
 def added_loss(f1: float) -> float:
@@ -448,11 +456,12 @@ def fault_detection(rig: Rig, paths: Sequence[Path], node: int, times: NDArray[n
     plant = cfg.plant()
     states = filtered_states(plant, held, outputs, 1.0 / cfg.rate, cfg.input_delay) \
         if plant.friction is not None and outputs is not None else None
+    whitened = innovation_effect(cfg)
     runs = []
     for j0 in onsets:
         dy = loss_effect(cfg, held, j0, j0 + span, loss, states)
         add = {where[j][1]: dy[j - j0] for j in range(j0, j0 + span)}
-        snr = float(np.sqrt(np.sum(innovation_effect(cfg, dy[:first]) ** 2)))
+        snr = float(np.sqrt(np.sum(whitened(dy[:first]) ** 2)))
         runs.append((j0, _Lossy(frame_decoder(rig), node, add), snr))
     # one pass over each file, every stretch fed to its own monitor
     traces: list[_Trace] = []

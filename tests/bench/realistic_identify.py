@@ -70,7 +70,7 @@ class Motor:
     rate: float
     sigma: float  # the sensor's noise, A
     q: float  # process-noise intensity of the plant
-    extras: Run  # its sensor noise, load, offset and quantisation (its faults unused)
+    extras: Run  # its load, offset and quantisation (its sigma and faults unused)
     runs: list[Run] = field(default_factory=list)
     default_fits: bool = True  # the built-in rig's model is this motor's
 
