@@ -167,8 +167,10 @@ class ReplayFigures:
     normalised innovation squared (NaN: none), `nis_band` the mismatch detector's band;
     first_fault / first_mismatch: where the first fault or outage, the flag's first rise,
     is ("capture.log at 12.30 s"); failures: the replay's own failure lines (nothing
-    decoded, a log damaged part way); gamma_max: the largest gamma^ (NaN: none) and f1
-    the diagnosis's lower threshold, which it is held to (GAMMA_MARGIN)."""
+    decoded, a log damaged part way); gamma_max: the largest gamma^ (NaN: none);
+    alarm_max: the largest gamma^ less `significance` times its standard deviation, what an
+    alarm weighs (`monitor.diagnosis.rules.cls_update`), held to GAMMA_MARGIN of f1, the
+    diagnosis's lower threshold."""
 
     files: list[str]
     start_s: float
@@ -182,7 +184,13 @@ class ReplayFigures:
     first_mismatch: str | None = None
     failures: list[str] = field(default_factory=list)
     gamma_max: float = math.nan
+    alarm_max: float = math.nan
+    significance: float = 0.0
     f1: float = math.nan  # the lower threshold of the diagnosis
+
+    def __post_init__(self) -> None:
+        if self.alarm_max != self.alarm_max:  # no standard deviation: gamma^ alone
+            self.alarm_max = self.gamma_max
 
     @property
     def fault_seconds(self) -> float:
@@ -203,35 +211,37 @@ class ReplayFigures:
 
 @dataclass
 class _Trace(RunRecorder):
-    """The replay's recorder, keeping also the state, flag and NIS of every sample of one
-    node (columns from the columnar engine, rows from the per-frame one)."""
+    """The replay's recorder, keeping also the state, flag, NIS, gamma^ and its standard
+    deviation of every sample of one node (columns from the columnar engine, rows from the
+    per-frame one)."""
 
     node: int = 0
-    parts: list[tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_],
-                      NDArray[np.float64], NDArray[np.float64]]] = field(default_factory=list)
+    parts: list[tuple[NDArray[np.float64], ...]] = field(default_factory=list)
 
     def on_sample_columns(self, node: int, cols: SampleColumns) -> None:
         super().on_sample_columns(node, cols)
         if node == self.node:  # copies: a producer may reuse its buffers
-            self.parts.append((np.array(cols.t, float), np.array(cols.state, np.int64),
-                               np.array(cols.model_mismatch, bool), np.array(cols.nis, float),
-                               np.array(cols.gamma, float)))
+            sd = np.full(len(cols.t), math.nan) if cols.gamma_sd is None else cols.gamma_sd
+            self.parts.append((np.array(cols.t, float), np.array(cols.state, float),
+                               np.array(cols.model_mismatch, float), np.array(cols.nis, float),
+                               np.array(cols.gamma, float), np.array(sd, float)))
 
     def on_sample(self, sample: Sample) -> None:
         super().on_sample(sample)
         if sample.node == self.node:
-            self.parts.append((np.array([sample.t]), np.array([int(sample.state)]),
-                               np.array([sample.model_mismatch]), np.array([sample.nis]),
-                               np.array([sample.gamma])))
+            self.parts.append(tuple(np.array([v], float) for v in (
+                sample.t, int(sample.state), sample.model_mismatch, sample.nis, sample.gamma,
+                sample.gamma_sd)))
 
     def columns(self) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_],
-                               NDArray[np.float64], NDArray[np.float64]]:
-        """Time, state, flag, NIS and gamma^ of every sample of the node."""
+                               NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Time, state, flag, NIS, gamma^ and its standard deviation of every sample of the
+        node."""
         if not self.parts:
             return (np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0),
-                    np.zeros(0))
-        t, s, m, n, g = (np.concatenate(c) for c in zip(*self.parts, strict=True))
-        return t, s.astype(np.int64), m.astype(bool), n, g
+                    np.zeros(0), np.zeros(0))
+        t, s, m, n, g, sd = (np.concatenate(c) for c in zip(*self.parts, strict=True))
+        return t, s.astype(np.int64), m.astype(bool), n, g, sd
 
 
 def replay_capture(rig: Rig, paths: Sequence[Path], node: int,
@@ -251,7 +261,7 @@ def replay_capture(rig: Rig, paths: Sequence[Path], node: int,
                             dwell_s=cfg.mismatch_dwell_s).band
     counts = np.zeros(len(HealthState), np.int64)
     flagged, nis_sum, nis_n, samples, starts = 0, 0.0, 0, 0, []
-    gamma_high = -math.inf
+    gamma_high = alarm_high = -math.inf
     first_fault: str | None = None
     first_mismatch: str | None = None
     failures: list[str] = []
@@ -261,7 +271,7 @@ def replay_capture(rig: Rig, paths: Sequence[Path], node: int,
         run = ENGINES[engine](path, setup, _only(trace))
         if run.failure is not None:
             failures.append(run.failure)
-        t, state, mismatch, nis, gamma = trace.columns()
+        t, state, mismatch, nis, gamma, gamma_sd = trace.columns()
         if not t.size:
             continue
         t0 = float(t[0])
@@ -274,6 +284,9 @@ def replay_capture(rig: Rig, paths: Sequence[Path], node: int,
         t, state, mismatch, nis = t[keep], state[keep], mismatch[keep], nis[keep]
         if keep.any():
             gamma_high = max(gamma_high, float(np.nanmax(gamma[keep])))
+            # what an alarm weighs (`rules.cls_update`): gamma^ less its significance
+            alarm = gamma[keep] - cfg.significance * np.nan_to_num(gamma_sd[keep])
+            alarm_high = max(alarm_high, float(np.nanmax(alarm)))
         counts += np.bincount(state, minlength=len(HealthState))[:len(HealthState)]
         flagged += int(np.count_nonzero(mismatch))
         finite = nis[np.isfinite(nis)]
@@ -293,7 +306,8 @@ def replay_capture(rig: Rig, paths: Sequence[Path], node: int,
         mismatch_seconds=flagged * period, mean_nis=nis_sum / nis_n if nis_n else math.nan,
         nis_band=band, first_fault=first_fault, first_mismatch=first_mismatch,
         failures=failures, gamma_max=gamma_high if math.isfinite(gamma_high) else math.nan,
-        f1=cfg.thresholds.f1)
+        alarm_max=alarm_high if math.isfinite(alarm_high) else math.nan,
+        significance=cfg.significance, f1=cfg.thresholds.f1)
 
 
 def _only(sink: Sink) -> Callable[[], list[Sink]]:
@@ -650,11 +664,12 @@ def _replay_checks(r: ReplayFigures, structure: str, faults: FaultFigures | None
     return [
         health,
         *([] if faults is None else [_fault_check(faults)]),
-        Check("replay_gamma_margin", bool(r.gamma_max <= margin) or not math.isfinite(r.f1),
-              _num(r.gamma_max), margin if math.isfinite(margin) else 0.0,
-              f"gamma^ reaches {r.gamma_max:.3g} on the healthy capture, close to the "
-              f"threshold {r.f1:g}: a fresh run would cross it (false alarms); {structure}; "
-              f"{_MORE_DATA}; {_ONE_CONDITION}", gating=True),
+        Check("replay_gamma_margin", bool(r.alarm_max <= margin) or not math.isfinite(r.f1),
+              _num(r.alarm_max), margin if math.isfinite(margin) else 0.0,
+              f"gamma^ less {r.significance:g} standard deviation(s) reaches "
+              f"{r.alarm_max:.3g} on the healthy capture (gamma^ itself {r.gamma_max:.3g}), "
+              f"close to the threshold {r.f1:g}: a fresh run would cross it (false alarms); "
+              f"{structure}; {_MORE_DATA}; {_ONE_CONDITION}", gating=True),
         Check("replay_model_mismatch", bool(mismatch <= MAX_MISMATCH_SHARE), _num(mismatch),
               MAX_MISMATCH_SHARE, flag_advice, gating=True),
         Check("replay_mean_nis", bool(lo <= nis <= hi), _num(nis), [lo, hi], nis_advice,

@@ -348,6 +348,7 @@ class ColumnarEngine:
         dts: NDArray[np.float64] = (kA * nm.T).astype(np.float64)
         nA = len(A)
         gam = np.zeros((nA, m))
+        gsd = np.zeros((nA, m))
         yest = np.zeros((nA, self.model.p))  # every output, for the samples file
         nis = np.zeros(nA)
         rules = np.zeros(nA, np.int64)
@@ -362,6 +363,7 @@ class ColumnarEngine:
             res = nm.estimator.step_many(U[i:end], Y[i:end], dts[i:end])
             j = i + res.count
             gam[i:j] = res.gamma[:res.count]
+            gsd[i:j] = res.gamma_sd[:res.count]
             yest[i:j] = res.y_est[:res.count]
             nis[i:j] = res.nis[:res.count]
             rules[i:j] = res.rules[:res.count]
@@ -377,7 +379,9 @@ class ColumnarEngine:
             cnt.inc(C.ESTIMATOR_NAN, int(isnan.sum()))
         if n_events:
             cnt.inc(C.ESTIMATOR_STRUCTURE_EVENTS, n_events)
-        gmax = gam.max(axis=1) if nA else np.zeros(0)
+        worst = gam.argmax(axis=1) if nA else np.zeros(0, np.int64)
+        gmax = gam[np.arange(nA), worst]
+        gmax_sd = gsd[np.arange(nA), worst]  # of the gamma^ the diagnosis reads
         # samples and ticks in bus order: a tick follows the feed of its frame
         pos_s = fr[oA]
         tk = tick_idx[tick_idx >= created] if created >= 0 else tick_idx
@@ -386,6 +390,7 @@ class ColumnarEngine:
         is_tick = np.concatenate([np.zeros(nA, np.bool_), np.ones(len(tk), np.bool_)])[order_k]
         tt = np.concatenate([c.t[pos_s], c.t[tk]])[order_k]
         gg = np.concatenate([gmax, np.zeros(len(tk))])[order_k]
+        gs = np.concatenate([gmax_sd, np.zeros(len(tk))])[order_k]
         ni = np.concatenate([nis, np.zeros(len(tk))])[order_k]
         rb = np.concatenate([rA, np.zeros(len(tk), np.bool_)])[order_k]
         nn = np.concatenate([isnan, np.zeros(len(tk), np.bool_)])[order_k]
@@ -399,7 +404,7 @@ class ColumnarEngine:
         counts = np.zeros(2, np.int64)
         diag = nm.diag  # an array, or a list where the JIT is off (`rules.step_vectors`)
         diag_a = diag if isinstance(diag, np.ndarray) else np.array(diag, np.float64)
-        K.classify(is_tick, tt, gg, ni, rb, nn, diag_a, self.cls_prm, st_out, ev, prev,
+        K.classify(is_tick, tt, gg, gs, ni, rb, nn, diag_a, self.cls_prm, st_out, ev, prev,
                    cause, fev, flag, counts)
         if diag_a is not diag:
             for k_s, v_s in enumerate(diag_a.tolist()):
@@ -421,7 +426,8 @@ class ColumnarEngine:
                 gamma=gmax[good], rules=rules[good], state=st_sample[good], nis=nis[good],
                 true_gamma=np.where(got_t[oA], held_t[oA], np.nan)[good],
                 model_mismatch=mm_sample[good],
-                inputs=U[good], outputs=Y[good], predicted=yest[good], gammas=gam[good]))
+                inputs=U[good], outputs=Y[good], predicted=yest[good], gammas=gam[good],
+                gamma_sd=gmax_sd[good]))
         # transitions and due diagnoses
         if not self.router.wants_diagnosis:
             ev[ev == 2] = 0

@@ -54,6 +54,10 @@ class OnlineClassifier:
     left at value >= F1 + h, fault at value < F1 - h or value > F2 + h, outage at
     value <= F2 - h). With h = 0 the regions are exactly those of (76).
 
+    Significance: an alarm's edge is raised to `significance` times the value's standard
+    deviation where that exceeds h, when `update` is given one: fault-free is left at
+    value >= F1 + max(h, significance sd) (`rules.cls_update`).
+
     Dwell: the reported state changes to a candidate only after the candidate has persisted
     for `dwell_s` seconds of *sample time* (the timestamps passed to `update`, never the
     wall clock); it is reported on the first sample at or after onset + dwell_s. If the
@@ -74,10 +78,12 @@ class OnlineClassifier:
 
     def __init__(
         self, thresholds: Thresholds, *, dwell_s: float = rules.DEFAULTS.dwell_s,
-        hysteresis: float = rules.DEFAULTS.hysteresis
+        hysteresis: float = rules.DEFAULTS.hysteresis,
+        significance: float = rules.DEFAULTS.significance
     ) -> None:
         self.thresholds = thresholds
-        prm = rules.params(thresholds, dwell_s=dwell_s, hysteresis=hysteresis)
+        prm = rules.params(thresholds, dwell_s=dwell_s, hysteresis=hysteresis,
+                           significance=significance)
         self._s, self._prm, _ = rules.step_vectors(prm)
 
     @property
@@ -107,9 +113,10 @@ class OnlineClassifier:
         """Force NO_DATA at time t (e.g. the ECU fell silent); returns it if it is new."""
         return HealthState.NO_DATA if rules.cls_no_data(self._s, float(t)) else None
 
-    def update(self, t: float, value: float) -> HealthState | None:
-        """Feed one sample; return the new state on a transition, else None."""
-        if rules.cls_update(self._s, self._prm, float(t), float(value)):
+    def update(self, t: float, value: float, sd: float = 0.0) -> HealthState | None:
+        """Feed one sample (`sd`: the value's standard deviation, 0 when none is known);
+        return the new state on a transition, else None."""
+        if rules.cls_update(self._s, self._prm, float(t), float(value), float(sd)):
             return _STATES[int(self._s[rules.ST])]
         return None
 

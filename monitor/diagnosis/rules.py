@@ -84,13 +84,15 @@ its band, the flag (0 or 1); when the last `Diagnosis` was due, the last sample'
  IN_SINCE, FLAGGED, LAST_PUBLISH, LAST_T, REPORTED) = range(len(STATE))
 
 PARAMS = ("f1", "f2", "f1_up", "f1_down", "f2_up", "f2_down", "dwell", "mm_a", "mm_lo",
-          "mm_hi", "mm_dwell", "outputs", "publish_period", "silence_timeout", "withhold")
+          "mm_hi", "mm_dwell", "outputs", "publish_period", "silence_timeout", "withhold",
+          "significance")
 """The parameter vector: thresholds F1, F2 and the edges of the regions widened by the
 hysteresis, the classifier's dwell; the mismatch detector's averaging coefficient, band
 and dwell, the number of outputs (the NIS's mean); the publication period, the silence
-timeout, whether alarms are withheld while the flag is up (0 or 1)."""
+timeout, whether alarms are withheld while the flag is up (0 or 1); the standard
+deviations of gamma^ by which an alarm's edge is raised (`cls_update`)."""
 (F1, F2, F1_UP, F1_DOWN, F2_UP, F2_DOWN, DWELL, MM_A, MM_LO, MM_HI, MM_DWELL, OUTPUTS,
- PUBLISH, SILENCE, WITHHOLD) = range(len(PARAMS))
+ PUBLISH, SILENCE, WITHHOLD, SIGNIFICANCE) = range(len(PARAMS))
 
 OUT = ("ev", "prev", "cause", "flag", "mismatch", "silent")
 """What a step reports: ev 0 nothing, 1 a change (and its `Diagnosis`), 2 a `Diagnosis`
@@ -137,7 +139,8 @@ def params(thresholds: Thresholds, *, dwell_s: float = DEFAULTS.dwell_s,
            mismatch_dwell_s: float = DEFAULTS.mismatch_dwell_s, alpha: float = 1e-3,
            publish_period_s: float = 0.1,
            silence_timeout_s: float = DEFAULTS.silence_timeout_s,
-           withhold: bool = DEFAULTS.withhold_alarms_on_mismatch) -> F8:
+           withhold: bool = DEFAULTS.withhold_alarms_on_mismatch,
+           significance: float = DEFAULTS.significance) -> F8:
     """The parameter vector (`PARAMS`); raises `DiagnosisError` for a value out of range.
 
     The mismatch band is that of `MismatchDetector`: the [alpha/2, 1 - alpha/2] quantiles
@@ -153,6 +156,9 @@ def params(thresholds: Thresholds, *, dwell_s: float = DEFAULTS.dwell_s,
         raise DiagnosisError(
             f"hysteresis must be in [0, (f2 - f1)/2 = {half_gap:g}), got {hysteresis!r}"
         )
+    significance = float(significance)
+    if not (math.isfinite(significance) and significance >= 0.0):
+        raise DiagnosisError(f"significance must be a finite number >= 0, got {significance!r}")
     if not (window_s > 0 and mismatch_dwell_s > 0 and rate > 0 and 0 < alpha < 1):
         raise DiagnosisError("mismatch window, dwell and rate must be > 0, alpha in (0, 1)")
     a = min(1.0, 1.0 / (window_s * rate))
@@ -165,7 +171,7 @@ def params(thresholds: Thresholds, *, dwell_s: float = DEFAULTS.dwell_s,
                      max(chi2_quantile(1.0 - 0.5 * alpha, dof) * outputs / dof,
                          outputs * NIS_BAND_FLOOR[1]),
                      float(mismatch_dwell_s), float(outputs), float(publish_period_s),
-                     float(silence_timeout_s), float(bool(withhold))])
+                     float(silence_timeout_s), float(bool(withhold)), significance])
 
 
 def new_state(prm: F8) -> F8:
@@ -201,11 +207,11 @@ def warm_up(prm: F8) -> None:
     columns of a backlog), on scratch vectors: a JIT compile on the first sample of a live
     bus would stall the daemon for seconds."""
     s, p, out = step_vectors(prm)
-    on_sample(s, p, 0.0, 0.0, 1.0, False, False, out)
-    on_sample(s, p, 0.01, math.nan, math.nan, True, True, out)
+    on_sample(s, p, 0.0, 0.0, 0.0, 1.0, False, False, out)
+    on_sample(s, p, 0.01, math.nan, math.nan, math.nan, True, True, out)
     on_tick(s, p, 10.0, out)
     one_b, one_f = np.zeros(1, np.bool_), np.zeros(1)
-    run(one_b, one_f, one_f, one_f, one_b, one_b, new_state(prm), prm.copy(),
+    run(one_b, one_f, one_f, one_f, one_f, one_b, one_b, new_state(prm), prm.copy(),
         np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64),
         np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.bool_),
         np.zeros(2, np.int64))
@@ -256,9 +262,16 @@ def _enter(s: FloatVector, state: int, t: float, onset: float) -> bool:
 
 
 @njit
-def cls_update(s: FloatVector, prm: FloatVector, t: float, value: float) -> bool:
-    """One sample (t, value) through the classifier; whether its state changed.
+def cls_update(s: FloatVector, prm: FloatVector, t: float, value: float, sd: float) -> bool:
+    """One sample (t, value) through the classifier, `sd` the standard deviation of value
+    (NaN or 0: none known); whether its state changed.
 
+    An alarm must be significant: fault-free is left only at value >= F1 + max(hysteresis,
+    significance sd), so that where the estimate is uncertain (an input too small or an
+    output too noisy to show a loss within the dwell) a noise-sized jump of it raises no
+    alarm, while a loss the outputs show, which narrows sd as it moves the value, does.
+    Leaving an alarm (recovery, or fault <-> outage) takes the hysteresis alone: the
+    diagnosis follows the estimate once it has alarmed.
     Inside the reported state's region widened by the hysteresis nothing changes;
     outside, the (76) candidate becomes the state once it has lasted the dwell, or, when
     the value has been outside that long without one candidate lasting, the state moves a
@@ -273,7 +286,11 @@ def cls_update(s: FloatVector, prm: FloatVector, t: float, value: float) -> bool
         return False
     s[CLS_LAST_T] = t
     st = int(s[ST])
-    if ((st == 0 and value < prm[F1_UP]) or (st == 1 and prm[F1_DOWN] <= value <= prm[F2_UP])
+    # an alarm's edge: F1 + max(hysteresis, significance sd)
+    edge = prm[F1_UP]
+    if sd > 0.0 and prm[F1] + prm[SIGNIFICANCE] * sd > edge:
+        edge = prm[F1] + prm[SIGNIFICANCE] * sd
+    if ((st == 0 and value < edge) or (st == 1 and prm[F1_DOWN] <= value <= prm[F2_UP])
             or (st == 2 and value > prm[F2_DOWN])):
         s[CAND] = -1.0
         s[AWAY_SINCE] = math.nan
@@ -371,10 +388,11 @@ def report(s: FloatVector, prm: FloatVector, t: float, was: bool, flag_cause: in
 
 
 @njit
-def on_sample(s: FloatVector, prm: FloatVector, t: float, gamma: float, nis: float,
-              restarted: bool, failed: bool, out: IntVector) -> bool:
-    """One estimated output sample at t: the largest gamma^ and the NIS through the
-    classifier and the mismatch detector, then `report`. `restarted`: the estimator
+def on_sample(s: FloatVector, prm: FloatVector, t: float, gamma: float, gamma_sd: float,
+              nis: float, restarted: bool, failed: bool, out: IntVector) -> bool:
+    """One estimated output sample at t: the largest gamma^ (its standard deviation
+    `gamma_sd`) and the NIS through the classifier and the mismatch detector, then
+    `report`. `restarted`: the estimator
     restarted before it (the detector forgets, the flag's cause is restart); `failed`: the
     estimate went NaN and the estimator restarts (the detector forgets, nothing is
     classified, no periodic `Diagnosis`). Returns whether `out` holds anything to do (an
@@ -391,7 +409,7 @@ def on_sample(s: FloatVector, prm: FloatVector, t: float, gamma: float, nis: flo
         mm_reset(s, prm)
         report(s, prm, t, was, 1, -1, False, out)
         return out[EV] != 0
-    cls_update(s, prm, t, gamma)
+    cls_update(s, prm, t, gamma, gamma_sd)
     if mm_update(s, prm, t, nis) == 1:
         out[MISMATCH] = 1
     report(s, prm, t, was, fc, -1, True, out)
@@ -428,9 +446,9 @@ def on_tick(s: FloatVector, prm: FloatVector, t: float, out: IntVector) -> bool:
 
 
 @njit
-def run(is_tick: B1, t: F8, gamma: F8, nis: F8, restarted: B1, failed: B1, s: F8, prm: F8,
-        state_out: I8, ev: I8, prev_out: I8, cause: I8, fev: I8, flag_out: B1,
-        counts: I8) -> None:
+def run(is_tick: B1, t: F8, gamma: F8, gamma_sd: F8, nis: F8, restarted: B1, failed: B1,
+        s: F8, prm: F8, state_out: I8, ev: I8, prev_out: I8, cause: I8, fev: I8,
+        flag_out: B1, counts: I8) -> None:
     """One node's samples and ticks in bus order through `on_sample` and `on_tick`.
 
     Per item: state_out the reported state after it, flag_out the flag after it; ev,
@@ -441,7 +459,8 @@ def run(is_tick: B1, t: F8, gamma: F8, nis: F8, restarted: B1, failed: B1, s: F8
         if is_tick[i]:
             on_tick(s, prm, t[i], out)
         else:
-            on_sample(s, prm, t[i], gamma[i], nis[i], restarted[i], failed[i], out)
+            on_sample(s, prm, t[i], gamma[i], gamma_sd[i], nis[i], restarted[i], failed[i],
+                      out)
         ev[i] = out[EV]
         prev_out[i] = out[PREV]
         cause[i] = out[CAUSE]

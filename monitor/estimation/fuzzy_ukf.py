@@ -174,6 +174,9 @@ class EstimatorOutput:
     x_tilde: fault-model state (52), observable part. x_e = x_tilde - x_hat_obs (50).
     gamma: loss of effectiveness per actuator (exactly 0 for an actuator not in
     model.fault_inputs). fault: f^ = -B diag(u) gamma (10), per state.
+    gamma_sd: the standard deviation of gamma^ after the sample (the square root of its
+    variance, the consequents' common part and the firing rules' own; 0 for a known
+    actuator): how far the diagnosis trusts gamma^ (`monitor.diagnosis.rules.cls_update`).
     y_hat: predicted output before the update; y_est: output of the final estimate,
     C x^ + D u (1 - gamma^). nis: normalised innovation squared.
     innovation: whitened innovation L^-1 nu (L L' = S_tot), per output. rules: rule count.
@@ -188,6 +191,7 @@ class EstimatorOutput:
     y_hat: Array
     innovation: Array
     y_est: Array
+    gamma_sd: Array = field(default_factory=lambda: np.zeros(0))
     bias: Array = field(default_factory=lambda: np.zeros(0))
     nis: float = 0.0
     rules: int = 0
@@ -308,6 +312,7 @@ class FuzzyUKF(StructureLearning, ManyStepping):
             y_hat=out("y_hat"),
             innovation=out("innovation"),
             y_est=out("y_est"),
+            gamma_sd=out("gamma_sd"),
             rules=self.fuzzy.rule_count,
             bias=self.bias,
         )

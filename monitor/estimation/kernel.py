@@ -161,8 +161,9 @@ _STATE_END = STATE.base + len(STATE)
     "x", "P", "V", "z", "ebar", "gamma", "vc", "u", "y", "dt", "K", "Sti", "nu", "rx")
 _RING_END = RING.base + len(RING)
 (_O_GAMMA, _O_FAULT, _O_XTILDE, _O_XE, _O_YHAT, _O_INNOV, _O_STATS, _O_EBAR,
- _O_YEST) = OUT.at_each(
-    "gamma", "fault", "x_tilde", "x_e", "y_hat", "innovation", "stats", "ebar", "y_est")
+ _O_YEST, _O_GSD) = OUT.at_each(
+    "gamma", "fault", "x_tilde", "x_e", "y_hat", "innovation", "stats", "ebar", "y_est",
+    "gamma_sd")
 (_W_UF, _W_DG, _W_PG, _W_B, _W_D, _W_S, _W_XP, _W_XQ, _W_YOFF, _W_DY, _W_NU, _W_L, _W_IKC,
  _W_T1, _W_PP, _W_PQ, _W_LS, _W_PYY, _W_PYY_INV, _W_ST, _W_STI, _W_PXY, _W_K, _W_VP, _W_M,
  _W_RA) = WORK.at_each(
@@ -272,6 +273,7 @@ def fuzzy_ukf_step(
     stats = _vec(out, lay, _O_STATS, 0)
     ebar = _vec(out, lay, _O_EBAR, 0)
     yest = _vec(out, lay, _O_YEST, 0)
+    gsd = _vec(out, lay, _O_GSD, 0)
     uf = _vec(wk, lay, _W_UF, 0)
     dg = _vec(wk, lay, _W_DG, 0)
     pg = _vec(wk, lay, _W_PG, 0)
@@ -552,6 +554,10 @@ def fuzzy_ukf_step(
         # a convex combination of bounded consequents, up to one ulp of round-off
         g = gamma[a] + dg[a]
         gamma[a] = lo[a] if g < lo[a] else (hi[a] if g > hi[a] else g)
+        # its standard deviation after the sample: the common part's and the firing
+        # rules' own (0 for a known actuator, whose variances are 0)
+        vg = vc[a] + _rule_variance(var, rule_idx, rule_w, nf, a) if hi[a] > lo[a] else 0.0
+        gsd[a] = math.sqrt(vg) if vg > 0.0 else 0.0
     # posterior output estimate y^ = C x^ + D u (1 - gamma^)
     for r in range(p):
         acc = 0.0
@@ -581,7 +587,7 @@ def step_loop(
     st: Array, centres: Array, counts: IntArray, cons: Array, var: Array, rule_idx: IntArray,
     rule_w: Array, wk: Array, out: Array, lay: IntArray, n: int, m: int, p: int, max_mf: int,
     clock: Array, dwell: float, ring_len: int, start: int,
-    gamma_out: Array, yest_out: Array, nis_out: Array,
+    gamma_out: Array, yest_out: Array, nis_out: Array, gsd_out: Array,
 ) -> int:
     """`fuzzy_ukf_step` -- eqs (50)-(54) around (15)-(49) -- for samples start, start + 1,
     ... of (U, Y, dts), in compiled code.
@@ -597,6 +603,7 @@ def step_loop(
     o_gamma = lay[_O_GAMMA]
     o_stats = lay[_O_STATS]
     o_yest = lay[_O_YEST]
+    o_gsd = lay[_O_GSD]
     N = U.shape[0]
     clock[2] = 0.0
     for i in range(start, N):
@@ -613,6 +620,7 @@ def step_loop(
         for a in range(m):
             g = out[o_gamma + a]
             gamma_out[i, a] = g
+            gsd_out[i, a] = out[o_gsd + a]
             if g != g:
                 nan = True
         for r in range(p):

@@ -130,10 +130,11 @@ def _tables() -> tuple[Table, ...]:
         ("RING", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("ebar", "p"),
                   ("gamma", "m"), ("vc", "m"), ("u", "m"), ("y", "p"), ("dt", "1"),
                   ("K", "n", "p"), ("Sti", "p", "p"), ("nu", "p"), ("rx", "p")]),
-        # stats: [NIS, test statistic, Cholesky repairs, structure test fired]
+        # stats: [NIS, test statistic, Cholesky repairs, structure test fired]; gamma_sd: the
+        # standard deviation of gamma^ after the sample (what the diagnosis weighs it by)
         ("OUT", [("gamma", "m"), ("fault", "n"), ("x_tilde", "n"), ("x_e", "n"),
                  ("y_hat", "p"), ("innovation", "p"), ("stats", "4"), ("ebar", "p"),
-                 ("y_est", "p")]),
+                 ("y_est", "p"), ("gamma_sd", "m")]),
         ("WORK", [("uf", "m"), ("dg", "m"), ("pg", "m"), ("b", "n"), ("xq", "n"),
                   ("yoff", "p"), ("nu", "p"), ("Pq", "n", "n"), ("St", "p", "p"),
                   ("Sti", "p", "p"), ("Vp", "n", "m"), ("M", "p", "m"), ("Ra", "p", "p"),

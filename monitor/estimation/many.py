@@ -20,9 +20,10 @@ __all__ = ["ManyStepping", "ManySteps"]
 
 @dataclass
 class ManySteps:
-    """What `step_many` ran: samples [0, count) of its input, per sample gamma^ (count, m),
-    the output estimate y_est (count, p), the NIS, the rule count after the sample and
-    whether a structure-learning event followed it. `stopped_on_nan`: sample count - 1 gave a
+    """What `step_many` ran: samples [0, count) of its input, per sample gamma^ (count, m)
+    and its standard deviation gamma_sd (count, m), the output estimate y_est (count, p),
+    the NIS, the rule count after the sample and whether a structure-learning event
+    followed it. `stopped_on_nan`: sample count - 1 gave a
     NaN gamma^ (the caller restarts the estimator, as the pipeline does)."""
 
     count: int
@@ -32,6 +33,7 @@ class ManySteps:
     rules: IntArray
     structure_event: NDArray[np.bool_]
     stopped_on_nan: bool
+    gamma_sd: Array
 
 
 class ManyStepping(FilterState):
@@ -50,41 +52,48 @@ class ManyStepping(FilterState):
         N = int(u.shape[0])
         n, m, p = self._dims
         gamma = np.zeros((N, m))
+        gamma_sd = np.zeros((N, m))
         y_est = np.zeros((N, p))
         nis = np.zeros(N)
         rules = np.zeros(N, np.int64)
         event = np.zeros(N, np.bool_)
+
+        def ran(count: int, stopped_on_nan: bool) -> ManySteps:
+            return ManySteps(count, gamma, y_est, nis, rules, event, stopped_on_nan, gamma_sd)
+
+        def record(i: int, nis_i: float) -> bool:
+            """Row i from `self.out` (what `step` left); whether its gamma^ is NaN."""
+            out = self.out
+            gamma[i] = out.gamma
+            gamma_sd[i] = out.gamma_sd
+            y_est[i] = out.y_est
+            nis[i] = nis_i
+            rules[i] = out.rules
+            return bool(out.gamma.max() != out.gamma.max())
+
         if N == 0:
-            return ManySteps(0, gamma, y_est, nis, rules, event, False)
+            return ran(0, False)
         if np.any(~(dt > 0.0)):
             raise ValueError(f"dt must be positive, got {dt[~(dt > 0.0)][0]}")
         if self.kernel_name != "jit":
             for i in range(N):
                 out = self.step(u[i], y[i], float(dt[i]))
-                gamma[i] = out.gamma
-                y_est[i] = out.y_est
-                nis[i] = out.nis
-                rules[i] = out.rules
                 event[i] = out.structure_event
-                if out.gamma.max() != out.gamma.max():
-                    return ManySteps(i + 1, gamma, y_est, nis, rules, event, True)
-            return ManySteps(N, gamma, y_est, nis, rules, event, False)
+                if record(i, out.nis):
+                    return ran(i + 1, True)
+            return ran(N, False)
         U = np.ascontiguousarray(u, dtype=np.float64)
         Y = np.ascontiguousarray(y, dtype=np.float64)
         dts = np.ascontiguousarray(dt, dtype=np.float64)
         first = 0
         if self._needs_init:  # the start (`start_state`) and the first sample, as step() does
             out = self.step(U[0], Y[0], float(dts[0]))
-            gamma[0] = out.gamma
-            y_est[0] = out.y_est
-            nis[0] = out.nis
-            rules[0] = out.rules
             event[0] = out.structure_event
             first = 1
-            if out.gamma.max() != out.gamma.max():
-                return ManySteps(1, gamma, y_est, nis, rules, event, True)
+            if record(0, out.nis):
+                return ran(1, True)
             if N == 1:
-                return ManySteps(1, gamma, y_est, nis, rules, event, False)
+                return ran(1, False)
         uniq, inv = np.unique(dts, return_inverse=True)
         entries = []
         for d in uniq.tolist():
@@ -103,7 +112,7 @@ class ManyStepping(FilterState):
             i = step_loop(blocks, coefs, bidx, dts, U, Y, self._prm, self._st, fz.centres,
                           fz.counts, fz.cons, fz.var, fz.rule_idx, fz.rule_w, self._wk, self._out,
                           self._lay, n, m, p, fz.max_mf, clock, cfg.dwell, self._ring_len, start,
-                          gamma, y_est, nis)
+                          gamma, y_est, nis, gamma_sd)
             rules[start:i] = self.out.rules
             self._time = float(clock[0])
             self.out.structure_event = False
@@ -115,15 +124,10 @@ class ManyStepping(FilterState):
                     self.out.structure_event = True
                     self.out.rules = fz.rule_count
                     event[i - 1] = True
-                rules[i - 1] = self.out.rules
                 # the event may have re-processed: the output of sample i - 1 is the new one
-                gamma[i - 1] = self.out.gamma
-                y_est[i - 1] = self.out.y_est
-                nis[i - 1] = self._stats[0]
+                nan = record(i - 1, float(self._stats[0]))
                 clock[1] = self._last_event
                 clock[3] += 1.0
-                if gamma[i - 1].max() != gamma[i - 1].max():
-                    nan = True
             elif clock[2] == 2.0:
                 nan = True
             if nan:
@@ -132,4 +136,4 @@ class ManyStepping(FilterState):
         self.out.nis = float(nis[i - 1])
         self._u[:] = U[i - 1]
         self._y[:] = Y[i - 1]
-        return ManySteps(i, gamma, y_est, nis, rules, event, nan)
+        return ran(i, nan)

@@ -154,6 +154,7 @@ class MonitorConfig:
     thresholds: Thresholds = DEFAULT_THRESHOLDS
     dwell_s: float = _DIAGNOSIS.dwell_s
     hysteresis: float = _DIAGNOSIS.hysteresis
+    significance: float = _DIAGNOSIS.significance
     silence_timeout_s: float = _DIAGNOSIS.silence_timeout_s
     publish_period_s: float = 0.1
     max_gap_s: float = 5.0
@@ -192,7 +193,8 @@ class MonitorConfig:
                             mismatch_dwell_s=self.mismatch_dwell_s,
                             publish_period_s=self.publish_period_s,
                             silence_timeout_s=self.silence_timeout_s,
-                            withhold=self.withhold_alarms_on_mismatch)
+                            withhold=self.withhold_alarms_on_mismatch,
+                            significance=self.significance)
 
 
 class _RateLimitedLog:
@@ -266,6 +268,12 @@ class NodeMonitor:
     def gamma(self) -> float:
         """The largest gamma^ of the node's actuators (the one the diagnosis reads)."""
         return float(self.estimator.out.gamma.max())
+
+    @property
+    def gamma_sd(self) -> float:
+        """The standard deviation of that gamma^ (`EstimatorOutput.gamma_sd`)."""
+        out = self.estimator.out
+        return float(out.gamma_sd[int(np.argmax(out.gamma))])
 
     @property
     def fault_input(self) -> float:
@@ -448,12 +456,14 @@ class MonitorPipeline:
         if g != g:  # NaN can only come from a numerical failure: count, restart
             self.counters.inc(C.ESTIMATOR_NAN)
             nm.restart()
-            if rules.on_sample(nm.diag, nm.prm, t, g, nis, restart is not None, True, nm.out):
+            if rules.on_sample(nm.diag, nm.prm, t, g, math.nan, nis, restart is not None, True,
+                               nm.out):
                 self._report(nm, t)
             return
         if out.structure_event:
             self.counters.inc(C.ESTIMATOR_STRUCTURE_EVENTS)
-        if rules.on_sample(nm.diag, nm.prm, t, g, nis, restart is not None, False, nm.out):
+        if rules.on_sample(nm.diag, nm.prm, t, g, nm.gamma_sd, nis, restart is not None, False,
+                           nm.out):
             self._report(nm, t)
         diag = nm.diag
         self.sink.on_sample(Sample(nm.node, t, float(outputs[0]), float(out.y_est[0]), g,
@@ -461,7 +471,7 @@ class MonitorPipeline:
                                    nm.truth_gamma, bool(diag[rules.FLAGGED] != 0.0),
                                    inputs=tuple(u.tolist()), outputs=tuple(y.tolist()),
                                    predicted=tuple(out.y_est.tolist()),
-                                   gammas=tuple(out.gamma.tolist())))
+                                   gammas=tuple(out.gamma.tolist()), gamma_sd=nm.gamma_sd))
         if self.counters_due(t):
             self.emit_counters(t)
 

@@ -5,6 +5,7 @@ the log) is a `monitor.sinks.Sink` that takes the events it needs."""
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from typing import Final
 
@@ -59,7 +60,8 @@ class Sample:
     (held at the sample), `outputs`, `predicted` (the estimate's outputs) and `gammas`
     (gamma^ per input, 0 for a known one) carry every signal of a multi-input
     multi-output rig, in the rig's order, for the samples file (empty where a producer
-    fills none)."""
+    fills none); `gamma_sd` is the standard deviation of `gamma` (NaN: none), which the
+    diagnosis weighs an alarm by (`monitor.diagnosis.rules.cls_update`)."""
 
     node: int
     t: float
@@ -75,6 +77,7 @@ class Sample:
     outputs: tuple[float, ...] = ()
     predicted: tuple[float, ...] = ()
     gammas: tuple[float, ...] = ()
+    gamma_sd: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -242,6 +245,7 @@ class SampleColumns:
     outputs: NDArray[np.float64] | None = None
     predicted: NDArray[np.float64] | None = None
     gammas: NDArray[np.float64] | None = None
+    gamma_sd: NDArray[np.float64] | None = None
 
     def rows(self, node: int) -> list[Sample]:
         tg = self.true_gamma
@@ -253,9 +257,11 @@ class SampleColumns:
 
         u, y, yh, gs = (per_row(a) for a in (self.inputs, self.outputs, self.predicted,
                                              self.gammas))
+        sd = [math.nan] * n if self.gamma_sd is None else self.gamma_sd.tolist()
         return [Sample(node, float(self.t[i]), float(self.measured[i]),
                        float(self.estimated[i]), float(self.gamma[i]), int(self.rules[i]),
                        _STATES[int(self.state[i])], float(self.nis[i]),
                        None if tg[i] != tg[i] else float(tg[i]), bool(mm[i]),
-                       inputs=u[i], outputs=y[i], predicted=yh[i], gammas=gs[i])
+                       inputs=u[i], outputs=y[i], predicted=yh[i], gammas=gs[i],
+                       gamma_sd=sd[i])
                 for i in range(n)]

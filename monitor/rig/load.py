@@ -462,6 +462,7 @@ def _diagnosis(t: _Table, fail: Callable[[str, str], RigError]) -> DiagnosisSpec
         f1=t.number("f1", d.f1), f2=t.number("f2", d.f2),
         dwell_s=t.number("dwell_s", d.dwell_s, at_least=0.0),
         hysteresis=t.number("hysteresis", d.hysteresis, at_least=0.0),
+        significance=t.number("significance", d.significance, at_least=0.0),
         silence_timeout_s=t.number("silence_timeout_s", d.silence_timeout_s, positive=True),
         mismatch_window_s=t.number("mismatch_window_s", d.mismatch_window_s, positive=True),
         mismatch_dwell_s=t.number("mismatch_dwell_s", d.mismatch_dwell_s, positive=True),

@@ -101,6 +101,9 @@ class _ConfiguredFuzzyUKF:
     def step(self, u: Any, y: Any, dt: float) -> Any:
         return self.est.step(u, y, dt).gamma
 
+    def spread(self) -> Any:
+        return self.est.out.gamma_sd
+
 
 def _estimator(method: str, model: DiscreteModel, x0: Any) -> GammaEstimator:
     base, _, spec = method.partition(":")
@@ -132,7 +135,7 @@ def run_case(case: Case, method: str) -> dict[str, Any]:
             rep[k:] = int(HealthState.NO_DATA)
             break
         g[k] = gk
-        clf.update(float(run.t[k]), gk)
+        clf.update(float(run.t[k]), gk, float(est.spread()[0]))
         rep[k] = int(clf.state)
     elapsed = time.perf_counter() - t0
     sc = score_run(run.t, run.gamma[:, 0], g, rep, DEFAULT_THRESHOLDS)

@@ -1,4 +1,6 @@
-"""Estimators under comparison, behind one `step(u, y, dt) -> gamma^` interface."""
+"""Estimators under comparison, behind one `step(u, y, dt) -> gamma^` interface, each with
+the standard deviation of its latest gamma^ (`spread`), which the diagnosis weighs an
+alarm by (`monitor.diagnosis.rules.cls_update`)."""
 
 from __future__ import annotations
 
@@ -18,6 +20,8 @@ Array = NDArray[np.float64]
 class GammaEstimator(Protocol):
     def step(self, u: Array, y: Array, dt: float) -> Array: ...
 
+    def spread(self) -> Array: ...
+
 
 class FuzzyUKFGamma:
     """The paper's method (this project)."""
@@ -27,6 +31,9 @@ class FuzzyUKFGamma:
 
     def step(self, u: Array, y: Array, dt: float) -> Array:
         return self.est.step(u, y, dt).gamma
+
+    def spread(self) -> Array:
+        return self.est.out.gamma_sd
 
 
 class FilterpyAugmentedUKF:
@@ -77,6 +84,9 @@ class FilterpyAugmentedUKF:
         self.ukf.update(y, u=u)
         return np.asarray(self.ukf.x[n:])
 
+    def spread(self) -> Array:
+        return np.sqrt(np.maximum(np.diag(self.ukf.P)[self.n:], 0.0))
+
 
 class AKFGamma:
     def __init__(self, model: DiscreteModel, x0: Sequence[float] | None) -> None:
@@ -84,6 +94,10 @@ class AKFGamma:
 
     def step(self, u: Array, y: Array, dt: float) -> Array:
         return self.est.step(u, y, dt)
+
+    def spread(self) -> Array:
+        n = self.est.P.shape[0] - self.est.model.m
+        return np.sqrt(np.maximum(np.diag(self.est.P)[n:], 0.0))
 
 
 METHODS: dict[str, Callable[[DiscreteModel, Sequence[float] | None], GammaEstimator]] = {

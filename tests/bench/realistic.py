@@ -118,7 +118,7 @@ def run_one(r: Run, cfg: FuzzyUKFConfig) -> dict[str, Any]:
     rep = np.empty(N, dtype=np.int64)
     flag = np.zeros(N, dtype=bool)
     for k in range(N):
-        clf.update(float(sim.t[k]), float(res.gamma[k, 0]))
+        clf.update(float(sim.t[k]), float(res.gamma[k, 0]), float(res.gamma_sd[k, 0]))
         rep[k] = int(clf.state)
         mis.update(float(sim.t[k]), float(res.nis[k]))
         flag[k] = mis.flagged

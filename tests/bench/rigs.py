@@ -103,9 +103,11 @@ def run_case(model: ContinuousDescriptor, truth: ContinuousDescriptor, scenario:
     for k in range(N):
         # y[k] is measured before u[k] is applied: the input over the step ending at y[k]
         # is u[k-1] (on a bus, the latest command received before the output frame)
-        gk = float(est.step(run.u[max(k - 1, 0)], run.y[k], T).gamma.max())
+        out = est.step(run.u[max(k - 1, 0)], run.y[k], T)
+        a = int(np.argmax(out.gamma))
+        gk = float(out.gamma[a])
         g[k] = gk
-        clf.update(float(run.t[k]), gk)
+        clf.update(float(run.t[k]), gk, float(out.gamma_sd[a]))
         rep[k] = int(clf.state)
     elapsed = time.perf_counter() - t0
     sc = score_run(run.t, run.gamma.max(axis=1), g, rep, DEFAULT_THRESHOLDS, window=WINDOW_S)

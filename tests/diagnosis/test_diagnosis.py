@@ -570,7 +570,8 @@ def test_transitions_helper() -> None:
 
 def _stream(seed: int) -> dict[str, np.ndarray]:
     """A node's samples and ticks in bus order: gamma^ wandering across F1 and F2 with
-    noise, NIS in and out of its band, restarts, failed estimates, silences."""
+    noise and a standard deviation that comes and goes (0, NaN: none known), NIS in and out
+    of its band, restarts, failed estimates, silences."""
     rng = np.random.default_rng(seed)
     n = 6000
     is_tick = rng.random(n) < 0.15
@@ -579,13 +580,14 @@ def _stream(seed: int) -> dict[str, np.ndarray]:
     t = 100.0 + np.cumsum(dt)
     level = np.repeat(rng.choice([0.0, 0.15, 0.5, 0.85, 1.0], n // 200 + 1), 200)[:n]
     gamma = level + rng.normal(0.0, 0.03, n)
+    gamma_sd = np.repeat(rng.choice([0.0, 0.01, 0.05, 0.2, math.nan], n // 150 + 1), 150)[:n]
     nis_scale = np.repeat(rng.choice([1.0, 1.0, 4.0, 0.05], n // 300 + 1), 300)[:n]
     nis = nis_scale * rng.chisquare(1, n)
     nis[rng.random(n) < 0.01] = math.nan
     restarted = (rng.random(n) < 0.005) & ~is_tick
     failed = (rng.random(n) < 0.003) & ~is_tick
-    return {"is_tick": is_tick, "t": t, "gamma": gamma, "nis": nis, "restarted": restarted,
-            "failed": failed}
+    return {"is_tick": is_tick, "t": t, "gamma": gamma, "gamma_sd": gamma_sd, "nis": nis,
+            "restarted": restarted, "failed": failed}
 
 
 @pytest.mark.parametrize(("seed", "withhold"), [(1, False), (2, True), (3, True)])
@@ -609,7 +611,8 @@ def test_the_loop_and_the_single_steps_give_the_same_states(seed: int, withhold:
         if x["is_tick"][i]:
             rules.on_tick(s, prm, float(x["t"][i]), out)
         else:
-            rules.on_sample(s, prm, float(x["t"][i]), float(x["gamma"][i]), float(x["nis"][i]),
+            rules.on_sample(s, prm, float(x["t"][i]), float(x["gamma"][i]),
+                            float(x["gamma_sd"][i]), float(x["nis"][i]),
                             bool(x["restarted"][i]), bool(x["failed"][i]), out)
         states[i] = s
         outs[i] = out
@@ -621,9 +624,10 @@ def test_the_loop_and_the_single_steps_give_the_same_states(seed: int, withhold:
     cuts = [0, 1, 777, 3000, 3001, n]
     ends = []
     for a, b in itertools.pairwise(cuts):
-        kernels.classify(x["is_tick"][a:b], x["t"][a:b], x["gamma"][a:b], x["nis"][a:b],
-                         x["restarted"][a:b], x["failed"][a:b], s2, prm, st[a:b], ev[a:b],
-                         prev[a:b], cause[a:b], fev[a:b], flag[a:b], counts)
+        kernels.classify(x["is_tick"][a:b], x["t"][a:b], x["gamma"][a:b],
+                         x["gamma_sd"][a:b], x["nis"][a:b], x["restarted"][a:b],
+                         x["failed"][a:b], s2, prm, st[a:b], ev[a:b], prev[a:b], cause[a:b],
+                         fev[a:b], flag[a:b], counts)
         ends.append(s2.copy())
     assert np.array_equal(ends[-1], states[-1], equal_nan=True)
     for b, end in zip(cuts[1:], ends, strict=True):
@@ -656,14 +660,15 @@ def test_the_views_step_the_rules_of_the_pipeline() -> None:
                        window_s=0.2, mismatch_dwell_s=0.1)
     oc = OnlineClassifier(th, dwell_s=0.03, hysteresis=0.02)
     md = MismatchDetector(1, 100.0, window_s=0.2, dwell_s=0.1)
-    x = _stream(4)
+    x = _stream(5)
     s = rules.new_state(prm)
     out = rules.new_out()
     seen = set()
     for i in np.flatnonzero(~x["is_tick"] & ~x["failed"] & ~x["restarted"]).tolist():
         t, g, nis = float(x["t"][i]), float(x["gamma"][i]), float(x["nis"][i])
-        rules.on_sample(s, prm, t, g, nis, False, False, out)
-        oc.update(t, g)
+        sd = float(x["gamma_sd"][i])
+        rules.on_sample(s, prm, t, g, sd, nis, False, False, out)
+        oc.update(t, g, sd)
         md.update(t, nis)
         assert int(oc.state) == int(s[rules.ST])
         assert md.flagged == (s[rules.FLAGGED] != 0.0)
@@ -708,3 +713,42 @@ def test_a_filter_within_its_tolerance_is_not_flagged_at_a_high_rate() -> None:
         for k in range(t.size):
             md.update(float(t[k]), float(nis[k]))
         assert md.flagged is flagged, level
+
+
+def test_an_alarm_must_be_significant_and_recovery_is_not_weighed() -> None:
+    """Fault-free is left only where gamma^ reaches F1 + max(hysteresis, `significance`
+    times its standard deviation); once alarmed, the state follows gamma^ with the hysteresis
+    alone, whatever its standard deviation."""
+    th = Thresholds(0.15, 0.85)
+    t = np.arange(200) * 0.01
+    # gamma^ 0.25 held: 0.1 over F1
+    uncertain = OnlineClassifier(th, dwell_s=0.03, hysteresis=0.02, significance=1.0)
+    sure = OnlineClassifier(th, dwell_s=0.03, hysteresis=0.02, significance=1.0)
+    plain = OnlineClassifier(th, dwell_s=0.03, hysteresis=0.02, significance=0.0)
+    unknown = OnlineClassifier(th, dwell_s=0.03, hysteresis=0.02)
+    out = OnlineClassifier(th, dwell_s=0.03, hysteresis=0.02, significance=2.0)
+    for c in (uncertain, sure, plain, unknown, out):
+        c.update(-0.01, 0.0, 0.0)  # from no data: fault-free at once
+    for k in range(100):
+        uncertain.update(float(t[k]), 0.25, 0.12)  # 0.15 + 0.12 > 0.25: not significant
+        sure.update(float(t[k]), 0.25, 0.05)  # 0.15 + 0.05 < 0.25
+        plain.update(float(t[k]), 0.25, 0.12)
+    assert uncertain.state is FF
+    assert sure.state is FAULT and plain.state is FAULT
+    # a NaN or zero standard deviation is none known: the edge of the hysteresis alone
+    for k in range(100):
+        unknown.update(float(t[k]), 0.25, math.nan if k % 2 else 0.0)
+    assert unknown.state is FAULT
+    # recovery: gamma^ 0.1 (below 0.13) with a large spread still clears the alarm
+    for k in range(100, 200):
+        sure.update(float(t[k]), 0.1, 0.5)
+    assert sure.state is FF
+    # an outage from fault-free: the same edge, raised
+    for k in range(50):
+        out.update(float(t[k]), 0.95, 0.5)  # 0.15 + 1.0 > 0.95
+    assert out.state is FF
+    for k in range(50, 100):
+        out.update(float(t[k]), 0.95, 0.05)
+    assert out.state is OUTAGE
+    with pytest.raises(DiagnosisError, match="significance"):
+        OnlineClassifier(th, significance=-1.0)

@@ -404,11 +404,15 @@ def test_step_many_is_step_row_by_row_with_events_and_loss(chunk: int) -> None:
     u, y = run.u[idx], run.y[idx]
     disc = model.discretize(0.01)
     a, b = FuzzyUKF(disc), FuzzyUKF(disc)
-    g = np.array([a.step(u[k], y[k], float(dt[k])).gamma.copy() for k in range(len(dt))])
+    rows = [(o.gamma.copy(), o.gamma_sd.copy())
+            for o in (a.step(u[k], y[k], float(dt[k])) for k in range(len(dt)))]
+    g = np.array([r[0] for r in rows])
+    gsd = np.array([r[1] for r in rows])
     parts = [b.step_many(u[s:s + chunk], y[s:s + chunk], dt[s:s + chunk])
              for s in range(0, len(dt), chunk)]
     assert a.structure_events > 0
     np.testing.assert_array_equal(np.concatenate([p.gamma for p in parts]), g)
+    np.testing.assert_array_equal(np.concatenate([p.gamma_sd for p in parts]), gsd)
     assert sum(int(p.structure_event.sum()) for p in parts) == a.structure_events
     np.testing.assert_array_equal(a._st, b._st)
     assert a.steps == b.steps and a._time == b._time
@@ -434,3 +438,28 @@ def test_gamma_variance_does_not_wind_up_while_the_output_shows_nothing_of_it() 
     assert after < 10 * before  # q_gamma * 30 s would add 0.15: 200 times
     k = _at(run, 35.0)
     assert np.max(np.abs(g[k:k + 100])) < 0.12  # the alarm threshold f1 is 0.15
+
+
+def test_gamma_sd_is_the_consequents_spread_and_narrows_with_evidence() -> None:
+    """The standard deviation the diagnosis weighs an alarm by: sqrt of the common
+    variance plus the firing rules' own, wide after a structure event re-opens gamma and
+    narrowing as the outputs show the loss; 0 for a known actuator."""
+    model = dc_motor()
+    sc = scenario_from_dict({"name": "sd", "duration": 4.0,
+                             "fault": [{"start": 2.0, "gamma": 0.4}],
+                             "noise": {"current_sigma": 0.5},
+                             "voltage": {"steps": [[0.0, 220.0]]}})
+    run = simulate(model, sc, 0.01, seed=5)
+    est = FuzzyUKF(model.discretize(0.01), x0=run.x[0])
+    sd = np.zeros(len(run.t))
+    events = []
+    for k in range(len(run.t)):
+        out = est.step(run.u[k], run.y[k], run.T)
+        sd[k] = out.gamma_sd[0]
+        assert sd[k] >= np.sqrt(est.common_var[0]) - 1e-15
+        if out.structure_event:
+            events.append(k)
+    assert events, "the loss fires the structure test"
+    k = events[-1]
+    assert sd[k] > 2.0 * sd[_at(run, 1.9)]  # re-opened
+    assert sd[-1] < 0.5 * sd[k]  # the loss shows: evidence narrows it
