@@ -22,6 +22,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -39,13 +40,14 @@ from tests.support.paths import TEST_RIGS
 ENGINE_NAMES = ("columnar", "per-frame")
 
 OUR_COLUMNS = ["t_s", "node", "u_VoltageCommand_V", "y_ArmatureCurrent_A",
-               "yhat_ArmatureCurrent_A", "gamma_VoltageCommand", "f_VoltageCommand_V", "nis",
-               "state", "model_mismatch"]
+               "yhat_ArmatureCurrent_A", "gamma_VoltageCommand", "f_VoltageCommand_V",
+               "gamma_sd", "nis", "state", "model_mismatch"]
 TWIN_COLUMNS = ["t_s", "node", "u_U1_V", "u_U2_V", "y_Y1", "y_Y2", "yhat_Y1", "yhat_Y2",
-                "gamma_U1", "gamma_U2", "f_U1_V", "f_U2_V", "nis", "state", "model_mismatch"]
+                "gamma_U1", "gamma_U2", "f_U1_V", "f_U2_V", "gamma_sd", "nis", "state",
+                "model_mismatch"]
 PRESS_COLUMNS = ["t_s", "node", "u_SupplyVoltage_V", "y_MotorCurrent_A",
-                 "yhat_MotorCurrent_A", "gamma_SupplyVoltage", "f_SupplyVoltage_V", "nis",
-                 "state", "model_mismatch"]
+                 "yhat_MotorCurrent_A", "gamma_SupplyVoltage", "f_SupplyVoltage_V",
+                 "gamma_sd", "nis", "state", "model_mismatch"]
 
 
 @pytest.fixture(scope="module")
@@ -160,6 +162,9 @@ def test_our_bus_one_row_per_estimated_sample(our_log: Path, tmp_path: Path, eng
         assert r["f_VoltageCommand_V"] == pytest.approx(
             r["gamma_VoltageCommand"] * r["u_VoltageCommand_V"], rel=1e-12, abs=1e-12)
     _check_against_events(rows, events, ["gamma_VoltageCommand"], ["f_VoltageCommand_V"])
+    # gamma^'s standard deviation: a variance's root, below the consequents' cap
+    sd = np.array([r["gamma_sd"] for r in rows])
+    assert np.all((sd >= 0.0) & (sd <= 0.5)) and np.mean(sd > 0.0) > 0.99
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         [out.name, out.name + ".events.jsonl"])  # no temporary file left
 
