@@ -666,15 +666,23 @@ def _replay_checks(r: ReplayFigures, structure: str, faults: FaultFigures | None
         *([] if faults is None else [_fault_check(faults)]),
         Check("replay_gamma_margin", bool(r.alarm_max <= margin) or not math.isfinite(r.f1),
               _num(r.alarm_max), margin if math.isfinite(margin) else 0.0,
-              f"gamma^ less {r.significance:g} standard deviation(s) reaches "
-              f"{r.alarm_max:.3g} on the healthy capture (gamma^ itself {r.gamma_max:.3g}), "
-              f"close to the threshold {r.f1:g}: a fresh run would cross it (false alarms); "
-              f"{structure}; {_MORE_DATA}; {_ONE_CONDITION}", gating=True),
+              f"{_weighed(r)} reaches {r.alarm_max:.3g} on the healthy capture, close to the "
+              f"threshold {r.f1:g}: a fresh run would cross it (false alarms); {structure}; "
+              f"{_MORE_DATA}; {_ONE_CONDITION}", gating=True),
         Check("replay_model_mismatch", bool(mismatch <= MAX_MISMATCH_SHARE), _num(mismatch),
               MAX_MISMATCH_SHARE, flag_advice, gating=True),
         Check("replay_mean_nis", bool(lo <= nis <= hi), _num(nis), [lo, hi], nis_advice,
               gating=True),
     ]
+
+
+def _weighed(r: ReplayFigures) -> str:
+    """What the gamma margin holds to the threshold: gamma^, or with `[diagnosis]
+    significance` gamma^ less that many standard deviations (gamma^ itself beside it)."""
+    if r.significance > 0.0:
+        return (f"gamma^ less {r.significance:g} x its standard deviation (gamma^ itself "
+                f"{r.gamma_max:.3g})")
+    return "gamma^"
 
 
 def _fault_check(f: FaultFigures) -> Check:

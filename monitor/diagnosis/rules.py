@@ -272,6 +272,7 @@ def cls_update(s: FloatVector, prm: FloatVector, t: float, value: float, sd: flo
     alarm, while a loss the outputs show, which narrows sd as it moves the value, does.
     Leaving an alarm (recovery, or fault <-> outage) takes the hysteresis alone: the
     diagnosis follows the estimate once it has alarmed.
+
     Inside the reported state's region widened by the hysteresis nothing changes;
     outside, the (76) candidate becomes the state once it has lasted the dwell, or, when
     the value has been outside that long without one candidate lasting, the state moves a

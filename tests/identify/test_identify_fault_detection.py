@@ -103,7 +103,17 @@ def test_the_fault_check_gates_and_says_how_far_the_loss_moves_the_output() -> N
                          gamma_max=0.11, f1=0.15)
     margin = {c.check: c for c in report_checks(empty, near)}["replay_gamma_margin"]
     assert margin.gating and not margin.passed and margin.limit == pytest.approx(0.1)
+    assert margin.advice.startswith("gamma^ reaches 0.11 on the healthy capture")
     assert "fault_detection" not in {c.check for c in report_checks(empty, near)}
+    # with [diagnosis] significance the margin holds what an alarm weighs: gamma^ less that
+    # many of its standard deviations
+    weighed = dataclasses.replace(near, alarm_max=0.05, significance=1.0)
+    assert {c.check: c for c in report_checks(empty, weighed)}["replay_gamma_margin"].passed
+    close = dataclasses.replace(near, alarm_max=0.104, significance=1.0)
+    held = {c.check: c for c in report_checks(empty, close)}["replay_gamma_margin"]
+    assert not held.passed and held.value == pytest.approx(0.104)
+    assert held.advice.startswith("gamma^ less 1 x its standard deviation (gamma^ itself 0.11) "
+                                  "reaches 0.104")
 
 
 def test_every_onset_is_held_to_the_detection_time() -> None:
