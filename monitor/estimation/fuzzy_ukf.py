@@ -478,6 +478,8 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         self._onset_floor = 1
         out = self.out
         out.gamma[:] = 0.0
+        # gamma^'s spread at the start: its common part's (the rules have not fired yet)
+        out.gamma_sd[:] = np.sqrt(self.common_var)
         out.fault[:] = 0.0
         out.x_tilde[:] = st.x_prior  # the fault model's state (52) before the output
         out.x_e[:] = st.x_prior - st.x

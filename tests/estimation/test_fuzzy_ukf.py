@@ -463,3 +463,12 @@ def test_gamma_sd_is_the_consequents_spread_and_narrows_with_evidence() -> None:
     k = events[-1]
     assert sd[k] > 2.0 * sd[_at(run, 1.9)]  # re-opened
     assert sd[-1] < 0.5 * sd[k]  # the loss shows: evidence narrows it
+
+
+def test_gamma_sd_at_a_start_from_the_first_output() -> None:
+    """A start from what the first output says (no kernel call on that sample) gives
+    gamma^'s spread of the start, sqrt(var_start), not a stale 0."""
+    model = dc_motor().discretize(0.01)
+    est = FuzzyUKF(model)
+    out = est.step(np.array([220.0]), np.array([0.0]), 0.01)  # a motor at rest: no steady state
+    assert out.gamma_sd[0] == pytest.approx(np.sqrt(est.config.var_start))
