@@ -23,8 +23,8 @@ class ManySteps:
     """What `step_many` ran: samples [0, count) of its input, per sample gamma^ (count, m)
     and its standard deviation gamma_sd (count, m), the output estimate y_est (count, p),
     the NIS, the rule count after the sample and whether a structure-learning event
-    followed it. `stopped_on_nan`: sample count - 1 gave a
-    NaN gamma^ (the caller restarts the estimator, as the pipeline does)."""
+    followed it. `stopped_on_nan`: sample count - 1 gave a NaN gamma^ (the caller restarts
+    the estimator, as the pipeline does)."""
 
     count: int
     gamma: Array

@@ -462,8 +462,8 @@ class MonitorPipeline:
             return
         if out.structure_event:
             self.counters.inc(C.ESTIMATOR_STRUCTURE_EVENTS)
-        if rules.on_sample(nm.diag, nm.prm, t, g, nm.gamma_sd, nis, restart is not None, False,
-                           nm.out):
+        g_sd = nm.gamma_sd
+        if rules.on_sample(nm.diag, nm.prm, t, g, g_sd, nis, restart is not None, False, nm.out):
             self._report(nm, t)
         diag = nm.diag
         self.sink.on_sample(Sample(nm.node, t, float(outputs[0]), float(out.y_est[0]), g,
@@ -471,7 +471,7 @@ class MonitorPipeline:
                                    nm.truth_gamma, bool(diag[rules.FLAGGED] != 0.0),
                                    inputs=tuple(u.tolist()), outputs=tuple(y.tolist()),
                                    predicted=tuple(out.y_est.tolist()),
-                                   gammas=tuple(out.gamma.tolist()), gamma_sd=nm.gamma_sd))
+                                   gammas=tuple(out.gamma.tolist()), gamma_sd=g_sd))
         if self.counters_due(t):
             self.emit_counters(t)
 
