@@ -36,6 +36,7 @@ class NodeColumns:
     __slots__ = (
         "estimated",
         "gamma",
+        "gamma_sd",
         "health",
         "inputs",
         "measured",
@@ -66,6 +67,8 @@ class NodeColumns:
         self.measured: Array = np.zeros((len(outputs), batch_size))
         self.estimated: Array = np.zeros((len(outputs), batch_size))
         self.gamma: Array = np.zeros(batch_size)
+        self.gamma_sd: Array = np.zeros(batch_size)
+        """gamma^'s standard deviation; NaN where a producer gives none."""
         self.true_gamma: Array = np.zeros(batch_size)
         self.rules: Array = np.zeros(batch_size)
         self.health: Array = np.zeros(batch_size)

@@ -8,6 +8,9 @@ signal names, `PlantSignals`: ``ArmatureCurrent`` and ``VoltageCommand`` on our 
     /node/<n>/<Output>/measured   Scalars   each output as measured
     /node/<n>/<Output>/estimated  Scalars   its UKF estimate
     /node/<n>/gamma/estimate      Scalars   actuator loss of effectiveness gamma^
+    /node/<n>/gamma/sd            Scalars   gamma^'s standard deviation (of the largest gamma^
+                                            where several inputs may lose effectiveness: the
+                                            one the diagnosis reads); NaN where none is given
     /node/<n>/gamma/true          Scalars   true gamma (only rows where it is given: sim/HIL)
     /node/<n>/gamma/F1            Scalars   diagnosis threshold F1 (step line)
     /node/<n>/gamma/F2            Scalars   diagnosis threshold F2
@@ -53,6 +56,7 @@ _STEP: Final = rr.components.InterpolationMode.StepAfter
 # the inputs' and outputs' series are named after the rig's signals (`signal_parts`)
 STYLES: Final[tuple[tuple[str, str, Color, float, bool], ...]] = (
     ("gamma/estimate", "gamma^ (estimate)", (31, 119, 180), 2.0, False),
+    ("gamma/sd", "gamma^ standard deviation", (174, 199, 232), 1.0, False),
     ("gamma/true", "gamma (true)", (44, 160, 44), 1.5, False),
     ("gamma/F1", "F1", (230, 171, 2), 1.0, True),
     ("gamma/F2", "F2", (214, 39, 40), 1.0, True),
@@ -134,7 +138,10 @@ def default_blueprint(nodes: Sequence[int],
                       signals: PlantSignals | None = None) -> rrb.Blueprint:
     """One tab per node (each output measured vs estimated, gamma^ vs thresholds, rules,
     health, model mismatch, NIS, each input, events) and one tab with the daemon counters;
-    the signals named as `signals` (default: our bus's) name them."""
+    the signals named as `signals` (default: our bus's) name them. The gamma view shows
+    every series under ``gamma/`` (its contents are its origin's subtree): gamma^, the true
+    gamma, the thresholds, and gamma^'s standard deviation, thin and in a light shade of
+    gamma^'s colour so that it reads as gamma^'s spread, not as another threshold."""
     sig = signals if signals is not None else PlantSignals()
     ins, outs = signal_parts(sig)
     tabs: list[rrb.Container | rrb.View] = []

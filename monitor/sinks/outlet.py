@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Final
 
@@ -69,11 +70,13 @@ class RecordingOutlet(Sink):
     def add_sample(self, node: int, t: float, measured: float, estimated: float,
                    gamma_hat: float, rule_count: int, health: int, nis: float,
                    true_gamma: float | None = None, model_mismatch: bool = False, *,
-                   outputs: Sequence[float] = (), predicted: Sequence[float] = ()) -> None:
+                   outputs: Sequence[float] = (), predicted: Sequence[float] = (),
+                   gamma_sd: float = math.nan) -> None:
         """Buffer one estimator sample (see `RerunSink.add_sample`)."""
         for o in self.outlets():
             o.add_sample(node, t, measured, estimated, gamma_hat, rule_count, health, nis,
-                         true_gamma, model_mismatch, outputs=outputs, predicted=predicted)
+                         true_gamma, model_mismatch, outputs=outputs, predicted=predicted,
+                         gamma_sd=gamma_sd)
 
     def add_input(self, node: int, t: float, value: float, index: int = 0) -> None:
         for o in self.outlets():
@@ -91,7 +94,7 @@ class RecordingOutlet(Sink):
         self.add_sample(sample.node, sample.t, sample.measured, sample.estimated, sample.gamma,
                         sample.rules, int(sample.state), sample.nis, sample.true_gamma,
                         sample.model_mismatch, outputs=sample.outputs,
-                        predicted=sample.predicted)
+                        predicted=sample.predicted, gamma_sd=sample.gamma_sd)
 
     def on_input(self, sample: InputSample) -> None:
         self.add_input(sample.node, sample.t, sample.value, sample.index)

@@ -173,11 +173,13 @@ class RecordingSink(RecordingOutlet):
         *,
         outputs: Sequence[float] = (),
         predicted: Sequence[float] = (),
+        gamma_sd: float = math.nan,
     ) -> None:
         """Buffer one estimator sample of ``node`` at bus time ``t`` (epoch seconds):
         every output measured and estimated (`outputs`, `predicted`, in the order of the
         sink's ``signals``), or, where they are not given, the first one (`measured`,
-        `estimated`; the others NaN)."""
+        `estimated`; the others NaN); `gamma_sd` is gamma^'s standard deviation
+        (`Sample.gamma_sd`; NaN: none given)."""
         st = self._node_for(node)
         if st is None:
             return
@@ -188,6 +190,7 @@ class RecordingSink(RecordingOutlet):
             put_outputs(st.measured[:, i], measured, outputs)
             put_outputs(st.estimated[:, i], estimated, predicted)
             st.gamma[i] = gamma_hat
+            st.gamma_sd[i] = gamma_sd
             st.true_gamma[i] = math.nan if true_gamma is None else true_gamma
             st.rules[i] = rule_count
             st.health[i] = health
@@ -276,7 +279,8 @@ class RecordingSink(RecordingOutlet):
 
     def on_sample_columns(self, node: int, cols: SampleColumns) -> None:
         """A node's samples as columns (the columnar replay): `add_sample` a slice at a time,
-        into the same buffers, sent as the same chunks."""
+        into the same buffers, sent as the same chunks (gamma^'s standard deviation NaN where
+        the columns carry none)."""
         st = self._node_for(node)
         if st is None:
             return
@@ -286,6 +290,7 @@ class RecordingSink(RecordingOutlet):
             put_output_columns(st.measured[:, dst], cols.measured[src], cols.outputs, src)
             put_output_columns(st.estimated[:, dst], cols.estimated[src], cols.predicted, src)
             st.gamma[dst] = cols.gamma[src]
+            st.gamma_sd[dst] = math.nan if cols.gamma_sd is None else cols.gamma_sd[src]
             st.true_gamma[dst] = cols.true_gamma[src]
             st.rules[dst] = cols.rules[src]
             st.health[dst] = cols.state[src]
@@ -500,6 +505,7 @@ class RecordingSink(RecordingOutlet):
             send(measured, indexes=index, columns=scalars(scalars=st.measured[j, :n]))
             send(estimated, indexes=index, columns=scalars(scalars=st.estimated[j, :n]))
         send(path["gamma/estimate"], indexes=index, columns=scalars(scalars=st.gamma[:n]))
+        send(path["gamma/sd"], indexes=index, columns=scalars(scalars=st.gamma_sd[:n]))
         true_gamma = st.true_gamma[:n]
         given = ~np.isnan(true_gamma)
         if not st.true_styled and given.any():

@@ -19,8 +19,10 @@ change shows up as a step where it took effect.
 Piecewise-constant series (`RUNS`: the thresholds, the rule count, the health state, the
 model-mismatch flag, a simulator's true gamma) are recorded as their runs
 (`monitor.sinks.runs`: the rows that draw the line; `close` and `switch_file` send the one
-held back). They are 4 of the 8 rows of a sample; the other series (each output measured
-and estimated, gamma^, NIS, and the inputs) keep every sample.
+held back). All of them but the thresholds are rows of a sample: 4 of the 9 a sample fills on
+a one-output rig (each further output adds two, measured and estimated). The other 5 (the
+output measured and estimated, gamma^ and its standard deviation, NIS) keep every sample, and
+so do the inputs (own rate, own buffer).
 
 All data goes on one timeline, ``time``: a timestamp timeline of the bus time in float seconds
 since the Unix epoch (CAN kernel time stamps), sent as ``rr.TimeColumn("time",

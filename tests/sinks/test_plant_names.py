@@ -116,7 +116,7 @@ def test_events_and_recording_carry_the_rigs_names(drive: tuple[Path, Path], tmp
         assert len(t_m) == len(t_e) > 100
     # the first input of each command frame, at the frame's own rate
     assert len(series[f"{n}/{INPUTS[0]}"][0]) > 10
-    assert f"{n}/gamma/estimate" in series
+    assert f"{n}/gamma/estimate" in series and f"{n}/gamma/sd" in series
     assert not [e for e in series if e.startswith("/motor/") or "current" in e
                 or "voltage" in e]
     legends = _legends(rrd)
@@ -141,7 +141,7 @@ def test_both_engines_write_the_same_entities(drive: tuple[Path, Path],
     assert set(a) == set(b)
     n = f"/node/{NODE}"
     for e in [f"{n}/{o}/{k}" for o in OUTPUTS for k in ("measured", "estimated")] + \
-             [f"{n}/{INPUTS[0]}"]:
+             [f"{n}/{INPUTS[0]}", f"{n}/gamma/sd"]:
         assert list(a[e][0]) == list(b[e][0]) and list(a[e][1]) == list(b[e][1]), e
 
 

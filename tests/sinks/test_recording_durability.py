@@ -374,7 +374,8 @@ def test_rotation_by_size_keeps_everything_contiguous_and_verified(tmp_path: Pat
         (rec,) = RrdReader(p).recordings()
         assert rec.recording_id == "size-run"
         static = _static_entities(p)
-        assert {"/node/0/gamma/F1", "/node/1/nis", "/node/0/gamma/true"} <= static, p
+        assert {"/node/0/gamma/F1", "/node/1/nis", "/node/0/gamma/true",
+                "/node/1/gamma/sd"} <= static, p
         assert {"node 0", "node 1", "daemon counters"} <= blueprint_names(p), p
     # the thresholds in the last file are the current ones
     last = [c for c in RrdReader(files[-1]).stream() if c.entity_path == "/node/0/gamma/F1"]

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pytest
+import rerun.blueprint as rrb
 from numpy.typing import NDArray
 from rerun.chunk import RrdReader
 
@@ -35,6 +36,7 @@ from monitor.pipeline.events import (
     SampleColumns,
 )
 from monitor.sinks.base import Sink
+from monitor.sinks.blueprint import STYLES, default_blueprint, node_path
 from monitor.sinks.rerun import (
     DEFAULT_FLUSH_INTERVAL_S,
     RUNS,
@@ -52,14 +54,15 @@ N = 2000
 RERUN_EXE = Path(sys.executable).with_name("rerun")
 
 
-def _values(k: int, node: int) -> tuple[float, float, float, int, int, float]:
+def _values(k: int, node: int) -> tuple[float, float, float, int, int, float, float]:
     measured = math.sin(0.01 * k) + 0.1 * node
     estimated = measured + 1e-3 * math.cos(0.1 * k)
     gamma = k / N + 0.25 * node
     rules = 1 + k // 400
     health = min(3, k // 600)
     nis = 0.5 + (k % 7) / 7
-    return measured, estimated, gamma, rules, health, nis
+    gamma_sd = 0.2 / (1 + k) + 0.01 * node
+    return measured, estimated, gamma, rules, health, nis, gamma_sd
 
 
 def _static_entities(path: Path) -> set[str]:
@@ -71,8 +74,9 @@ def _write_run(sink: RerunSink) -> None:
     for k in range(N):
         t = T0 + k * DT
         for node in (0, 1):
-            m, e, g, r, h, nis = _values(k, node)
-            sink.add_sample(node, t, m, e, g, r, h, nis, true_gamma=0.5 if node == 0 else None)
+            m, e, g, r, h, nis, sd = _values(k, node)
+            sink.add_sample(node, t, m, e, g, r, h, nis, true_gamma=0.5 if node == 0 else None,
+                            gamma_sd=sd)
         if k % 20 == 0:
             sink.add_input(0, t, 24.0 + k / N)
         if k == 1200:
@@ -125,6 +129,26 @@ def test_recording_and_blueprint_stores(recorded: Path) -> None:
     } <= names
 
 
+def _views(c: rrb.Container) -> Iterator[rrb.View]:
+    for x in c.contents:
+        if isinstance(x, rrb.Container):
+            yield from _views(x)
+        else:
+            yield x
+
+
+def test_gamma_view_shows_every_gamma_series() -> None:
+    """A node's "gamma^ vs thresholds" view takes its origin's whole subtree, so gamma^'s
+    standard deviation is drawn beside gamma^, the true gamma and the thresholds."""
+    root = default_blueprint([4]).root_container
+    assert root is not None
+    (view,) = [v for v in _views(root) if v.name == "gamma^ vs thresholds"]
+    assert view.origin == "/node/4/gamma" and view.contents == "$origin/**"
+    assert [s[0] for s in STYLES if s[0].startswith("gamma/")] == [
+        "gamma/estimate", "gamma/sd", "gamma/true", "gamma/F1", "gamma/F2"]
+    assert node_path(4, "gamma/sd").startswith(f"{view.origin}/")
+
+
 def _latest_at(t: NDArray[np.float64], v: NDArray[np.float64],
                at: NDArray[np.float64]) -> NDArray[np.float64]:
     """The value a latest-at query (the viewer's at a time cursor) gives at each time `at`."""
@@ -142,7 +166,7 @@ def test_samples_read_back_exactly(recorded: Path) -> None:
         t_samples, _ = chunk_series(ents[f"/node/{node}/gamma/estimate"])
         for col, suffix in enumerate(
             ["ArmatureCurrent/measured", "ArmatureCurrent/estimated", "gamma/estimate", "rules",
-             "health", "nis"]
+             "health", "nis", "gamma/sd"]
         ):
             t, v = chunk_series(ents[f"/node/{node}/{suffix}"])
             if suffix in RUNS:
@@ -300,6 +324,8 @@ def test_unannounced_node_is_added(tmp_path: Path) -> None:
         sink.add_sample(7, T0, 1.0, 1.0, 0.25, 1, 0, 1.0)
     _, v = chunk_series(entity_chunks(path)["/node/7/gamma/estimate"])
     assert list(v) == [0.25]
+    _, sd = chunk_series(entity_chunks(path)["/node/7/gamma/sd"])  # none given: NaN
+    assert len(sd) == 1 and math.isnan(sd[0])
 
 
 def test_needs_a_destination() -> None:
@@ -327,7 +353,7 @@ def test_memory_bounded_and_buffers_reused(tmp_path: Path) -> None:
     n = 100_000
     sink = RerunSink(rrd_path=tmp_path / "m.rrd", nodes=(0,), batch_size=64, write_footer=False)
     node = sink._nodes[0]
-    buffers = [node.t, node.gamma, node.measured, node.health]
+    buffers = [node.t, node.gamma, node.gamma_sd, node.measured, node.health]
     ids = [id(b) for b in buffers]
 
     def feed(start: int, count: int) -> None:
@@ -349,9 +375,10 @@ def test_memory_bounded_and_buffers_reused(tmp_path: Path) -> None:
     finally:
         tracemalloc.stop()
     sink.close()
-    assert [id(b) for b in (node.t, node.gamma, node.measured, node.health)] == ids
+    assert [id(b) for b in (node.t, node.gamma, node.gamma_sd, node.measured,
+                            node.health)] == ids
     assert all(b.shape[-1] == 64 for b in buffers)  # the outputs' one row per output
-    # 10^5 samples of 8 float64 would be 6.4 MB if they were kept
+    # 10^5 samples of 9 float64 would be 7.2 MB if they were kept
     assert after - before < 256 * 1024, (before, after)
 
 
@@ -530,6 +557,8 @@ def test_a_recording_split_into_parts_holds_every_row_once(tmp_path: Path) -> No
         assert "/node/0/gamma/estimate" in entity_chunks(p)
         gammas.append(chunk_series(entity_chunks(p)["/node/0/gamma/estimate"])[1])
     np.testing.assert_array_equal(np.concatenate(gammas), k)
+    sds = np.concatenate([chunk_series(entity_chunks(p)["/node/0/gamma/sd"])[1] for p in parts])
+    assert len(sds) == n and np.isnan(sds).all()  # columns without gamma_sd: NaN
     with pytest.raises(ValueError, match="part_bytes"):
         RerunSink(connect_url="rerun+http://127.0.0.1:1/proxy", part_bytes=1)
 
@@ -562,6 +591,7 @@ def test_switch_file_finishes_the_old_file_and_starts_a_complete_one(tmp_path: P
     assert {
         "/__properties",
         "/node/0/gamma/F1",
+        "/node/0/gamma/sd",
         "/node/0/gamma/true",
         "/node/5/nis",
         "/monitor/counters/frames_ok",

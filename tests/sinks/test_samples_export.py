@@ -9,6 +9,8 @@ pandas' `read_parquet` reads through pyarrow).
   a node's rows is a transition at that sample, and each transition an estimate makes is a
   row in that state with that gamma^ and f^.
 * Both engines give the same rows; the Parquet and the CSV file hold the same values.
+* The recording the same replay writes (``--rrd``) holds the file's ``gamma_sd`` as
+  ``/node/<n>/gamma/sd``, sample for sample, from either engine.
 * Written in batches (row groups) and atomically (no temporary file left), our own file
   replaced, a foreign one or an input refused, a wrong suffix one line (exit 2).
 """
@@ -36,6 +38,7 @@ from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.archive.logs import ecu_frames, write_log
 from tests.support.paths import TEST_RIGS
+from tests.support.rrd import read_rrd, series
 
 ENGINE_NAMES = ("columnar", "per-frame")
 
@@ -219,6 +222,31 @@ def test_two_input_two_output_rig(twin_log: Path, tmp_path: Path, engine: str,
                             for f in pq.read_schema(out)}
             assert schema_units["u_U2_V"] == b"V" and schema_units["y_Y2"] is None
     assert rows_of[".parquet"] == rows_of[".csv"]
+
+
+@pytest.mark.parametrize("engine", ENGINE_NAMES)
+@pytest.mark.parametrize("rig", [None, "twin.toml"])
+def test_recording_holds_the_files_gamma_sd(request: pytest.FixtureRequest, tmp_path: Path,
+                                            engine: str, rig: str | None,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """``replay --samples --rrd``: the recording's ``/node/<n>/gamma/sd`` is the samples
+    file's ``gamma_sd``, the very floats at the same times, on our bus (two nodes) and on the
+    twin, whose two inputs may both lose effectiveness (the larger gamma^'s)."""
+    log = request.getfixturevalue("our_log" if rig is None else "twin_log")
+    out, rrd = tmp_path / "x.parquet", tmp_path / "x.rrd"
+    extra = ["--rrd", str(rrd)] + ([] if rig is None else ["--rig", str(TEST_RIGS / rig)])
+    estimated, _ = _replay(capsys, log, out, engine, *extra)
+    _, rows = _read(out)
+    recording = read_rrd(rrd)
+    nodes = sorted({r["node"] for r in rows})
+    assert nodes == ([0, 1] if rig is None else [1])
+    assert sum(len(series(recording, f"/node/{n}/gamma/sd")[1]) for n in nodes) == estimated
+    for node in nodes:
+        rs = sorted((r for r in rows if r["node"] == node), key=_key)
+        t, sd = series(recording, f"/node/{node}/gamma/sd")
+        np.testing.assert_array_equal(sd, [r["gamma_sd"] for r in rs])
+        np.testing.assert_allclose(t, [r["t_s"] for r in rs], rtol=0, atol=1e-6)
+        assert np.all(sd >= 0.0) and np.mean(sd > 0.0) > 0.99  # a variance's root, no NaN
 
 
 def test_rig_names_and_units(press_log: Path, tmp_path: Path,

@@ -73,8 +73,8 @@ def test_viewer_renders_the_recording(tmp_path: Path) -> None:
         viewer.wait(timeout=30)
     # the viewer holds what the monitor logged, laid out by our default blueprint
     for path in ("/node/0/ArmatureCurrent/measured", "/node/0/ArmatureCurrent/estimated",
-                 "/node/0/gamma/estimate", "/node/0/gamma/F1", "/node/0/gamma/true",
-                 "/node/0/health", "/node/0/rules", "/node/0/events",
+                 "/node/0/gamma/estimate", "/node/0/gamma/sd", "/node/0/gamma/F1",
+                 "/node/0/gamma/true", "/node/0/health", "/node/0/rules", "/node/0/events",
                  "/monitor/counters/samples/estimated"):
         assert path in entities, (path, sorted(entities))
     for name in ("node 0", "daemon"):
