@@ -2,7 +2,7 @@
 node_exporter's textfile collector.
 
 `MetricsSink` keeps the latest figures it is handed (per node: health state, model-mismatch
-flag, gamma^, the windowed NIS, estimation latency; the pipeline's counters; the bus statistics of
+flag, gamma^ and its standard deviation, the windowed NIS, estimation latency; the pipeline's counters; the bus statistics of
 `monitor.bus.stats.BusStats`) and every `period_s` writes them to a ``.prom`` file with
 `prometheus_client.write_to_textfile` (a temporary file renamed over the old one, so
 node_exporter never reads half a file and the hardened unit needs no IP socket). The
@@ -12,6 +12,8 @@ exposition is prometheus_client's; the names:
     motor_monitor_node_model_mismatch{node}        1 while the node's model-mismatch flag is
                                                    up (beside the state, which it keeps)
     motor_monitor_node_gamma{node}                 latest gamma^
+    motor_monitor_node_gamma_sd{node}              its standard deviation (what the
+                                                   diagnosis may weigh it by)
     motor_monitor_node_nis{node}                   windowed NIS (p when the model fits)
     motor_monitor_node_samples_total{node}         from 0, for every node asked for (--nodes)
     motor_monitor_nothing_decoded                  1 while no sample was decoded (of a node
@@ -100,6 +102,8 @@ class _Figures(Collector):
                                      "band), beside the health state", labels=["node"])
         gamma = GaugeMetricFamily(f"{PREFIX}_node_gamma", "estimated loss of effectiveness",
                                   labels=["node"])
+        gamma_sd = GaugeMetricFamily(f"{PREFIX}_node_gamma_sd", "standard deviation of the "
+                                     "estimated loss of effectiveness", labels=["node"])
         nis = GaugeMetricFamily(f"{PREFIX}_node_nis", "normalised innovation squared, "
                                 "windowed", labels=["node"])
         samples = CounterMetricFamily(f"{PREFIX}_node_samples", "estimated samples",
@@ -108,11 +112,12 @@ class _Figures(Collector):
             state.add_metric([str(n)], float(int(s.state)))
             mismatch.add_metric([str(n)], 1.0 if s.model_mismatch else 0.0)
             gamma.add_metric([str(n)], s.gamma)
+            gamma_sd.add_metric([str(n)], s.gamma_sd)
             nis.add_metric([str(n)], self.nis.get(n, math.nan))
         asked = self.watch.nodes if self.watch is not None and self.watch.nodes else ()
         for n in sorted({*self.nodes, *asked}):
             samples.add_metric([str(n)], float(self.samples.get(n, 0)))
-        yield from (state, mismatch, gamma, nis, samples)
+        yield from (state, mismatch, gamma, gamma_sd, nis, samples)
         bus = self.bus
         if bus is None:
             return

@@ -78,6 +78,9 @@ def test_metrics_file_parses_and_agrees_with_the_counters(tmp_path: Path) -> Non
     assert events["samples/estimated"] == pipe.counters["samples/estimated"]
     (state,) = fams["motor_monitor_node_health_state"].samples
     assert state.labels == {"node": "0"} and state.value == int(pipe.nodes[0].state)
+    (sd,) = fams["motor_monitor_node_gamma_sd"].samples  # the last sample's, to the digit
+    assert sd.labels == {"node": "0"}
+    assert sd.value == float(pipe.nodes[0].estimator.out.gamma_sd[0]) > 0.0
     ids = {s.labels["id"]: s.value for s in fams["motor_monitor_id_period_seconds"].samples}
     assert ids["0x110"] == pytest.approx(0.01, rel=1e-6)  # MotorCurrent_N0 at 100 Hz
     (load,) = fams["motor_monitor_bus_load_ratio"].samples
