@@ -2,8 +2,9 @@
 node_exporter's textfile collector.
 
 `MetricsSink` keeps the latest figures it is handed (per node: health state, model-mismatch
-flag, gamma^ and its standard deviation, the windowed NIS, estimation latency; the pipeline's counters; the bus statistics of
-`monitor.bus.stats.BusStats`) and every `period_s` writes them to a ``.prom`` file with
+flag, gamma^ and its standard deviation, the windowed NIS, estimation latency; the
+pipeline's counters; the bus statistics of `monitor.bus.stats.BusStats`) and every
+`period_s` writes them to a ``.prom`` file with
 `prometheus_client.write_to_textfile` (a temporary file renamed over the old one, so
 node_exporter never reads half a file and the hardened unit needs no IP socket). The
 exposition is prometheus_client's; the names:
