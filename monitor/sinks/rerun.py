@@ -56,10 +56,11 @@ Arrow schema and metadata, LZ4-compressed like the rest of the message, and ~33 
 manifest); a row of a scalar costs 36 bytes before compression (16-byte row id, 8-byte time,
 8-byte float64 value, 4-byte list offset), ~16-24 after. One 100 Hz node (``python -m
 tests.bench.recording_size``, bytes per hour, against 38 MB for the candump ``.log`` of its
-frames and 12 MB for the ``.blf``): flushed every 0.1 s, 292 MB (framing, ~63 chunks/s); every
-2 s, which is sound when another record bounds what a kill may lose (``run --raw-dir``), 78 MB;
+frames and 12 MB for the ``.blf``): flushed every 0.1 s, 337 MB (framing, ~72 chunks/s); every
+2 s, which is sound when another record bounds what a kill may lose (``run --raw-dir``), 83 MB;
 compacted by ``rerun rrd optimize`` (`monitor.sinks.compact`: one chunk per entity and ~2 MiB),
-34-35 MB, the rows themselves: `RotatingRerunSink` compacts every file it closes.
+43-44 MB, the rows themselves (gamma^'s standard deviation, a full-rate series like gamma^,
+is 8-9 MB of it): `RotatingRerunSink` compacts every file it closes.
 
 Week-long runs: `monitor.sinks.rotation.RotatingRerunSink` writes a directory of ``.rrd``
 files; when the current one exceeds a size or an age it is finished (footer) and recording

@@ -122,9 +122,9 @@ class RotatingRerunSink(RecordingOutlet):
     The defaults (64 MiB, 1 h, 48 files) bound the directory to ~3 GiB.
 
     Sizing (one 100 Hz node, ``python -m tests.bench.recording_size``): a flush every 0.1 s
-    makes ~63 chunks/s, ~0.29 GB/h; every 2 s ~11 chunks/s, ~78 MB/h; a compacted file ~35 MB
+    makes ~72 chunks/s, ~0.34 GB/h; every 2 s ~11 chunks/s, ~83 MB/h; a compacted file ~44 MB
     an hour. The SDK keeps ~0.3-0.45 kB of footer manifest in memory per chunk of the open
-    file (measured), which without rotation would grow by ~15 GB per node and week at 0.1 s.
+    file (measured), which without rotation would grow by ~17 GB per node and week at 0.1 s.
 
     Memory: one `RecordingStream` serves the whole run (the Python SDK never frees a
     `RecordingStream`'s threads, so a new one per file would leak them); only its `FileSink` is
