@@ -101,10 +101,14 @@ SNR_VISIBLE = 5.0
 samples' noise of the model's own filter (a loss at a low input, or where the filter takes
 most of its effect for process noise), so that no detector could be sure of it in time:
 an optimal one's statistic at the true onset has mean 1 + snr^2, against the structure
-test's threshold of 14. The report counts such onsets (`FaultFigures.visible`); they are
-held to DETECT_S all the same: excused, they let through a model of the rig zoo (seed 18,
-a position whose loss shows 3 noise units at one onset, reported after 0.31 s there) that
-then raised false alarms in fresh runs."""
+test's threshold of 14. The report counts such onsets (`FaultFigures.visible`); they must
+be reported within FAULT_S and stay reported from then on, not within DETECT_S, and the
+loss must show at one onset at least. The paper's motor, learned from voltage steps
+between 25 % and 100 % of 220 V, shows a loss at its capture's lowest input by 4.3 noise
+units in 0.3 s, where even the true model reports it after 0.43 s, and by 7 to 9 at the
+others (`python -m tests.bench.realistic_identify`); the rig zoo's seed 1 (a position whose
+loss shows under 2 noise units at every onset, reported after up to 1.3 s, then a false
+alarm in a healthy run) stays refused."""
 
 STEADY_LOSS_NOISE = 1.0
 """The least change of the settled output, in innovation standard deviations, that the
@@ -321,7 +325,8 @@ class FaultFigures:
 
     delays_s: per onset, the time to the first fault or outage report (inf: none within
     FAULT_S, or not fault-free at the onset); held_share: per onset, the share of the time
-    from DETECT_S after it to the end reported as fault; snr: per onset, the loss's effect
+    from DETECT_S after it (or from the first report, if later) to the end reported as
+    fault; snr: per onset, the loss's effect
     on the innovations of the model's own steady-state Kalman filter over the first
     DETECT_S, sqrt(sum |L^-1 de|^2) (L L' = S, their covariance) -- in noise units, what
     any detector has to go on (the part of the output's change that the filter takes for
@@ -335,9 +340,11 @@ class FaultFigures:
 
     @property
     def in_time(self) -> int:
-        """Onsets reported within DETECT_S and held for HELD_SHARE of the time after."""
-        return sum(d <= DETECT_S and h >= HELD_SHARE
-                   for d, h in zip(self.delays_s, self.held_share, strict=True))
+        """Onsets reported in time and held for HELD_SHARE of the time after: within
+        DETECT_S where the loss shows (snr >= SNR_VISIBLE), within FAULT_S elsewhere."""
+        return sum((d <= DETECT_S or (s < SNR_VISIBLE and math.isfinite(d)))
+                   and h >= HELD_SHARE
+                   for d, h, s in zip(self.delays_s, self.held_share, self.snr, strict=True))
 
     @property
     def visible(self) -> int:
@@ -346,7 +353,9 @@ class FaultFigures:
 
     @property
     def passed(self) -> bool:
-        return bool(self.delays_s) and self.in_time == len(self.delays_s)
+        """Every onset in time, and the loss shows at one at least: a rig on which it shows
+        nowhere is one whose losses the monitor finds late or not at all."""
+        return bool(self.delays_s) and self.visible > 0 and self.in_time == len(self.delays_s)
 
     def as_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -503,7 +512,7 @@ def fault_detection(rig: Rig, paths: Sequence[Path], node: int, times: NDArray[n
         hits = np.flatnonzero(np.isin(state, bad) & after)
         ok_before = before.size > 0 and int(before[-1]) == int(HealthState.FAULT_FREE)
         delays.append(float(t[hits[0]] - t_on) if hits.size and ok_before else math.inf)
-        late = t >= t_on + DETECT_S
+        late = t >= t_on + max(DETECT_S, delays[-1] if math.isfinite(delays[-1]) else 0.0)
         held_share.append(float(np.mean(state[late] == int(HealthState.FAULT)))
                           if late.any() else 0.0)
         snrs.append(snr)

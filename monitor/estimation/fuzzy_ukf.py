@@ -117,6 +117,18 @@ class FuzzyUKFConfig:
     nis_window: time constant of the innovation average, seconds.
     nis_threshold: structure-learning threshold on the chi-square statistic of the averaged
         whitened innovation (p degrees of freedom; 14 is 3.7 sigma for one output).
+    slow_window: time constant of a second, slower innovation average beside it, seconds
+        (0: none): a change whose effect on the outputs grows over many samples (a slow
+        plant, a loss at a low input) shows a mean shift of about one noise unit a sample,
+        which no window of the short average holds long enough to cross its threshold.
+    slow_threshold: the threshold of that average's statistic (chi-square as the short
+        one's).
+    slow_min_jump: the least jump of gamma, located at the onset as for every event, less
+        its posterior standard deviation, that the slow average alone may start an event
+        with: a model that fits a little less than perfectly (a gain off by a few per cent,
+        friction, a saturation the linear model averages) also shifts the innovations' mean
+        by a fraction of a noise unit, and its located jump is small or uncertain; a loss
+        worth re-learning gamma for is neither.
     dwell: minimum time between two structure-learning events, seconds.
     onset_window: how far back, in seconds, an event looks for the onset of the change.
     min_jump: a located jump of gamma smaller than this after the bounds of (28) is not
@@ -152,6 +164,9 @@ class FuzzyUKFConfig:
     var_start: float = 1e-4
     nis_window: float = 0.05
     nis_threshold: float = 14.0
+    slow_window: float = 0.2
+    slow_threshold: float = 14.0
+    slow_min_jump: float = 0.1
     dwell: float = 0.2
     growth_share: float = 0.5
     onset_window: float = 0.2
@@ -259,7 +274,10 @@ class FuzzyUKF(StructureLearning, ManyStepping):
                             ("var_max", cfg.var_max), ("var_reopen", cfg.var_reopen),
                             ("nis_threshold", cfg.nis_threshold),
                             ("growth_share", cfg.growth_share), ("var_rule", cfg.var_rule),
-                            ("lower", lower), ("upper", upper), ("noise_coef", noise_coef)):
+                            ("lower", lower), ("upper", upper), ("noise_coef", noise_coef),
+                            ("slow_ratio", cfg.nis_window / cfg.slow_window
+                             if cfg.slow_window > 0.0 else 0.0),
+                            ("slow_threshold", cfg.slow_threshold)):
             PRM.view(self._prm, name, n, m, p)[:] = value
         self._lower = PRM.view(self._prm, "lower", n, m, p)
         self._upper = PRM.view(self._prm, "upper", n, m, p)
@@ -303,6 +321,9 @@ class FuzzyUKF(StructureLearning, ManyStepping):
 
         self._stats = out("stats")
         self._ebar = out("ebar")
+        self._ebar_slow = out("ebar_slow")
+        self._gamma_slow = out("gamma_slow")
+        self._var_slow = out("var_slow")
         self.out = EstimatorOutput(
             x_hat=self.x[:nx],
             x_tilde=out("x_tilde")[:nx],
@@ -435,7 +456,7 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         for _ in range(2):
             self.step(np.zeros(m), np.zeros(p), self.model.T)
         k = self.steps - 1
-        j, _, models = self._onset(k)
+        j, _, _, models = self._onset(k)
         self._reprocess(j, k, k - len(models[2]) + 1, models)
         self.step_many(np.zeros((2, m)), np.zeros((2, p)), np.full(2, self.model.T))
 

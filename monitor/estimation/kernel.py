@@ -24,7 +24,17 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    average's chi-square statistic (p degrees of freedom when the model fits, at any
    sample rate) must exceed a threshold, with a dwell time between two events. Keeping
    the sign makes a persistent bias -- what a changed fault produces -- far more visible
-   than the squared NIS would. What an event does is below (b).
+   than the squared NIS would. A second, slow average (`slow_window`, 0.2 s) of
+   nu + M (gamma^ - gamma_slow), whitened by the same factor, catches a change whose effect
+   grows over many samples (a loss at a low input on a slow armature: about one noise unit
+   a sample, under the short average's threshold in every window of it, and partly taken
+   up by gamma^'s own least squares as it comes, which the correction by gamma_slow, gamma^'s
+   average over the same window, gives back). Its statistic is in units of its own
+   long-run spread (SLOW_SPREAD_WINDOWS windows, never below a white innovation's), since
+   a model that leaves the innovations coloured makes it wander further than white noise;
+   an event that the slow average alone starts must locate a jump at least
+   `slow_min_jump` beyond one posterior standard deviation (structure.py). What an event
+   does is below (b).
 5b. Adaptive output noise (`adaptive_noise`): a real sensor is noisier than the model's R
    (the NIS then sits near the ratio and the model-mismatch flag stays up). The measurement
    update uses R + diag(rx), rx learnt by innovation-based covariance matching (the
@@ -37,7 +47,8 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    the same as R <- (1 - d) R + d (nu nu' - C P^- C' - M pg M')). rx >= 0 keeps R positive
    definite and never below the model's. A fault must not be learnt as noise: it is a mean
    shift in the innovations for gamma^ to explain, so a sample the mean-shift test (20)
-   rejects (stat > nis_threshold) or a structure event's onset does not adapt, the cap
+   rejects (stat > nis_threshold; not the slow one's, whose window is the learning's
+   scale) or a structure event's onset does not adapt, the cap
    bounds what a sample the test has not yet caught can add (R grows at most by 8 d a
    sample), and noise_window (2 s) is far longer than the
    classifier's dwell and the onset window. A persistent bias too small for the test (a
@@ -138,6 +149,10 @@ _log = logging.getLogger(__name__)
 # caught yet moves R by a bounded step, and a fitting model loses < 1 % to the cap.
 _NOISE_CLIP = 9.0
 
+# The long-run spread of the slow average (step 5) is learnt over this many of its windows:
+# long enough that a change the slow average must find (within one window) moves it little.
+SLOW_SPREAD_WINDOWS = 10.0
+
 # The random walk of gamma (step 4) adds at most this many times the variance the sample's
 # evidence takes away (M' P_yy^-1 M vc^2): old evidence fades as new evidence comes in, and
 # a sample that shows nothing of gamma widens nothing (directional forgetting, (f) below).
@@ -151,24 +166,26 @@ _FORGET_PER_EVIDENCE = 2.0
 _MODEL_END = MODEL.at("R") + 1  # the model block's size: its FRICTION follows
 (_F, _S, _FR) = FRICTION.at_each("F", "S", "fr")
 (_DT, _DELTA, _WI, _QG, _VMAX, _NISC, _VREOPEN, _THR, _MODE, _SHARE, _SLOT, _VRULE, _LO, _HI,
- _NOISEC) = PRM.at_each(
+ _NOISEC, _SLOWR, _SLOWT) = PRM.at_each(
     "dt", "delta", "wi", "q_gamma", "var_max", "nis_coef", "var_reopen", "nis_threshold",
-    "mode", "growth_share", "slot", "var_rule", "lower", "upper", "noise_coef")
+    "mode", "growth_share", "slot", "var_rule", "lower", "upper", "noise_coef", "slow_ratio",
+    "slow_threshold")
 (_X, _P, _V, _Z, _VC, _RX) = STATE.at_each("x", "P", "V", "z", "vc", "rx")
 _STATE_END = STATE.base + len(STATE)
 (_R_X, _R_P, _R_V, _R_Z, _R_EBAR, _R_GAMMA, _R_VC, _R_U, _R_Y, _R_DT, _R_K, _R_STI, _R_NU,
- _R_RX) = RING.at_each(
-    "x", "P", "V", "z", "ebar", "gamma", "vc", "u", "y", "dt", "K", "Sti", "nu", "rx")
+ _R_RX, _R_EBARS, _R_GBAR, _R_VSLOW) = RING.at_each(
+    "x", "P", "V", "z", "ebar", "gamma", "vc", "u", "y", "dt", "K", "Sti", "nu", "rx",
+    "ebar_slow", "gamma_slow", "var_slow")
 _RING_END = RING.base + len(RING)
 (_O_GAMMA, _O_FAULT, _O_XTILDE, _O_XE, _O_YHAT, _O_INNOV, _O_STATS, _O_EBAR,
- _O_YEST, _O_GSD) = OUT.at_each(
+ _O_YEST, _O_GSD, _O_EBARS, _O_GBAR, _O_VSLOW) = OUT.at_each(
     "gamma", "fault", "x_tilde", "x_e", "y_hat", "innovation", "stats", "ebar", "y_est",
-    "gamma_sd")
+    "gamma_sd", "ebar_slow", "gamma_slow", "var_slow")
 (_W_UF, _W_DG, _W_PG, _W_B, _W_D, _W_S, _W_XP, _W_XQ, _W_YOFF, _W_DY, _W_NU, _W_L, _W_IKC,
  _W_T1, _W_PP, _W_PQ, _W_LS, _W_PYY, _W_PYY_INV, _W_ST, _W_STI, _W_PXY, _W_K, _W_VP, _W_M,
- _W_RA) = WORK.at_each(
+ _W_RA, _W_WSLOW) = WORK.at_each(
     "uf", "dg", "pg", "b", "d", "s", "xp", "xq", "yoff", "dy", "nu", "L", "IKC", "T1", "Pp",
-    "Pq", "Ls", "Pyy", "Pyy_inv", "St", "Sti", "Pxy", "K", "Vp", "M", "Ra")
+    "Pq", "Ls", "Pyy", "Pyy_inv", "St", "Sti", "Pxy", "K", "Vp", "M", "Ra", "w_slow")
 
 
 def kernel_layout() -> int:
@@ -242,6 +259,8 @@ def fuzzy_ukf_step(
     lo = _vec(prm, lay, _LO, 0)
     hi = _vec(prm, lay, _HI, 0)
     noise_coef = prm[lay[_NOISEC]]
+    slow_ratio = prm[lay[_SLOWR]]
+    slow_threshold = prm[lay[_SLOWT]]
     x = _vec(st, lay, _X, 0)
     P = _mat(st, lay, _P, 0, n, n)
     V = _mat(st, lay, _V, 0, n, m)
@@ -264,6 +283,9 @@ def fuzzy_ukf_step(
     r_Sti = _mat(st, lay, _R_STI, o, p, p)
     r_nu = _vec(st, lay, _R_NU, o)
     r_rx = _vec(st, lay, _R_RX, o)
+    r_ebar_slow = _vec(st, lay, _R_EBARS, o)
+    r_gamma_slow = _vec(st, lay, _R_GBAR, o)
+    r_var_slow = _vec(st, lay, _R_VSLOW, o)
     gamma = _vec(out, lay, _O_GAMMA, 0)
     fhat = _vec(out, lay, _O_FAULT, 0)
     xtilde = _vec(out, lay, _O_XTILDE, 0)
@@ -274,6 +296,9 @@ def fuzzy_ukf_step(
     ebar = _vec(out, lay, _O_EBAR, 0)
     yest = _vec(out, lay, _O_YEST, 0)
     gsd = _vec(out, lay, _O_GSD, 0)
+    ebar_slow = _vec(out, lay, _O_EBARS, 0)
+    gamma_slow = _vec(out, lay, _O_GBAR, 0)
+    var_slow = _vec(out, lay, _O_VSLOW, 0)
     uf = _vec(wk, lay, _W_UF, 0)
     dg = _vec(wk, lay, _W_DG, 0)
     pg = _vec(wk, lay, _W_PG, 0)
@@ -300,6 +325,7 @@ def fuzzy_ukf_step(
     Vp = _mat(wk, lay, _W_VP, 0, n, m)
     M = _mat(wk, lay, _W_M, 0, p, m)
     Ra = _mat(wk, lay, _W_RA, 0, p, p)
+    w_slow = _vec(wk, lay, _W_WSLOW, 0)
 
     # 0. the state before this sample, in the onset ring (a structure event re-processes
     # the samples since the onset of the change from there)
@@ -312,10 +338,13 @@ def fuzzy_ukf_step(
             r_V[r, a] = V[r, a]
     for r in range(p):
         r_ebar[r] = ebar[r]
+        r_ebar_slow[r] = ebar_slow[r]
+        r_var_slow[r] = var_slow[r]
         r_y[r] = y[r]
         r_rx[r] = rx[r]
     for a in range(m):
         r_gamma[a] = gamma[a]
+        r_gamma_slow[a] = gamma_slow[a]
         r_vc[a] = vc[a]
         r_u[a] = u[a]
     r_dt[0] = dt
@@ -366,6 +395,7 @@ def fuzzy_ukf_step(
                     V[r, a] *= f
         for r in range(p):
             ebar[r] = 0.0
+            ebar_slow[r] = 0.0
     # fault function (10) and the input after the loss of effectiveness
     for a in range(m):
         uf[a] = u[a] * (1.0 - gamma[a])
@@ -468,7 +498,54 @@ def fuzzy_ukf_step(
         ebar[r] += nis_coef * (innov[r] - ebar[r])
         chi += ebar[r] * ebar[r]
     stat = chi * (2.0 - nis_coef) / nis_coef
-    stats[3] = 1.0 if (mode == 1.0 and stat > threshold) else 0.0
+    # the slow average (step 5 of the module docstring) of the innovation as gamma_slow,
+    # gamma^'s own average over the same window, would have left it: gamma^'s least
+    # squares takes up part of a slowly growing change as it comes (a creep of a few
+    # hundredths a sample) and would hide it from any average of nu. In the dwell time
+    # after an event gamma^ re-converges, and gamma_slow follows it at once
+    slow = 0.0
+    if slow_ratio > 0.0:
+        slow_coef = 1.0 - (1.0 - nis_coef) ** slow_ratio
+        for a in range(m):
+            if mode != 1.0:
+                gamma_slow[a] = gamma[a]
+        for r in range(p):
+            acc = nu[r]
+            for a in range(m):
+                acc += M[r, a] * (gamma[a] - gamma_slow[a])
+            for c in range(r):
+                acc -= Ls[r, c] * w_slow[c]
+            w_slow[r] = acc / Ls[r, r]
+        # each output's average in units of its own long-run spread (SLOW_SPREAD_WINDOWS
+        # windows), never below a white innovation's: where the model leaves the innovations
+        # coloured (a coarse quantum the output sits on, dynamics it lacks) the average
+        # wanders further than white noise would, and a fixed threshold reads that as a
+        # change; on a fitting model the spread is the white one's
+        white = slow_coef / (2.0 - slow_coef)
+        spread_coef = 1.0 - (1.0 - slow_coef) ** (1.0 / SLOW_SPREAD_WINDOWS)
+        for r in range(p):
+            ebar_slow[r] += slow_coef * (w_slow[r] - ebar_slow[r])
+            v = var_slow[r] if var_slow[r] > white else white
+            slow += ebar_slow[r] * ebar_slow[r] / v
+            if mode == 1.0 and stat <= threshold:
+                var_slow[r] += spread_coef * (ebar_slow[r] * ebar_slow[r] - var_slow[r])
+        for a in range(m):
+            # gamma^'s move is creep where a sample tells little of gamma, evidence where it
+            # tells much (a step of the input): there gamma_slow follows as fast as the
+            # sample's share of gamma's information, pg M' S_tot^-1 M
+            info = 0.0
+            for r in range(p):
+                for c in range(p):
+                    info += M[r, a] * Sti[r, c] * M[c, a]
+            w = pg[a] * info
+            w = w if w > slow_coef else slow_coef
+            gamma_slow[a] += (w if w < 1.0 else 1.0) * (gamma[a] - gamma_slow[a])
+    stats[3] = 0.0
+    if mode == 1.0:
+        if stat > threshold:
+            stats[3] = 1.0
+        elif slow > slow_threshold:
+            stats[3] = 2.0
     # 5b. adaptive output noise, innovation-based covariance matching (Sage-Husa; Mohamed
     # and Schwarz 1999): rx <- max(0, rx + d (min(nu_r^2, c S_rr) - S_rr)), which drives
     # E[nu nu'] = S_tot on the diagonal. Not from a sample the mean-shift test (20) rejects:

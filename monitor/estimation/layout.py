@@ -115,29 +115,38 @@ def _tables() -> tuple[Table, ...]:
         # the innovation average; mode 0: no structure test, 1: test, 2: a structure event at
         # the start of the sample; slot: the sample's place in the onset ring; lower, upper:
         # the bounds of (28) (lower == upper: a known actuator); noise_coef: the forgetting
-        # weight of the adaptive output noise (0: the model's R)
+        # weight of the adaptive output noise (0: the model's R); slow_ratio, slow_threshold:
+        # the slow average's window as a power of the innovation average's weight, and its
+        # threshold (`monitor.estimation.kernel`, step 5)
         ("PRM", [("dt", "1"), ("delta", "1"), ("wi", "1"), ("q_gamma", "1"),
                  ("var_max", "1"), ("nis_coef", "1"), ("var_reopen", "1"),
                  ("nis_threshold", "1"), ("mode", "1"), ("growth_share", "1"), ("slot", "1"),
-                 ("var_rule", "1"), ("lower", "m"), ("upper", "m"), ("noise_coef", "1")]),
+                 ("var_rule", "1"), ("lower", "m"), ("upper", "m"), ("noise_coef", "1"),
+                 ("slow_ratio", "1"), ("slow_threshold", "1")]),
         # x^, P, V = d x^ / d gamma, the averaged fuzzy input z, the consequents' common
         # variance vc (per actuator), the adapted output-noise excess rx (per output)
         ("STATE", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("vc", "m"),
                    ("rx", "p")]),
         # one sample of the onset ring: the state before it (x, P, V, z, the innovation
         # average, gamma^, vc), the sample (u, y, dt), the filter's view of it under the old
-        # fault (K, S_tot^-1, nu) and the adapted output noise before it
+        # fault (K, S_tot^-1, nu), the adapted output noise and the slow average before it
         ("RING", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("ebar", "p"),
                   ("gamma", "m"), ("vc", "m"), ("u", "m"), ("y", "p"), ("dt", "1"),
-                  ("K", "n", "p"), ("Sti", "p", "p"), ("nu", "p"), ("rx", "p")]),
-        # stats: [NIS, test statistic, Cholesky repairs, structure test fired]; gamma_sd: the
-        # standard deviation of gamma^ after the sample (what the diagnosis weighs it by)
+                  ("K", "n", "p"), ("Sti", "p", "p"), ("nu", "p"), ("rx", "p"),
+                  ("ebar_slow", "p"), ("gamma_slow", "m"), ("var_slow", "p")]),
+        # stats: [NIS, test statistic, Cholesky repairs, structure test fired (1: the short
+        # average, 2: the slow one alone)]; gamma_sd: the standard deviation of gamma^ after
+        # the sample (what the diagnosis weighs it by); ebar_slow: the slow average of the
+        # innovation as gamma^'s slow average gamma_slow would have left it, and var_slow the
+        # long-run mean of its square
         ("OUT", [("gamma", "m"), ("fault", "n"), ("x_tilde", "n"), ("x_e", "n"),
                  ("y_hat", "p"), ("innovation", "p"), ("stats", "4"), ("ebar", "p"),
-                 ("y_est", "p"), ("gamma_sd", "m")]),
+                 ("y_est", "p"), ("gamma_sd", "m"), ("ebar_slow", "p"),
+                 ("gamma_slow", "m"), ("var_slow", "p")]),
         ("WORK", [("uf", "m"), ("dg", "m"), ("pg", "m"), ("b", "n"), ("xq", "n"),
                   ("yoff", "p"), ("nu", "p"), ("Pq", "n", "n"), ("St", "p", "p"),
                   ("Sti", "p", "p"), ("Vp", "n", "m"), ("M", "p", "m"), ("Ra", "p", "p"),
+                  ("w_slow", "p"),
                   *UKF_SCRATCH]),
         # the Coulomb friction of one step (`monitor.estimation.friction`), packed into the
         # model block after MODEL's fields: the step's column of phi, the speed's row over
@@ -166,9 +175,10 @@ def offsets(n: int, m: int, p: int) -> IntArray:
 
 
 # What the buffers mean beyond their fields' order and sizes (bump it when that changes:
-# 7 added the FRICTION table after the model block; 6, the layout of these tables; 5 added
-# the bias states after the plant's in x, P, V, z).
-_SEMANTICS = 7
+# 8 added the structure test's slow average and its stats[3] = 2; 7 added the FRICTION
+# table after the model block; 6, the layout of these tables; 5 added the bias states after
+# the plant's in x, P, V, z).
+_SEMANTICS = 8
 
 
 

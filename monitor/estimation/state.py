@@ -57,6 +57,9 @@ class FilterState:
         _upper: Array
         _zall: Array
         _ebar: Array
+        _ebar_slow: Array
+        _gamma_slow: Array
+        _var_slow: Array
         _bias_var0: Array
         _u: Array
         _y: Array

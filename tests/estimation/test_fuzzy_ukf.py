@@ -291,6 +291,7 @@ def test_one_rule_is_the_augmented_kalman_filter(plant: str) -> None:
         run = simulate(model, load_scenario("fault-outage-recovery"), 0.01, seed=11)
         T = 0.01
     cfg = FuzzyUKFConfig(q_gamma=0.0, var0=0.1, var_rule=0.0, nis_threshold=math.inf,
+                         slow_window=0.0,
                          fuzzy=FuzzyConfig(initial_mf=((0.0,), (0.0,)), max_mf=1,
                                            lower=-10.0, upper=10.0), adaptive_noise=False,
                          bias="none")  # the AKF has no bias states (step 8)
@@ -348,7 +349,8 @@ def test_structure_event_relearns_from_the_onset() -> None:
     onsets: list[int] = []
     locate = est._onset
 
-    def spy(k: int) -> tuple[int, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def spy(k: int) -> tuple[int, np.ndarray, np.ndarray,
+                             tuple[np.ndarray, np.ndarray, np.ndarray]]:
         found = locate(k)
         onsets.append(found[0])
         return found
