@@ -123,3 +123,41 @@ def test_a_two_level_capture_of_a_friction_that_matters_is_refused(tmp_path: Pat
     assert res.returncode == 0, res.stdout + res.stderr
     assert report["friction_probe"]["response_noise_units"] < 10.0
     assert {c["check"]: c["passed"] for c in report["checks"]}["friction_two_levels"]
+
+
+def test_a_friction_refit_that_shows_the_levels_ambiguous_refuses_the_linear_model(
+        tmp_path: Path) -> None:
+    """The rig zoo's seed 37 (a current in, a speed out, Coulomb friction that keeps one
+    sign and a limit at the larger of a PRBS's two levels, 193 and 825 A): the linear model
+    through zero took the friction's constant into its gain, passed every check on its
+    capture (fit 96 %), and then raised false alarms in a healthy run at other levels. Its
+    friction probe, which can carry the constant, is refused as two levels that cannot tell
+    a limit, friction and an offset apart: the linear model is as ambiguous, and identify
+    refuses it in one line with that reason (`level_ambiguity`), writing no rig."""
+    res, report = identify_zoo_rig(37, tmp_path)
+    assert res.returncode == 1, res.stdout + res.stderr
+    last = res.stderr.strip().splitlines()[-1]
+    assert "level_ambiguity" in last and "several levels" in last
+    assert "not in their ratio" in report["friction_probe"]["refused"]
+    check = {c["check"]: c for c in report["checks"]}["level_ambiguity"]
+    assert not check["passed"] and check["gating"] and check["value"] > check["limit"]
+    assert not (tmp_path / "learned.toml").exists()
+
+
+def test_a_probe_refused_for_ambiguous_levels_fails_a_gating_check() -> None:
+    """The check itself, from the report alone: a probe refused for the levels' ambiguity
+    fails `level_ambiguity` (its error in noise units, or None where the capture is blind to
+    a limit) under two levels; a probe refused for another reason gives no check."""
+    replay = ReplayFigures([], 2.0, 100, 1.0, {"fault_free": 1.0}, 0.0, 1.0, (0.8, 1.2),
+                           gamma_max=0.01, f1=0.15)
+    for error in (3.5, None):
+        report = {"excitation": {"input_levels": [2]},
+                  "friction_probe": {"refused": "the input took two levels alone ...",
+                                     "level_ambiguity_noise_units": error}}
+        checks = {c.check: c for c in report_checks(report, replay)}
+        assert not checks["level_ambiguity"].passed and checks["level_ambiguity"].gating
+        assert checks["level_ambiguity"].value == error
+    other = {"excitation": {"input_levels": [2]},
+             "friction_probe": {"refused": "capture too short for this plant ..."}}
+    checks = {c.check: c for c in report_checks(other, replay)}
+    assert "level_ambiguity" not in checks and "friction_two_levels" not in checks
