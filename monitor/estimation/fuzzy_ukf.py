@@ -145,6 +145,14 @@ class FuzzyUKFConfig:
     noise_window: time constant of that learning, seconds (per received sample, like
         nis_window): much longer than the classifier's dwell and the onset window, so a
         fault -- a mean shift that gamma^ explains within them -- moves R little.
+    process_noise_gain: how fast the process noise is learnt from the innovations (step 5c
+        of `monitor.estimation.kernel`), in units of the output noise's learning weight
+        (0: the model's Q): Q's plant part is scaled by exp(qs) >= 1, qs moving by this
+        times that weight times the whitened innovations' clipped product with the
+        previous sample's. 4: a process noise five times the model's is learnt within
+        about 10 s on the paper's motor at 100 Hz (a time constant of noise_window /
+        (gain x ~0.08), the last factor how the innovations' correlation answers Q's
+        scale there), and a fitting model's scale wanders by about 20 % around 1.
     bias: slowly varying bias states beside the plant's (step 8 of the module docstring):
         "output" (an offset per output), "input" (a load or offset per actuator), "auto"
         (output where observable, else input, else none) or "none"
@@ -175,6 +183,7 @@ class FuzzyUKFConfig:
     P0: float | None = None
     adaptive_noise: bool = True
     noise_window: float = 2.0
+    process_noise_gain: float = 4.0
     bias: str = "auto"
     bias_window: float = BIAS_WINDOW_S
     fuzzy: FuzzyConfig = field(default_factory=FuzzyConfig)
@@ -277,7 +286,8 @@ class FuzzyUKF(StructureLearning, ManyStepping):
                             ("lower", lower), ("upper", upper), ("noise_coef", noise_coef),
                             ("slow_ratio", cfg.nis_window / cfg.slow_window
                              if cfg.slow_window > 0.0 else 0.0),
-                            ("slow_threshold", cfg.slow_threshold)):
+                            ("slow_threshold", cfg.slow_threshold),
+                            ("process_coef", cfg.process_noise_gain * noise_coef)):
             PRM.view(self._prm, name, n, m, p)[:] = value
         self._lower = PRM.view(self._prm, "lower", n, m, p)
         self._upper = PRM.view(self._prm, "upper", n, m, p)
@@ -297,6 +307,10 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         self._bias_var0 = self.bias_plan.var0
         self.common_var = STATE.view(self._st, "vc", n, m, p)
         self.noise_excess = STATE.view(self._st, "rx", n, m, p)  # R + diag(rx): output noise
+        # exp(qs) Q on the plant's states: the process noise (step 5c)
+        self._process_log_scale = STATE.view(self._st, "qs", n, m, p)
+        self._w_prev = STATE.view(self._st, "w_prev", n, m, p)
+        self._w_mean = STATE.view(self._st, "w_mean", n, m, p)
         self.common_var[self._faulty] = cfg.var0
         self._ring = self._st[head:].reshape(self._ring_len, slot)
         self._ring_spans = {f: RING.span(f, n, m, p) for f in RING.names}
@@ -388,6 +402,11 @@ class FuzzyUKF(StructureLearning, ManyStepping):
     def repairs(self) -> int:
         """Cholesky pivots clamped so far (0 in a healthy run)."""
         return int(self._stats[2])
+
+    @property
+    def process_scale(self) -> float:
+        """The factor on the model's process noise learnt so far (step 5c; 1: none)."""
+        return float(np.exp(self._process_log_scale[0]))
 
     @property
     def rule_count(self) -> int:

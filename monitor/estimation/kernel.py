@@ -53,8 +53,27 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    sample), and noise_window (2 s) is far longer than the
    classifier's dwell and the onset window. A persistent bias too small for the test (a
    small unmodelled load) is partly learnt as noise; a large one stays visible to the
-   mismatch detector. Q is not adapted. rx is part of the onset ring: a structure event
-   re-processes from the learnt noise of its onset.
+   mismatch detector. rx is part of the onset ring: a structure event re-processes from
+   the learnt noise of its onset.
+5c. Adaptive process noise (`process_noise_gain`; off with `adaptive_noise`): a real plant
+   is also disturbed more than the model's Q says (torque ripple, a load that wanders).
+   Then the filter tracks too slowly, and the innovations, white under the right Q, are
+   positively correlated from sample to sample; their excess variance alone does not tell
+   Q from R (step 5b takes it), their correlation does (Mehra, IEEE Trans. Automatic
+   Control 15(2), 1970: the innovations of the optimal gain are white). The plant's part
+   of Q is scaled by exp(qs) >= 1, and qs follows the correlation:
+
+       qs <- clip(qs + g d clip((w_k-1 - w_mean)' (w_k - w_mean) / p, -1, 1), 0, ln 100)
+
+   w the whitened innovations, w_mean their long-run mean (the same weight d as 5b), g the
+   gain. The clipped product is sign-like, 0 in expectation for white innovations of any
+   size, and bounds what one sample moves. About the mean, since a load or an offset is a
+   mean shift for the bias states (step 8), not process noise; only while the structure
+   test watches and passes, as for rx. On the paper's motor with 5x its process noise the
+   model's Q left gamma^ wandering to 0.43 with 20 structure events a minute; the scale
+   settles near 3.6 within about 10 s and gamma^ stays below 0.12. A model whose
+   innovations are coloured for another reason (dynamics it lacks) gets a larger Q too,
+   which whitens them at some cost in sensitivity to gamma; the cap keeps some.
 6. Consequent adaptation (28) per sample, a_j <- clip(a_j + r e, u_L, u_U), with e = nu
    and the gain r of a recursive least squares on nu = M (gamma - gamma^) + noise: every
    consequent is a_j = c + d_j, a part c common to all rules (variance vc, gain
@@ -149,6 +168,10 @@ _log = logging.getLogger(__name__)
 # caught yet moves R by a bounded step, and a fitting model loses < 1 % to the cap.
 _NOISE_CLIP = 9.0
 
+# The adaptive process noise (step 5c) scales Q by at most e^this (100): a model whose
+# innovations stay coloured for another reason (dynamics it lacks) keeps some gain on gamma.
+_PROCESS_LOG_MAX = math.log(100.0)
+
 # The long-run spread of the slow average (step 5) is learnt over this many of its windows:
 # long enough that a change the slow average must find (within one window) moves it little.
 SLOW_SPREAD_WINDOWS = 10.0
@@ -166,16 +189,17 @@ _FORGET_PER_EVIDENCE = 2.0
 _MODEL_END = MODEL.at("R") + 1  # the model block's size: its FRICTION follows
 (_F, _S, _FR) = FRICTION.at_each("F", "S", "fr")
 (_DT, _DELTA, _WI, _QG, _VMAX, _NISC, _VREOPEN, _THR, _MODE, _SHARE, _SLOT, _VRULE, _LO, _HI,
- _NOISEC, _SLOWR, _SLOWT) = PRM.at_each(
+ _NOISEC, _SLOWR, _SLOWT, _PROCC) = PRM.at_each(
     "dt", "delta", "wi", "q_gamma", "var_max", "nis_coef", "var_reopen", "nis_threshold",
     "mode", "growth_share", "slot", "var_rule", "lower", "upper", "noise_coef", "slow_ratio",
-    "slow_threshold")
-(_X, _P, _V, _Z, _VC, _RX) = STATE.at_each("x", "P", "V", "z", "vc", "rx")
+    "slow_threshold", "process_coef")
+(_X, _P, _V, _Z, _VC, _RX, _QS, _WPREV, _WMEAN) = STATE.at_each(
+    "x", "P", "V", "z", "vc", "rx", "qs", "w_prev", "w_mean")
 _STATE_END = STATE.base + len(STATE)
 (_R_X, _R_P, _R_V, _R_Z, _R_EBAR, _R_GAMMA, _R_VC, _R_U, _R_Y, _R_DT, _R_K, _R_STI, _R_NU,
- _R_RX, _R_EBARS, _R_GBAR, _R_VSLOW) = RING.at_each(
+ _R_RX, _R_EBARS, _R_GBAR, _R_VSLOW, _R_QS, _R_WPREV, _R_WMEAN) = RING.at_each(
     "x", "P", "V", "z", "ebar", "gamma", "vc", "u", "y", "dt", "K", "Sti", "nu", "rx",
-    "ebar_slow", "gamma_slow", "var_slow")
+    "ebar_slow", "gamma_slow", "var_slow", "qs", "w_prev", "w_mean")
 _RING_END = RING.base + len(RING)
 (_O_GAMMA, _O_FAULT, _O_XTILDE, _O_XE, _O_YHAT, _O_INNOV, _O_STATS, _O_EBAR,
  _O_YEST, _O_GSD, _O_EBARS, _O_GBAR, _O_VSLOW) = OUT.at_each(
@@ -183,9 +207,9 @@ _RING_END = RING.base + len(RING)
     "gamma_sd", "ebar_slow", "gamma_slow", "var_slow")
 (_W_UF, _W_DG, _W_PG, _W_B, _W_D, _W_S, _W_XP, _W_XQ, _W_YOFF, _W_DY, _W_NU, _W_L, _W_IKC,
  _W_T1, _W_PP, _W_PQ, _W_LS, _W_PYY, _W_PYY_INV, _W_ST, _W_STI, _W_PXY, _W_K, _W_VP, _W_M,
- _W_RA, _W_WSLOW) = WORK.at_each(
+ _W_RA, _W_WSLOW, _W_QA) = WORK.at_each(
     "uf", "dg", "pg", "b", "d", "s", "xp", "xq", "yoff", "dy", "nu", "L", "IKC", "T1", "Pp",
-    "Pq", "Ls", "Pyy", "Pyy_inv", "St", "Sti", "Pxy", "K", "Vp", "M", "Ra", "w_slow")
+    "Pq", "Ls", "Pyy", "Pyy_inv", "St", "Sti", "Pxy", "K", "Vp", "M", "Ra", "w_slow", "Qa")
 
 
 def kernel_layout() -> int:
@@ -261,12 +285,16 @@ def fuzzy_ukf_step(
     noise_coef = prm[lay[_NOISEC]]
     slow_ratio = prm[lay[_SLOWR]]
     slow_threshold = prm[lay[_SLOWT]]
+    process_coef = prm[lay[_PROCC]]
     x = _vec(st, lay, _X, 0)
     P = _mat(st, lay, _P, 0, n, n)
     V = _mat(st, lay, _V, 0, n, m)
     z = _vec(st, lay, _Z, 0)
     vc = _vec(st, lay, _VC, 0)
     rx = _vec(st, lay, _RX, 0)
+    qs = _vec(st, lay, _QS, 0)
+    w_prev = _vec(st, lay, _WPREV, 0)
+    w_mean = _vec(st, lay, _WMEAN, 0)
     # the onset ring follows the state, one slot per sample
     o = lay[_STATE_END] + int(prm[lay[_SLOT]]) * lay[_RING_END]
     r_x = _vec(st, lay, _R_X, o)
@@ -286,6 +314,9 @@ def fuzzy_ukf_step(
     r_ebar_slow = _vec(st, lay, _R_EBARS, o)
     r_gamma_slow = _vec(st, lay, _R_GBAR, o)
     r_var_slow = _vec(st, lay, _R_VSLOW, o)
+    r_qs = _vec(st, lay, _R_QS, o)
+    r_w_prev = _vec(st, lay, _R_WPREV, o)
+    r_w_mean = _vec(st, lay, _R_WMEAN, o)
     gamma = _vec(out, lay, _O_GAMMA, 0)
     fhat = _vec(out, lay, _O_FAULT, 0)
     xtilde = _vec(out, lay, _O_XTILDE, 0)
@@ -326,6 +357,7 @@ def fuzzy_ukf_step(
     M = _mat(wk, lay, _W_M, 0, p, m)
     Ra = _mat(wk, lay, _W_RA, 0, p, p)
     w_slow = _vec(wk, lay, _W_WSLOW, 0)
+    Qa = _mat(wk, lay, _W_QA, 0, n, n)
 
     # 0. the state before this sample, in the onset ring (a structure event re-processes
     # the samples since the onset of the change from there)
@@ -342,6 +374,9 @@ def fuzzy_ukf_step(
         r_var_slow[r] = var_slow[r]
         r_y[r] = y[r]
         r_rx[r] = rx[r]
+        r_w_prev[r] = w_prev[r]
+        r_w_mean[r] = w_mean[r]
+    r_qs[0] = qs[0]
     for a in range(m):
         r_gamma[a] = gamma[a]
         r_gamma_slow[a] = gamma_slow[a]
@@ -426,7 +461,14 @@ def fuzzy_ukf_step(
                 for c in range(n):
                     acc += A[r, c] * V[c, a]
             Vp[r, a] = acc
-    rep = ukf_predict(x, P, A, b, Q, delta, wi, L, d, xp, Pp)
+    # the process noise the innovations have shown: the plant's part of Q scaled by
+    # exp(qs) (step 5c), never below the model's; the bias states' random walk as it is
+    nx = centres.shape[0]
+    scale = math.exp(qs[0])
+    for r in range(n):
+        for c in range(n):
+            Qa[r, c] = Q[r, c] * scale if r < nx and c < nx else Q[r, c]
+    rep = ukf_predict(x, P, A, b, Qa, delta, wi, L, d, xp, Pp)
     for r in range(n):
         xtilde[r] = xp[r]  # fault-model state (52)
     # 3. measurement update (44)-(49) into (xq, Pq), with the output noise the innovations
@@ -559,6 +601,26 @@ def fuzzy_ukf_step(
             cap = (_NOISE_CLIP - 1.0) * Ra[r, r]
             v = rx[r] + noise_coef * (inc if inc < cap else cap)
             rx[r] = v if v > 0.0 else 0.0
+    # 5c. adaptive process noise: the log of Q's scale follows the whitened innovations'
+    # correlation with the previous sample's, about their long-run mean, each product
+    # clipped to [-1, 1] (a sign-like statistic, 0 in expectation for white innovations
+    # whatever their size). A model whose Q is too small tracks too slowly and leaves them
+    # positively correlated, one whose Q is too large negatively (Mehra 1970's test of
+    # optimality). About the mean: a load or an offset the model lacks is a mean shift,
+    # which is the bias states' to take (step 8), not process noise. Only while the
+    # structure test watches and passes: a fault is a mean shift, correlated too, for
+    # gamma^ to explain, and in the dwell after an event gamma^ re-converges
+    if process_coef > 0.0 and mode == 1.0 and stat <= threshold:
+        acc = 0.0
+        for r in range(p):
+            acc += (w_prev[r] - w_mean[r]) * (innov[r] - w_mean[r])
+            w_mean[r] += noise_coef * (innov[r] - w_mean[r])
+        acc /= p
+        acc = 1.0 if acc > 1.0 else (-1.0 if acc < -1.0 else acc)
+        v = qs[0] + process_coef * acc
+        qs[0] = 0.0 if v < 0.0 else (_PROCESS_LOG_MAX if v > _PROCESS_LOG_MAX else v)
+    for r in range(p):
+        w_prev[r] = innov[r]
     # the sample as the filter saw it, for locating the onset of a change
     for r in range(n):
         for c in range(p):
@@ -610,7 +672,6 @@ def fuzzy_ukf_step(
     # coupled, a bias would follow every change of gamma^ and take over what gamma^
     # explained -- at a constant input the two are not told apart -- as soon as the bias
     # has had its window to adapt (step 8)
-    nx = centres.shape[0]
     for r in range(n):
         for a in range(m):
             acc = 0.0

@@ -117,23 +117,27 @@ def _tables() -> tuple[Table, ...]:
         # the bounds of (28) (lower == upper: a known actuator); noise_coef: the forgetting
         # weight of the adaptive output noise (0: the model's R); slow_ratio, slow_threshold:
         # the slow average's window as a power of the innovation average's weight, and its
-        # threshold (`monitor.estimation.kernel`, step 5)
+        # threshold (`monitor.estimation.kernel`, step 5); process_coef: the learning weight
+        # of the adaptive process noise (0: the model's Q; step 5c)
         ("PRM", [("dt", "1"), ("delta", "1"), ("wi", "1"), ("q_gamma", "1"),
                  ("var_max", "1"), ("nis_coef", "1"), ("var_reopen", "1"),
                  ("nis_threshold", "1"), ("mode", "1"), ("growth_share", "1"), ("slot", "1"),
                  ("var_rule", "1"), ("lower", "m"), ("upper", "m"), ("noise_coef", "1"),
-                 ("slow_ratio", "1"), ("slow_threshold", "1")]),
+                 ("slow_ratio", "1"), ("slow_threshold", "1"), ("process_coef", "1")]),
         # x^, P, V = d x^ / d gamma, the averaged fuzzy input z, the consequents' common
-        # variance vc (per actuator), the adapted output-noise excess rx (per output)
+        # variance vc (per actuator), the adapted output-noise excess rx (per output), the
+        # log of the adapted process-noise scale qs, the previous whitened innovation w and
+        # w's long-run mean
         ("STATE", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("vc", "m"),
-                   ("rx", "p")]),
+                   ("rx", "p"), ("qs", "1"), ("w_prev", "p"), ("w_mean", "p")]),
         # one sample of the onset ring: the state before it (x, P, V, z, the innovation
         # average, gamma^, vc), the sample (u, y, dt), the filter's view of it under the old
-        # fault (K, S_tot^-1, nu), the adapted output noise and the slow average before it
+        # fault (K, S_tot^-1, nu), the adapted noises and the slow average before it
         ("RING", [("x", "n"), ("P", "n", "n"), ("V", "n", "m"), ("z", "n"), ("ebar", "p"),
                   ("gamma", "m"), ("vc", "m"), ("u", "m"), ("y", "p"), ("dt", "1"),
                   ("K", "n", "p"), ("Sti", "p", "p"), ("nu", "p"), ("rx", "p"),
-                  ("ebar_slow", "p"), ("gamma_slow", "m"), ("var_slow", "p")]),
+                  ("ebar_slow", "p"), ("gamma_slow", "m"), ("var_slow", "p"), ("qs", "1"),
+                  ("w_prev", "p"), ("w_mean", "p")]),
         # stats: [NIS, test statistic, Cholesky repairs, structure test fired (1: the short
         # average, 2: the slow one alone)]; gamma_sd: the standard deviation of gamma^ after
         # the sample (what the diagnosis weighs it by); ebar_slow: the slow average of the
@@ -146,7 +150,7 @@ def _tables() -> tuple[Table, ...]:
         ("WORK", [("uf", "m"), ("dg", "m"), ("pg", "m"), ("b", "n"), ("xq", "n"),
                   ("yoff", "p"), ("nu", "p"), ("Pq", "n", "n"), ("St", "p", "p"),
                   ("Sti", "p", "p"), ("Vp", "n", "m"), ("M", "p", "m"), ("Ra", "p", "p"),
-                  ("w_slow", "p"),
+                  ("w_slow", "p"), ("Qa", "n", "n"),
                   *UKF_SCRATCH]),
         # the Coulomb friction of one step (`monitor.estimation.friction`), packed into the
         # model block after MODEL's fields: the step's column of phi, the speed's row over
@@ -175,10 +179,10 @@ def offsets(n: int, m: int, p: int) -> IntArray:
 
 
 # What the buffers mean beyond their fields' order and sizes (bump it when that changes:
-# 8 added the structure test's slow average and its stats[3] = 2; 7 added the FRICTION
-# table after the model block; 6, the layout of these tables; 5 added the bias states after
-# the plant's in x, P, V, z).
-_SEMANTICS = 8
+# 9 added the adaptive process noise; 8 added the structure test's slow average and its
+# stats[3] = 2; 7 added the FRICTION table after the model block; 6, the layout of these
+# tables; 5 added the bias states after the plant's in x, P, V, z).
+_SEMANTICS = 9
 
 
 

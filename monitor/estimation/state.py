@@ -38,6 +38,9 @@ class FilterState:
         z: Array
         common_var: Array
         noise_excess: Array
+        _process_log_scale: Array
+        _w_prev: Array
+        _w_mean: Array
         steps: int
         structure_events: int
         bias_events: int

@@ -296,6 +296,9 @@ class StructureLearning(FilterState):
         self.out.gamma[:] = self._field(j, "gamma")
         self.common_var[:] = self._field(j, "vc")
         self.noise_excess[:] = self._field(j, "rx")
+        self._process_log_scale[:] = self._field(j, "qs")
+        self._w_prev[:] = self._field(j, "w_prev")
+        self._w_mean[:] = self._field(j, "w_mean")
         # the event re-opens every consequent at that output: do it before the rules fire,
         # so that what the samples since taught them under the old fault is forgotten
         self.fuzzy.cons[:, self._faulty] = self.out.gamma[self._faulty]

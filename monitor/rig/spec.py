@@ -117,11 +117,11 @@ class ModelSpec:
     the estimator's step for output sample k takes the input held at sample k - input_delay
     (`monitor.pipeline.samples`); `input_window`: an input frame received less than this
     share of a period before an output frame is held from the next sample on (the same
-    module, rule 1); `adaptive_noise`: the estimator learns output noise above
-    R from its innovations over `noise_window_s` (`monitor.estimation.fuzzy_ukf`, step 5b);
-    `bias`: the estimator's bias states for a load or an offset the model lacks ("auto",
-    "none", "input", "output"; `monitor.estimation.fuzzy_ukf`, step 8); `friction`: a
-    state_space model's Coulomb friction (`FrictionSpec`), None without."""
+    module, rule 1); `adaptive_noise`: the estimator learns output and process noise above
+    R and Q from its innovations over `noise_window_s` (`monitor.estimation.kernel`, steps
+    5b and 5c); `bias`: the estimator's bias states for a load or an offset the model
+    lacks ("auto", "none", "input", "output"; `monitor.estimation.fuzzy_ukf`, step 8);
+    `friction`: a state_space model's Coulomb friction (`FrictionSpec`), None without."""
 
     kind: ModelKind = "dc_motor"
     motor: Mapping[str, float] = field(default_factory=dict)  # J, b, Ke, Ki, Ra, La

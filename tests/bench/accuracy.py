@@ -87,6 +87,9 @@ def cases(quick: bool) -> list[Case]:
                       abrupt=True))
     c.append(Case(_sc("process-noise-x5", 10, [step(4.0, 0.4)], process=5.0), 100, 36,
                   abrupt=True))
+    # a minute of it on a healthy motor: what a process noise above the model's does
+    # between faults (the estimator's adaptive process noise, step 5c of its kernel)
+    c.append(Case(_sc("process-noise-x5-healthy", 60, [], process=5.0), 100, 39))
     c.append(Case(_sc("La0-abrupt", 10, [step(4.0, 0.4)]), 100, 37, abrupt=True, la=0.0))
     c.append(Case(_sc("healthy-hour", 300.0 if quick else 3600.0, []), 100, 38))
     return c
