@@ -26,15 +26,18 @@ def test_unmodelled_offset_raises_the_flag_not_a_fault() -> None:
     assert health == ["fault_free"], events  # the diagnosis stays: no fault alarm
     flags = [(e.model_mismatch, e.cause, e.state, round(e.t - T0, 1)) for e in events
              if e.kind == MODEL_MISMATCH]
-    assert len(flags) == 1 and flags[0][:3] == (True, "nis", "fault_free"), flags
+    # it rises beside fault_free; the adaptive noise (the estimator's steps 5b and 5c) may
+    # later learn what the state's pull towards the offset leaves in the innovations as
+    # noise and let it fall, seconds on: the bias states, the default, take the offset
+    assert flags and flags[0][:3] == (True, "nis", "fault_free"), flags
     assert 5.0 < flags[0][3] < 12.0, flags
+    assert len(flags) == 1 or flags[1][3] - flags[0][3] > 5.0, flags
     # ... and the bus hears it: ModelMismatch 1 beside HealthState fault_free (0)
     raw = [db.decode_can(m).raw for m in sent]  # type: ignore[union-attr]
     pairs = {(int(r["HealthState"]), int(r["ModelMismatch"])) for r in raw}
     assert (HealthState.FAULT_FREE, 1) in pairs, pairs  # (no_data, 0) before the first sample
     assert pairs <= {(HealthState.FAULT_FREE, 0), (HealthState.FAULT_FREE, 1),
                      (HealthState.NO_DATA, 0)}, pairs
-    assert int(raw[-1]["ModelMismatch"]) == 1
 
 
 def test_a_fitting_model_is_never_flagged() -> None:
