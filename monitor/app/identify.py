@@ -67,12 +67,7 @@ from monitor.identify import (
     validate,
 )
 from monitor.identify.core import MAX_ORDER
-from monitor.identify.errors import (
-    GrowingModeError,
-    LevelAmbiguityError,
-    PlantChangeError,
-    SlowModeError,
-)
+from monitor.identify.errors import GrowingModeError, PlantChangeError, SlowModeError
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import nothing_decoded
 from monitor.pipeline.samples import HeldInputs, held_at, input_window_of
@@ -477,12 +472,6 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             return
         try:
             probe = fit(args.order, friction=motion, delay=ident.input_delay)
-        except LevelAmbiguityError as exc:
-            ident.report["friction_probe"] = {
-                "refused": one_line(exc),
-                "level_ambiguity_noise_units": exc.error_noise_units
-                if math.isfinite(exc.error_noise_units) else None}
-            return
         except IdentifyError as exc:
             ident.report["friction_probe"] = {"refused": one_line(exc)}
             return

@@ -44,7 +44,6 @@ from monitor.bus.logfile import read_log
 from monitor.diagnosis import HealthState, MismatchDetector
 from monitor.estimation.friction import coulomb, friction_code, speed_row
 from monitor.identify import validate as V
-from monitor.identify.core import LIMIT_NOISE
 from monitor.identify.excitation import RECORDING_ADVICE
 from monitor.identify.friction import filtered_states
 from monitor.identify.lti import kalman, predict
@@ -608,25 +607,8 @@ def _friction_check(report: Mapping[str, Any], levels: float) -> list[Check]:
     """Where the input took two levels and the friction's refit is known (the model's own
     or its probe's): whether the friction it shows (FRICTION_SHOWN) is small enough that
     the levels' single share of it does not matter (`FRICTION_TWO_LEVELS_NOISE`); its
-    value is the friction's size where the capture shows it, else 0; no check otherwise.
-    Where the probe was refused because it shows an offset between the two levels
-    (`LevelAmbiguityError`: a limit, friction or a sensor offset, which two levels cannot
-    tell apart), the linear model is as ambiguous, having taken that offset into its gain:
-    a failed `level_ambiguity` (the rig zoo's seed 37, a speed with friction and a limit
-    whose linear model through zero passed every other check and then raised false alarms
-    at other levels)."""
-    probe = report.get("friction_probe") or {}
-    if levels == 2 and "level_ambiguity_noise_units" in probe:
-        error = probe["level_ambiguity_noise_units"]
-        return [Check(
-            "level_ambiguity", False, error, LIMIT_NOISE,
-            "a refit with friction shows an offset between the input's two levels that the "
-            "linear model took into its gain: an actuator limit at the larger level, "
-            "friction or a sensor offset, which two levels cannot tell apart (up to "
-            f"{'?' if error is None else f'{error:.2g}'} noise units wrong at other "
-            "levels); record steps between several levels (random steps or a multi-level "
-            "PRBS) inside the actuator's range", gating=True)]
-    friction = report.get("friction") or probe
+    value is the friction's size where the capture shows it, else 0; no check otherwise."""
+    friction = report.get("friction") or report.get("friction_probe") or {}
     size, cut = friction.get("response_noise_units"), friction.get("holdout_error_cut")
     if levels != 2 or size is None or cut is None:
         return []

@@ -33,7 +33,6 @@ from monitor.identify.delay import MAX_ESTIMATED_DELAY, estimate_input_delay
 from monitor.identify.errors import (
     GrowingModeError,
     IdentifyError,
-    LevelAmbiguityError,
     PlantChangeError,
     SlowModeError,
 )
@@ -987,12 +986,12 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                                  ev["dc_gain"])
     if ambiguous is not None and ambiguous[3]:
         _, a, b, _ = ambiguous
-        raise LevelAmbiguityError(
+        raise IdentifyError(
             f"the input took two levels alone ({a:.4g} and {b:.4g}) and the output does not "
             "settle at a level the input sets (a speed held by a spring?): every change is "
             "a step of one size, and nothing in the capture tells an actuator limit at the "
             "larger level from a smaller gain; record steps between several levels (random "
-            "steps or a multi-level PRBS) inside the actuator's range", math.inf)
+            "steps or a multi-level PRBS) inside the actuator's range")
     if ambiguous is not None and ambiguous[0] > LIMIT_NOISE:
         # a limit at the larger level of two looks like a smaller gain plus an offset (the
         # rig zoo's seed 200: fit 98 %, fresh runs at other levels with the mismatch flag
@@ -1000,12 +999,12 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         # apart, a friction's refit neither (its constant is the offset): said before a
         # growing mode, which is one way a fit carries it
         worst, a, b, _ = ambiguous
-        raise LevelAmbiguityError(
+        raise IdentifyError(
             f"the input took two levels alone ({a:.4g} and {b:.4g}) and the output's levels "
             f"are not in their ratio: an actuator limit at the larger, friction or a sensor "
             f"offset, which two levels cannot tell apart (up to {worst:.2g} noise units "
             "wrong at other levels); record steps between several levels (random steps or "
-            "a multi-level PRBS) inside the actuator's range", worst)
+            "a multi-level PRBS) inside the actuator's range")
     grown = _growing_input_share(cand.model.discretize(T), u, y, T, ntr * T)
     if grown is not None and grown[1] > MAX_GROWING_SHARE:
         # After the refusals of a plant that changes within the capture: its fit can

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from monitor.errors import MonitorError
 
-__all__ = ["GrowingModeError", "IdentifyError", "LevelAmbiguityError", "PlantChangeError",
-           "SlowModeError"]
+__all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError", "SlowModeError"]
 
 
 class IdentifyError(MonitorError, ValueError):
@@ -31,17 +30,3 @@ class SlowModeError(IdentifyError):
     (`monitor.identify.core`): a plant that needs a longer capture, or a load that steps
     while the capture runs, which a linear fit explains with a slow mode (`identify`'s load
     refit answers that one)."""
-
-
-class LevelAmbiguityError(IdentifyError):
-    """A fit refused because the capture's input took two levels alone and the outputs show
-    what two levels cannot tell apart (`monitor.identify.core`, `_limit_ambiguity`): an
-    actuator limit at the larger level, friction or a sensor offset. A fact of the data,
-    not of one fit: where a refit that can carry an offset (the friction's) shows it, a
-    linear fit that took it into its gain is as ambiguous. `error_noise_units`: how far
-    wrong at other levels the model may be, in innovation standard deviations (infinite
-    where the capture is blind to a limit)."""
-
-    def __init__(self, message: str, error_noise_units: float) -> None:
-        super().__init__(message)
-        self.error_noise_units = error_noise_units
