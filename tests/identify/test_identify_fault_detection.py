@@ -45,8 +45,9 @@ def test_a_rig_whose_loss_the_noise_hides_is_refused(tmp_path: Path) -> None:
     assert all(checks[c]["passed"] for c in ("replay_fault_free", "replay_model_mismatch",
                                              "replay_mean_nis"))
     fd = report["fault_detection"]
-    assert fd["loss"] == pytest.approx(0.3) and fd["in_time"] < len(fd["delays_s"])
-    assert max(fd["snr"]) < 5.0
+    # the loss shows at no onset (each is held to a report within the replay that stays,
+    # and must show at one at least)
+    assert fd["loss"] == pytest.approx(0.3) and max(fd["snr"]) < 5.0 and fd["visible"] == 0
 
 
 def test_a_rig_whose_healthy_gamma_comes_near_the_threshold_is_refused(tmp_path: Path) -> None:
