@@ -152,7 +152,7 @@ class FuzzyUKFConfig:
         previous sample's. 4: a process noise five times the model's is learnt within
         about 10 s on the paper's motor at 100 Hz (a time constant of noise_window /
         (gain x ~0.08), the last factor how the innovations' correlation answers Q's
-        scale there), and a fitting model's scale wanders by about 20 % around 1.
+        scale there), and a fitting model's scale wanders between 1 and about 1.6.
     bias: slowly varying bias states beside the plant's (step 8 of the module docstring):
         "output" (an offset per output), "input" (a load or offset per actuator), "auto"
         (output where observable, else input, else none) or "none"
