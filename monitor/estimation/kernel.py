@@ -462,13 +462,17 @@ def fuzzy_ukf_step(
                     acc += A[r, c] * V[c, a]
             Vp[r, a] = acc
     # the process noise the innovations have shown: the plant's part of Q scaled by
-    # exp(qs) (step 5c), never below the model's; the bias states' random walk as it is
+    # exp(qs) (step 5c), never below the model's; the bias states' random walk as it is.
+    # The model's Q itself while nothing has been learnt (no copy on the common path)
     nx = centres.shape[0]
-    scale = math.exp(qs[0])
-    for r in range(n):
-        for c in range(n):
-            Qa[r, c] = Q[r, c] * scale if r < nx and c < nx else Q[r, c]
-    rep = ukf_predict(x, P, A, b, Qa, delta, wi, L, d, xp, Pp)
+    Qs = Q
+    if qs[0] > 0.0:
+        scale = math.exp(qs[0])
+        for r in range(n):
+            for c in range(n):
+                Qa[r, c] = Q[r, c] * scale if r < nx and c < nx else Q[r, c]
+        Qs = Qa
+    rep = ukf_predict(x, P, A, b, Qs, delta, wi, L, d, xp, Pp)
     for r in range(n):
         xtilde[r] = xp[r]  # fault-model state (52)
     # 3. measurement update (44)-(49) into (xq, Pq), with the output noise the innovations
