@@ -1036,7 +1036,7 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         need = V.MIN_TIME_CONSTANTS * tau / (1.0 - holdout)
         raise SlowModeError(
             f"capture too short for this plant (slowest time constant {tau:.3g} s): record "
-            f"at least {need:.3g} s with the input varying")
+            f"at least {need:.3g} s with the input varying", friction=friction_info)
     if fit_tr < V.MIN_FIT:
         raise IdentifyError(
             f"not exciting enough: the input moves the output too little against its noise "

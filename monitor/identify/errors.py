@@ -3,6 +3,8 @@ may answer."""
 
 from __future__ import annotations
 
+from typing import Any
+
 from monitor.errors import MonitorError
 
 __all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError", "SlowModeError"]
@@ -29,4 +31,10 @@ class SlowModeError(IdentifyError):
     """A fit refused because its slowest mode is too slow for the capture to span
     (`monitor.identify.core`): a plant that needs a longer capture, or a load that steps
     while the capture runs, which a linear fit explains with a slow mode (`identify`'s load
-    refit answers that one)."""
+    refit answers that one). `friction` is the report's "friction" entry of a fit with
+    Coulomb friction refused so: what the refit measured of the friction stands, the model
+    does not (`identify`'s friction probe weighs it)."""
+
+    def __init__(self, message: str, friction: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.friction = friction

@@ -9,6 +9,7 @@ from `identify(..., friction=...)`: on a simulated drive it finds the friction's
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -18,7 +19,8 @@ import pytest
 from monitor.app.identify_check import FRICTION_SHOWN, ReplayFigures, report_checks
 from monitor.identify import identify, prbs
 from monitor.rig import build_model, load_rig
-from tests.support.identify import identify_zoo_rig
+from tests.bench.rig_zoo import prepare
+from tests.support.identify import identify_zoo_rig, run_identify
 
 
 def test_a_position_with_friction_is_learned_with_it(tmp_path: Path) -> None:
@@ -123,3 +125,23 @@ def test_a_two_level_capture_of_a_friction_that_matters_is_refused(tmp_path: Pat
     assert res.returncode == 0, res.stdout + res.stderr
     assert report["friction_probe"]["response_noise_units"] < 10.0
     assert {c["check"]: c["passed"] for c in report["checks"]}["friction_two_levels"]
+
+
+def test_a_friction_probe_refused_for_a_slow_mode_still_weighs_the_friction(
+        tmp_path: Path) -> None:
+    """The rig zoo's seed 59 (a torque in, a free position out, Coulomb friction, a PRBS):
+    the friction's refit, probed because the input took two levels, fits a slow mode the
+    capture does not span and is refused for it; what it measured of the friction (about
+    950 noise units, most of the linear model's hold-out error) still stands, and
+    friction_two_levels refuses the rig. Left silent, the linear model passed every check
+    and a fresh run of random steps met the friction's other shares as 16 false alarms."""
+    prepare(59, tmp_path)  # as the zoo writes it: the DBC's scale spans its fresh runs too
+    res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
+                       cwd=tmp_path)
+    assert res.returncode == 1
+    last = res.stderr.strip().splitlines()[-1]
+    assert "friction_two_levels" in last and "several levels" in last
+    report = json.loads((tmp_path / "learned.identify.json").read_text())
+    probe = report["friction_probe"]
+    assert "capture too short" in probe["refused"]
+    assert probe["response_noise_units"] > 10.0 and probe["holdout_error_cut"] > FRICTION_SHOWN
