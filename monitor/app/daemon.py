@@ -150,7 +150,8 @@ def serve(args: argparse.Namespace, stop: StopOnSignals, live: LiveBus,
         sinks.append(JournalSink())
     if args.metrics:
         try:
-            sinks.append(MetricsSink(args.metrics, bus=bus_stats, watch=watch))
+            sinks.append(MetricsSink(args.metrics, bus=bus_stats, watch=watch,
+                                     signals=outputs.plant_signals(rig)))
         except ValueError as exc:
             live.drop()
             raise UsageError(f"--metrics: {exc}") from None

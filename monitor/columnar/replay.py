@@ -350,6 +350,8 @@ class ColumnarEngine:
         gam = np.zeros((nA, m))
         gsd = np.zeros((nA, m))
         yest = np.zeros((nA, self.model.p))  # every output, for the samples file
+        onoise = np.zeros((nA, self.model.p))
+        pnoise = np.zeros(nA)
         nis = np.zeros(nA)
         rules = np.zeros(nA, np.int64)
         isnan = np.zeros(nA, np.bool_)
@@ -365,6 +367,8 @@ class ColumnarEngine:
             gam[i:j] = res.gamma[:res.count]
             gsd[i:j] = res.gamma_sd[:res.count]
             yest[i:j] = res.y_est[:res.count]
+            onoise[i:j] = res.output_noise[:res.count]
+            pnoise[i:j] = res.process_noise[:res.count]
             nis[i:j] = res.nis[:res.count]
             rules[i:j] = res.rules[:res.count]
             n_events += int(res.structure_event[:res.count].sum())
@@ -427,7 +431,8 @@ class ColumnarEngine:
                 true_gamma=np.where(got_t[oA], held_t[oA], np.nan)[good],
                 model_mismatch=mm_sample[good],
                 inputs=U[good], outputs=Y[good], predicted=yest[good], gammas=gam[good],
-                gamma_sd=gmax_sd[good]))
+                gamma_sd=gmax_sd[good], output_noise=onoise[good],
+                process_noise=pnoise[good]))
         # transitions and due diagnoses
         if not self.router.wants_diagnosis:
             ev[ev == 2] = 0

@@ -205,6 +205,12 @@ class EstimatorOutput:
     C x^ + D u (1 - gamma^). nis: normalised innovation squared.
     innovation: whitened innovation L^-1 nu (L L' = S_tot), per output. rules: rule count.
     bias: the estimated bias states (`FuzzyUKF.bias_plan`; empty without).
+    output_noise: per output, the output-noise variance the filter has adapted to (step 5b
+    of `monitor.estimation.kernel`, R + diag(rx)) as a multiple of the model's R_ii (1: the
+    model's noise fits, or R_ii is 0). process_noise: the factor on the plant's part of
+    the model's Q (step 5c; one entry; 1 to 100: far above 1, the model misses dynamics,
+    and the state takes up more of a loss of effectiveness, which gamma^ then shows less).
+    Both after the sample's adaptation: the noises the next sample is filtered with.
     """
 
     x_hat: Array
@@ -217,6 +223,8 @@ class EstimatorOutput:
     y_est: Array
     gamma_sd: Array = field(default_factory=lambda: np.zeros(0))
     bias: Array = field(default_factory=lambda: np.zeros(0))
+    output_noise: Array = field(default_factory=lambda: np.zeros(0))
+    process_noise: Array = field(default_factory=lambda: np.ones(1))
     nis: float = 0.0
     rules: int = 0
     structure_event: bool = False
@@ -338,6 +346,10 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         self._ebar_slow = out("ebar_slow")
         self._gamma_slow = out("gamma_slow")
         self._var_slow = out("var_slow")
+        # the model's noises until a sample has adapted them (the kernel writes the factors
+        # after every sample; a start from the first output runs no kernel)
+        out("output_noise")[:] = 1.0
+        out("process_noise")[:] = 1.0
         self.out = EstimatorOutput(
             x_hat=self.x[:nx],
             x_tilde=out("x_tilde")[:nx],
@@ -350,6 +362,8 @@ class FuzzyUKF(StructureLearning, ManyStepping):
             gamma_sd=out("gamma_sd"),
             rules=self.fuzzy.rule_count,
             bias=self.bias,
+            output_noise=out("output_noise"),
+            process_noise=out("process_noise"),
         )
         self._u = np.zeros(m)
         self._y = np.zeros(p)

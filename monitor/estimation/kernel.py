@@ -89,6 +89,10 @@ Liu, Bao, Xue, Du, Int. J. Fuzzy Systems 22(1), 2020):
    mostly measurement noise; the average follows a persistent discrepancy, which is what
    a fault makes.
 
+After the sample, OUT's `output_noise` ((R_ii + rx_i) / R_ii) and `process_noise`
+(exp(qs)) give the noises of steps 5b and 5c as factors on the model's, as the next sample
+uses them: 1 where the model's noises fit.
+
 Why the update is built this way (the object API, `monitor.estimation.fuzzy_ukf`, gives
 the failures on a stiff servo that led here; (a), (b), (g) are the structure event's,
 `monitor.estimation.structure`):
@@ -202,9 +206,9 @@ _STATE_END = STATE.base + len(STATE)
     "ebar_slow", "gamma_slow", "var_slow", "qs", "w_prev", "w_mean")
 _RING_END = RING.base + len(RING)
 (_O_GAMMA, _O_FAULT, _O_XTILDE, _O_XE, _O_YHAT, _O_INNOV, _O_STATS, _O_EBAR,
- _O_YEST, _O_GSD, _O_EBARS, _O_GBAR, _O_VSLOW) = OUT.at_each(
+ _O_YEST, _O_GSD, _O_EBARS, _O_GBAR, _O_VSLOW, _O_ONOISE, _O_PNOISE) = OUT.at_each(
     "gamma", "fault", "x_tilde", "x_e", "y_hat", "innovation", "stats", "ebar", "y_est",
-    "gamma_sd", "ebar_slow", "gamma_slow", "var_slow")
+    "gamma_sd", "ebar_slow", "gamma_slow", "var_slow", "output_noise", "process_noise")
 (_W_UF, _W_DG, _W_PG, _W_B, _W_D, _W_S, _W_XP, _W_XQ, _W_YOFF, _W_DY, _W_NU, _W_L, _W_IKC,
  _W_T1, _W_PP, _W_PQ, _W_LS, _W_PYY, _W_PYY_INV, _W_ST, _W_STI, _W_PXY, _W_K, _W_VP, _W_M,
  _W_RA, _W_WSLOW, _W_QA) = WORK.at_each(
@@ -330,6 +334,8 @@ def fuzzy_ukf_step(
     ebar_slow = _vec(out, lay, _O_EBARS, 0)
     gamma_slow = _vec(out, lay, _O_GBAR, 0)
     var_slow = _vec(out, lay, _O_VSLOW, 0)
+    onoise = _vec(out, lay, _O_ONOISE, 0)
+    pnoise = _vec(out, lay, _O_PNOISE, 0)
     uf = _vec(wk, lay, _W_UF, 0)
     dg = _vec(wk, lay, _W_DG, 0)
     pg = _vec(wk, lay, _W_PG, 0)
@@ -721,6 +727,12 @@ def fuzzy_ukf_step(
     stats[0] = nis
     stats[1] = stat
     stats[2] += rep
+    # the noises the next sample's filter uses (steps 5b, 5c), as factors on the model's:
+    # what a user reads of the adaptation (a process noise far above the model's: the
+    # model misses dynamics, and the state takes up more of a loss)
+    for r in range(p):
+        onoise[r] = (R[r, r] + rx[r]) / R[r, r] if R[r, r] > 0.0 else 1.0
+    pnoise[0] = math.exp(qs[0])
 
 
 @njit
@@ -729,7 +741,8 @@ def step_loop(
     st: Array, centres: Array, counts: IntArray, cons: Array, var: Array, rule_idx: IntArray,
     rule_w: Array, wk: Array, out: Array, lay: IntArray, n: int, m: int, p: int, max_mf: int,
     clock: Array, dwell: float, ring_len: int, start: int,
-    gamma_out: Array, yest_out: Array, nis_out: Array, gsd_out: Array,
+    gamma_out: Array, yest_out: Array, nis_out: Array, gsd_out: Array, onoise_out: Array,
+    pnoise_out: Array,
 ) -> int:
     """`fuzzy_ukf_step` -- eqs (50)-(54) around (15)-(49) -- for samples start, start + 1,
     ... of (U, Y, dts), in compiled code.
@@ -740,12 +753,16 @@ def step_loop(
     what `FuzzyUKF.step` passes. clock = [time, time of the last structure event, reason,
     steps]. Stops after the first sample that needs Python: the structure test (20) fired
     (clock[2] = 1; the onset search and re-processing are Python's) or gamma^ is NaN
-    (clock[2] = 2); returns the index after the last sample run.
+    (clock[2] = 2); returns the index after the last sample run. Row i of the ``*_out``
+    arrays is sample i's `OUT`: gamma^, y_est, the NIS, gamma_sd, output_noise and
+    process_noise.
     """
     o_gamma = lay[_O_GAMMA]
     o_stats = lay[_O_STATS]
     o_yest = lay[_O_YEST]
     o_gsd = lay[_O_GSD]
+    o_onoise = lay[_O_ONOISE]
+    o_pnoise = lay[_O_PNOISE]
     N = U.shape[0]
     clock[2] = 0.0
     for i in range(start, N):
@@ -767,6 +784,8 @@ def step_loop(
                 nan = True
         for r in range(p):
             yest_out[i, r] = out[o_yest + r]
+            onoise_out[i, r] = out[o_onoise + r]
+        pnoise_out[i] = out[o_pnoise]
         nis_out[i] = out[o_stats]
         if out[o_stats + 3] > 0.0:
             clock[2] = 1.0  # steps is counted by the caller, after the event (as step())

@@ -142,11 +142,15 @@ def _tables() -> tuple[Table, ...]:
         # average, 2: the slow one alone)]; gamma_sd: the standard deviation of gamma^ after
         # the sample (what the diagnosis weighs it by); ebar_slow: the slow average of the
         # innovation as gamma^'s slow average gamma_slow would have left it, and var_slow the
-        # long-run mean of its square
+        # long-run mean of its square; output_noise: each output's noise variance as the
+        # filter adapted it, a multiple of the model's, (R_ii + rx_i) / R_ii (1 where R_ii is
+        # 0); process_noise: the factor exp(qs) on the plant's part of Q. Both after the
+        # sample's adaptation (steps 5b, 5c): the noises the next sample's filter uses
         ("OUT", [("gamma", "m"), ("fault", "n"), ("x_tilde", "n"), ("x_e", "n"),
                  ("y_hat", "p"), ("innovation", "p"), ("stats", "4"), ("ebar", "p"),
                  ("y_est", "p"), ("gamma_sd", "m"), ("ebar_slow", "p"),
-                 ("gamma_slow", "m"), ("var_slow", "p")]),
+                 ("gamma_slow", "m"), ("var_slow", "p"), ("output_noise", "p"),
+                 ("process_noise", "1")]),
         ("WORK", [("uf", "m"), ("dg", "m"), ("pg", "m"), ("b", "n"), ("xq", "n"),
                   ("yoff", "p"), ("nu", "p"), ("Pq", "n", "n"), ("St", "p", "p"),
                   ("Sti", "p", "p"), ("Vp", "n", "m"), ("M", "p", "m"), ("Ra", "p", "p"),
@@ -179,10 +183,11 @@ def offsets(n: int, m: int, p: int) -> IntArray:
 
 
 # What the buffers mean beyond their fields' order and sizes (bump it when that changes:
-# 9 added the adaptive process noise; 8 added the structure test's slow average and its
-# stats[3] = 2; 7 added the FRICTION table after the model block; 6, the layout of these
-# tables; 5 added the bias states after the plant's in x, P, V, z).
-_SEMANTICS = 9
+# 10 added OUT's output_noise and process_noise, the adapted noises as factors on the
+# model's; 9 added the adaptive process noise; 8 added the structure test's slow average
+# and its stats[3] = 2; 7 added the FRICTION table after the model block; 6, the layout of
+# these tables; 5 added the bias states after the plant's in x, P, V, z).
+_SEMANTICS = 10
 
 
 

@@ -23,8 +23,9 @@ class ManySteps:
     """What `step_many` ran: samples [0, count) of its input, per sample gamma^ (count, m)
     and its standard deviation gamma_sd (count, m), the output estimate y_est (count, p),
     the NIS, the rule count after the sample and whether a structure-learning event
-    followed it. `stopped_on_nan`: sample count - 1 gave a NaN gamma^ (the caller restarts
-    the estimator, as the pipeline does)."""
+    followed it, the adapted noise factors output_noise (count, p) and process_noise
+    (count,) (`EstimatorOutput`). `stopped_on_nan`: sample count - 1 gave a NaN gamma^ (the
+    caller restarts the estimator, as the pipeline does)."""
 
     count: int
     gamma: Array
@@ -34,6 +35,8 @@ class ManySteps:
     structure_event: NDArray[np.bool_]
     stopped_on_nan: bool
     gamma_sd: Array
+    output_noise: Array
+    process_noise: Array
 
 
 class ManyStepping(FilterState):
@@ -57,9 +60,12 @@ class ManyStepping(FilterState):
         nis = np.zeros(N)
         rules = np.zeros(N, np.int64)
         event = np.zeros(N, np.bool_)
+        output_noise = np.zeros((N, p))
+        process_noise = np.zeros(N)
 
         def ran(count: int, stopped_on_nan: bool) -> ManySteps:
-            return ManySteps(count, gamma, y_est, nis, rules, event, stopped_on_nan, gamma_sd)
+            return ManySteps(count, gamma, y_est, nis, rules, event, stopped_on_nan, gamma_sd,
+                             output_noise, process_noise)
 
         def record(i: int, nis_i: float) -> bool:
             """Row i from `self.out` (what `step` left); whether its gamma^ is NaN."""
@@ -67,6 +73,8 @@ class ManyStepping(FilterState):
             gamma[i] = out.gamma
             gamma_sd[i] = out.gamma_sd
             y_est[i] = out.y_est
+            output_noise[i] = out.output_noise
+            process_noise[i] = out.process_noise[0]
             nis[i] = nis_i
             rules[i] = out.rules
             return bool(out.gamma.max() != out.gamma.max())
@@ -112,7 +120,7 @@ class ManyStepping(FilterState):
             i = step_loop(blocks, coefs, bidx, dts, U, Y, self._prm, self._st, fz.centres,
                           fz.counts, fz.cons, fz.var, fz.rule_idx, fz.rule_w, self._wk, self._out,
                           self._lay, n, m, p, fz.max_mf, clock, cfg.dwell, self._ring_len, start,
-                          gamma, y_est, nis, gamma_sd)
+                          gamma, y_est, nis, gamma_sd, output_noise, process_noise)
             rules[start:i] = self.out.rules
             self._time = float(clock[0])
             self.out.structure_event = False

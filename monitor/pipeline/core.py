@@ -471,7 +471,9 @@ class MonitorPipeline:
                                    nm.truth_gamma, bool(diag[rules.FLAGGED] != 0.0),
                                    inputs=tuple(u.tolist()), outputs=tuple(y.tolist()),
                                    predicted=tuple(out.y_est.tolist()),
-                                   gammas=tuple(out.gamma.tolist()), gamma_sd=g_sd))
+                                   gammas=tuple(out.gamma.tolist()), gamma_sd=g_sd,
+                                   output_noise=tuple(out.output_noise.tolist()),
+                                   process_noise=float(out.process_noise[0])))
         if self.counters_due(t):
             self.emit_counters(t)
 

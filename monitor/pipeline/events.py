@@ -61,7 +61,10 @@ class Sample:
     (gamma^ per input, 0 for a known one) carry every signal of a multi-input
     multi-output rig, in the rig's order, for the samples file (empty where a producer
     fills none); `gamma_sd` is the standard deviation of `gamma` (NaN: none), which the
-    diagnosis weighs an alarm by (`monitor.diagnosis.rules.cls_update`)."""
+    diagnosis weighs an alarm by (`monitor.diagnosis.rules.cls_update`). `output_noise`
+    (per output, in the rig's order; empty: none) and `process_noise` (NaN: none) are the
+    noises the estimator has adapted to after the sample, as factors on its model's
+    (`EstimatorOutput.output_noise`, `.process_noise`): 1 where the model's noise fits."""
 
     node: int
     t: float
@@ -78,6 +81,8 @@ class Sample:
     predicted: tuple[float, ...] = ()
     gammas: tuple[float, ...] = ()
     gamma_sd: float = math.nan
+    output_noise: tuple[float, ...] = ()
+    process_noise: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,8 +234,9 @@ _STATES = tuple(HealthState)
 @dataclass
 class SampleColumns:
     """A node's estimator samples, one row each (`Sample`'s fields as columns; true_gamma
-    NaN where none; `inputs`, `outputs`, `predicted` and `gammas` one row per sample and
-    one column per signal, None where a producer fills none)."""
+    NaN where none; `inputs`, `outputs`, `predicted`, `gammas` and `output_noise` one row
+    per sample and one column per signal, None where a producer fills none; so is
+    `process_noise`, one value per sample)."""
 
     t: NDArray[np.float64]
     measured: NDArray[np.float64]
@@ -246,6 +252,8 @@ class SampleColumns:
     predicted: NDArray[np.float64] | None = None
     gammas: NDArray[np.float64] | None = None
     gamma_sd: NDArray[np.float64] | None = None
+    output_noise: NDArray[np.float64] | None = None
+    process_noise: NDArray[np.float64] | None = None
 
     def rows(self, node: int) -> list[Sample]:
         tg = self.true_gamma
@@ -255,13 +263,14 @@ class SampleColumns:
         def per_row(a: NDArray[np.float64] | None) -> list[tuple[float, ...]]:
             return [()] * n if a is None else [tuple(r) for r in a.tolist()]
 
-        u, y, yh, gs = (per_row(a) for a in (self.inputs, self.outputs, self.predicted,
-                                             self.gammas))
+        u, y, yh, gs, on = (per_row(a) for a in (self.inputs, self.outputs, self.predicted,
+                                                 self.gammas, self.output_noise))
         sd = [math.nan] * n if self.gamma_sd is None else self.gamma_sd.tolist()
+        pn = [math.nan] * n if self.process_noise is None else self.process_noise.tolist()
         return [Sample(node, float(self.t[i]), float(self.measured[i]),
                        float(self.estimated[i]), float(self.gamma[i]), int(self.rules[i]),
                        _STATES[int(self.state[i])], float(self.nis[i]),
                        None if tg[i] != tg[i] else float(tg[i]), bool(mm[i]),
                        inputs=u[i], outputs=y[i], predicted=yh[i], gammas=gs[i],
-                       gamma_sd=sd[i])
+                       gamma_sd=sd[i], output_noise=on[i], process_noise=pn[i])
                 for i in range(n)]

@@ -44,10 +44,16 @@ class NodeColumns:
         "n",
         "nis",
         "node",
+        "noise_paths",
         "out_paths",
+        "output_noise",
         "path",
+        "process_noise",
         "rules",
         "runs",
+        "slow",
+        "slow_last_t",
+        "slow_sent_t",
         "t",
         "true_gamma",
         "true_styled",
@@ -61,6 +67,8 @@ class NodeColumns:
             (node_path(node, f"{o}/measured"), node_path(node, f"{o}/estimated"))
             for o in outputs]
         """(measured, estimated) entity of each output."""
+        self.noise_paths: list[str] = [node_path(node, f"{o}/noise") for o in outputs]
+        """The entity of each output's noise factor."""
         self.n = 0
         self.t: Array = np.zeros(batch_size)
         # one row per output; NaN where a producer gives only the first output
@@ -74,8 +82,22 @@ class NodeColumns:
         self.health: Array = np.zeros(batch_size)
         self.mismatch: Array = np.zeros(batch_size)
         self.nis: Array = np.zeros(batch_size)
+        # the noise factors the estimator adapted (one row per output); NaN where a
+        # producer gives none
+        self.output_noise: Array = np.zeros((len(outputs), batch_size))
+        self.process_noise: Array = np.zeros(batch_size)
         self.runs = RunThinner()
         """The run thinning of the node's piecewise-constant series (`RUNS`)."""
+        self.slow_last_t = -math.inf
+        """The time of the last sample sent to the file (-inf: none yet), where the slowly
+        varying series' next bin starts from (`monitor.sinks.runs.bin_starts`)."""
+        self.slow: list[tuple[Array, Array, Array]] = []
+        """The slowly varying series' rows not yet sent, batch by batch: (times, output
+        noise factors (one row per output), process noise factors). Held back so that they
+        go at most once a second (`monitor.sinks.runs.RUN_TAIL_S`), one chunk per series,
+        not one per flush: a chunk's framing costs far more than its few rows."""
+        self.slow_sent_t = -math.inf
+        """The time of the last slow row sent."""
         self.true_styled = False
         self.inputs: dict[int, InputColumns] = {}
         """Each input's buffer, by its index (one beyond the names given from its first
@@ -110,7 +132,8 @@ def put_outputs(dst: Array, first: float, values: Sequence[float]) -> None:
         dst[1:] = math.nan
 
 
-def put_output_columns(dst: Array, first: Array, values: Array | None, rows: slice) -> None:
+def put_output_columns(dst: Array, first: Array | float, values: Array | None,
+                       rows: slice) -> None:
     """`put_outputs` for a slice of samples: `values` (one column per output) where given,
     else `first`."""
     if values is not None and values.shape[1]:

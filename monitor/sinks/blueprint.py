@@ -7,6 +7,9 @@ signal names, `PlantSignals`: ``ArmatureCurrent`` and ``VoltageCommand`` on our 
 
     /node/<n>/<Output>/measured   Scalars   each output as measured
     /node/<n>/<Output>/estimated  Scalars   its UKF estimate
+    /node/<n>/<Output>/noise      Scalars   its noise variance as the estimator has adapted
+                                            it, a factor on the model's (1: the model's noise
+                                            fits; above: the sensor is noisier than it says)
     /node/<n>/gamma/estimate      Scalars   actuator loss of effectiveness gamma^
     /node/<n>/gamma/sd            Scalars   gamma^'s standard deviation (of the largest gamma^
                                             where several inputs may lose effectiveness: the
@@ -18,6 +21,9 @@ signal names, `PlantSignals`: ``ArmatureCurrent`` and ``VoltageCommand`` on our 
     /node/<n>/health              Scalars   health state 0..3 (step line)
     /node/<n>/model_mismatch      Scalars   model-mismatch flag 0/1, beside the state (step line)
     /node/<n>/nis                 Scalars   normalised innovation squared
+    /node/<n>/process_noise       Scalars   the factor the estimator puts on the model's
+                                            process noise (1 to 100; far above 1: the model
+                                            misses dynamics, a loss shows less in gamma^)
     /node/<n>/<Input>             Scalars   each input as its frames carry it (own rate, own
                                             buffer)
     /node/<n>/events              TextLog   state transitions etc.
@@ -42,9 +48,9 @@ import rerun_bindings
 
 from monitor.pipeline.events import PlantSignals
 
-__all__ = ["BUS_EVENTS_PATH", "ESTIMATED_COLOR", "INPUT_COLOR", "MEASURED_COLOR", "STYLES",
-           "BlueprintSender", "counter_path", "default_blueprint", "node_path", "series_style",
-           "signal_legend", "signal_parts"]
+__all__ = ["BUS_EVENTS_PATH", "ESTIMATED_COLOR", "INPUT_COLOR", "MEASURED_COLOR", "NOISE_COLOR",
+           "STYLES", "BlueprintSender", "counter_path", "default_blueprint", "node_path",
+           "series_style", "signal_legend", "signal_parts"]
 
 _log = logging.getLogger(__name__)
 
@@ -64,6 +70,7 @@ STYLES: Final[tuple[tuple[str, str, Color, float, bool], ...]] = (
     ("health", "health state (0..3)", (23, 190, 207), 2.0, True),
     ("model_mismatch", "model mismatch", (227, 119, 194), 2.0, True),
     ("nis", "NIS", (127, 127, 127), 1.0, False),
+    ("process_noise", "process noise factor", (196, 156, 148), 1.5, False),
 )
 MEASURED_COLOR: Final[Color] = (120, 144, 156)
 """An output as measured (line width 1)."""
@@ -71,6 +78,8 @@ ESTIMATED_COLOR: Final[Color] = (255, 127, 14)
 """An output's estimate (line width 1.5)."""
 INPUT_COLOR: Final[Color] = (188, 189, 34)
 """An input (line width 1)."""
+NOISE_COLOR: Final[Color] = (255, 187, 120)
+"""An output's noise factor (line width 1): a light shade of the estimate's colour."""
 COUNTER_COLOR: Final[Color] = (140, 86, 75)
 
 _RESERVED: Final = frozenset(s[0].split("/")[0] for s in STYLES) | {"events"}
@@ -137,10 +146,12 @@ BUS_EVENTS_PATH = "/monitor/events"
 def default_blueprint(nodes: Sequence[int],
                       signals: PlantSignals | None = None) -> rrb.Blueprint:
     """One tab per node (each output measured vs estimated, gamma^ vs thresholds, rules,
-    health, model mismatch, NIS, each input, events) and one tab with the daemon counters;
-    the signals named as `signals` (default: our bus's) name them. The gamma view shows
-    every series under ``gamma/`` (its contents are its origin's subtree): gamma^, the true
-    gamma, the thresholds, and gamma^'s standard deviation, thin and in a light shade of
+    health, model mismatch, NIS, the noise factors, each input, events) and one tab with
+    the daemon counters; the signals named as `signals` (default: our bus's) name them. An
+    output's view shows its measured and estimated series only: its noise factor, a ratio
+    near 1, is drawn with the process noise's factor in a view of their own. The gamma view
+    shows every series under ``gamma/`` (its contents are its origin's subtree): gamma^, the
+    true gamma, the thresholds, and gamma^'s standard deviation, thin and in a light shade of
     gamma^'s colour so that it reads as gamma^'s spread, not as another threshold."""
     sig = signals if signals is not None else PlantSignals()
     ins, outs = signal_parts(sig)
@@ -148,8 +159,13 @@ def default_blueprint(nodes: Sequence[int],
     for n in nodes:
         m = f"/node/{n}"
         out_views = [rrb.TimeSeriesView(origin=f"{m}/{part}",
+                                        contents=["$origin/measured", "$origin/estimated"],
                                         name=f"{sig.output(j)[0]}: measured vs estimated")
                      for j, part in enumerate(outs)]
+        noise_view = rrb.TimeSeriesView(
+            origin=m, contents=[*(f"$origin/{part}/noise" for part in outs),
+                                "$origin/process_noise"],
+            name="noise factors (1: the model's)")
         in_views = [rrb.TimeSeriesView(origin=f"{m}/{part}", name=signal_legend(sig.input(i)))
                     for i, part in enumerate(ins)]
         tabs.append(
@@ -175,6 +191,7 @@ def default_blueprint(nodes: Sequence[int],
                         # spike of 1000 would otherwise flatten the whole plot
                         axis_y=rrb.ScalarAxis(range=(0.0, 20.0), zoom_lock=False),
                     ),
+                    noise_view,
                     *in_views,
                 ),
                 rrb.TextLogView(origin=f"{m}/events", name="events"),

@@ -25,8 +25,9 @@ which `sweep` removes.
 never waits for it: `RotatingRerunSink` hands it every file it closes.
 
 Cost (``python -m tests.bench.recording_size``, one 100 Hz node, an hour in one file, on a
-2-core machine): 337 MB flushed every 0.1 s become 44 MB in 27 s; 83 MB flushed every 2 s
-become 43 MB in 2.4 s; the optimiser's peak resident memory was 0.78 GB.
+2-core machine): 347 MB flushed every 0.1 s become 45 MB, 88 MB flushed every 2 s 45 MB
+too, in 27 s and 2.4 s on an idle machine (ten times that beside other work); the
+optimiser's peak resident memory was 0.69-0.78 GB.
 """
 
 from __future__ import annotations

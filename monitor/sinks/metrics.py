@@ -2,9 +2,9 @@
 node_exporter's textfile collector.
 
 `MetricsSink` keeps the latest figures it is handed (per node: health state, model-mismatch
-flag, gamma^ and its standard deviation, the windowed NIS, estimation latency; the
-pipeline's counters; the bus statistics of `monitor.bus.stats.BusStats`) and every
-`period_s` writes them to a ``.prom`` file with
+flag, gamma^ and its standard deviation, the windowed NIS, the estimator's noise factors,
+estimation latency; the pipeline's counters; the bus statistics of
+`monitor.bus.stats.BusStats`) and every `period_s` writes them to a ``.prom`` file with
 `prometheus_client.write_to_textfile` (a temporary file renamed over the old one, so
 node_exporter never reads half a file and the hardened unit needs no IP socket). The
 exposition is prometheus_client's; the names:
@@ -16,6 +16,16 @@ exposition is prometheus_client's; the names:
     motor_monitor_node_gamma_sd{node}              its standard deviation (what the
                                                    diagnosis may weigh it by)
     motor_monitor_node_nis{node}                   windowed NIS (p when the model fits)
+    motor_monitor_node_output_noise_factor{node,output}
+                                                   the output's noise variance as the
+                                                   estimator has adapted it, a factor on the
+                                                   model's (1: the model's noise fits; above:
+                                                   the sensor is noisier than it says);
+                                                   output: the rig's signal name
+    motor_monitor_node_process_noise_factor{node}  the factor the estimator puts on the
+                                                   model's process noise (1 to 100; far
+                                                   above 1: the model misses dynamics, and
+                                                   a loss shows less in gamma^)
     motor_monitor_node_samples_total{node}         from 0, for every node asked for (--nodes)
     motor_monitor_nothing_decoded                  1 while no sample was decoded (of a node
                                                    asked for, or of any node) since the
@@ -54,7 +64,7 @@ from monitor.bus.stats import BusStats
 from monitor.files import PeriodicWrite
 from monitor.pipeline import counters as C
 from monitor.pipeline.counters import DecodeWatch
-from monitor.pipeline.events import Sample
+from monitor.pipeline.events import PlantSignals, Sample
 from monitor.sinks.base import Sink
 
 __all__ = ["MetricsSink"]
@@ -68,9 +78,11 @@ class _Figures(Collector):
     """The latest figures, as metric families at collect time (counters mirrored, not
     re-counted: the pipeline's counters are the one source)."""
 
-    def __init__(self, bus: BusStats | None, watch: DecodeWatch | None) -> None:
+    def __init__(self, bus: BusStats | None, watch: DecodeWatch | None,
+                 signals: PlantSignals) -> None:
         self.bus = bus
         self.watch = watch
+        self.signals = signals
         self.counters: Mapping[str, int] = {}
         self.nodes: dict[int, Sample] = {}
         self.samples: dict[int, int] = {}
@@ -107,6 +119,14 @@ class _Figures(Collector):
                                      "estimated loss of effectiveness", labels=["node"])
         nis = GaugeMetricFamily(f"{PREFIX}_node_nis", "normalised innovation squared, "
                                 "windowed", labels=["node"])
+        output_noise = GaugeMetricFamily(
+            f"{PREFIX}_node_output_noise_factor", "the output's noise variance as the "
+            "estimator has adapted it, a factor on the model's (1: the model's noise fits)",
+            labels=["node", "output"])
+        process_noise = GaugeMetricFamily(
+            f"{PREFIX}_node_process_noise_factor", "the factor the estimator puts on the "
+            "model's process noise (1 to 100; far above 1: the model misses dynamics and a "
+            "loss shows less)", labels=["node"])
         samples = CounterMetricFamily(f"{PREFIX}_node_samples", "estimated samples",
                                       labels=["node"])
         for n, s in sorted(self.nodes.items()):
@@ -115,10 +135,13 @@ class _Figures(Collector):
             gamma.add_metric([str(n)], s.gamma)
             gamma_sd.add_metric([str(n)], s.gamma_sd)
             nis.add_metric([str(n)], self.nis.get(n, math.nan))
+            for j, factor in enumerate(s.output_noise):
+                output_noise.add_metric([str(n), self.signals.output(j)[0]], factor)
+            process_noise.add_metric([str(n)], s.process_noise)
         asked = self.watch.nodes if self.watch is not None and self.watch.nodes else ()
         for n in sorted({*self.nodes, *asked}):
             samples.add_metric([str(n)], float(self.samples.get(n, 0)))
-        yield from (state, mismatch, gamma, gamma_sd, nis, samples)
+        yield from (state, mismatch, gamma, gamma_sd, nis, output_noise, process_noise, samples)
         bus = self.bus
         if bus is None:
             return
@@ -147,11 +170,13 @@ class MetricsSink(Sink):
     """Writes the monitor's figures to `path` (a ``.prom`` file in node_exporter's textfile
     directory) every `period_s`, and at close. `live` measures estimation latency (frame
     timestamp to estimate, wall clock): off for replays. `watch`, the daemon's
-    `DecodeWatch`, gives `motor_monitor_nothing_decoded` and the nodes asked for."""
+    `DecodeWatch`, gives `motor_monitor_nothing_decoded` and the nodes asked for.
+    `signals` names the outputs in the ``output`` label (the rig's,
+    `monitor.setup.plant_signals`; default: our bus's)."""
 
     def __init__(self, path: str | Path, *, bus: BusStats | None = None,
                  period_s: float = 5.0, live: bool = True, nis_window_s: float = 2.0,
-                 watch: DecodeWatch | None = None) -> None:
+                 watch: DecodeWatch | None = None, signals: PlantSignals | None = None) -> None:
         self.path = Path(path)
         if self.path.suffix != ".prom":
             raise ValueError(f"{self.path}: node_exporter's textfile collector reads *.prom")
@@ -159,7 +184,8 @@ class MetricsSink(Sink):
             raise ValueError(f"{self.path.parent}: no such directory")
         self.live = live
         self.registry = CollectorRegistry(auto_describe=False)
-        self.figures = _Figures(bus, watch)
+        self.figures = _Figures(bus, watch,
+                                signals if signals is not None else PlantSignals())
         self.registry.register(self.figures)
         self.latency = Histogram(f"{PREFIX}_estimation_latency_seconds", "from a frame's "
                                  "timestamp to its estimate (wall clock)",

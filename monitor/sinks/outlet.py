@@ -71,12 +71,14 @@ class RecordingOutlet(Sink):
                    gamma_hat: float, rule_count: int, health: int, nis: float,
                    true_gamma: float | None = None, model_mismatch: bool = False, *,
                    outputs: Sequence[float] = (), predicted: Sequence[float] = (),
-                   gamma_sd: float = math.nan) -> None:
+                   gamma_sd: float = math.nan, output_noise: Sequence[float] = (),
+                   process_noise: float = math.nan) -> None:
         """Buffer one estimator sample (see `RerunSink.add_sample`)."""
         for o in self.outlets():
             o.add_sample(node, t, measured, estimated, gamma_hat, rule_count, health, nis,
                          true_gamma, model_mismatch, outputs=outputs, predicted=predicted,
-                         gamma_sd=gamma_sd)
+                         gamma_sd=gamma_sd, output_noise=output_noise,
+                         process_noise=process_noise)
 
     def add_input(self, node: int, t: float, value: float, index: int = 0) -> None:
         for o in self.outlets():
@@ -94,7 +96,8 @@ class RecordingOutlet(Sink):
         self.add_sample(sample.node, sample.t, sample.measured, sample.estimated, sample.gamma,
                         sample.rules, int(sample.state), sample.nis, sample.true_gamma,
                         sample.model_mismatch, outputs=sample.outputs,
-                        predicted=sample.predicted, gamma_sd=sample.gamma_sd)
+                        predicted=sample.predicted, gamma_sd=sample.gamma_sd,
+                        output_noise=sample.output_noise, process_noise=sample.process_noise)
 
     def on_input(self, sample: InputSample) -> None:
         self.add_input(sample.node, sample.t, sample.value, sample.index)

@@ -25,6 +25,7 @@ from monitor.sinks.blueprint import (
     ESTIMATED_COLOR,
     INPUT_COLOR,
     MEASURED_COLOR,
+    NOISE_COLOR,
     STYLES,
     BlueprintSender,
     counter_path,
@@ -35,7 +36,7 @@ from monitor.sinks.blueprint import (
     signal_parts,
 )
 from monitor.sinks.outlet import DEFAULT_FLUSH_INTERVAL_S, RecordingOutlet
-from monitor.sinks.runs import EXACT_LINE, RUNS
+from monitor.sinks.runs import EXACT_LINE, RUN_TAIL_S, RUNS, SLOW_ROW_S, bin_starts
 
 __all__ = ["DEFAULT_FLUSH_INTERVAL_S", "TIMELINE", "RecordingOptions", "RecordingSink"]
 
@@ -174,12 +175,16 @@ class RecordingSink(RecordingOutlet):
         outputs: Sequence[float] = (),
         predicted: Sequence[float] = (),
         gamma_sd: float = math.nan,
+        output_noise: Sequence[float] = (),
+        process_noise: float = math.nan,
     ) -> None:
         """Buffer one estimator sample of ``node`` at bus time ``t`` (epoch seconds):
         every output measured and estimated (`outputs`, `predicted`, in the order of the
         sink's ``signals``), or, where they are not given, the first one (`measured`,
         `estimated`; the others NaN); `gamma_sd` is gamma^'s standard deviation
-        (`Sample.gamma_sd`; NaN: none given)."""
+        (`Sample.gamma_sd`; NaN: none given); `output_noise` (per output, in the same
+        order) and `process_noise` the estimator's noise factors (`Sample.output_noise`,
+        `.process_noise`; NaN: none given)."""
         st = self._node_for(node)
         if st is None:
             return
@@ -191,6 +196,8 @@ class RecordingSink(RecordingOutlet):
             put_outputs(st.estimated[:, i], estimated, predicted)
             st.gamma[i] = gamma_hat
             st.gamma_sd[i] = gamma_sd
+            put_outputs(st.output_noise[:, i], math.nan, output_noise)
+            st.process_noise[i] = process_noise
             st.true_gamma[i] = math.nan if true_gamma is None else true_gamma
             st.rules[i] = rule_count
             st.health[i] = health
@@ -279,8 +286,8 @@ class RecordingSink(RecordingOutlet):
 
     def on_sample_columns(self, node: int, cols: SampleColumns) -> None:
         """A node's samples as columns (the columnar replay): `add_sample` a slice at a time,
-        into the same buffers, sent as the same chunks (gamma^'s standard deviation NaN where
-        the columns carry none)."""
+        into the same buffers, sent as the same chunks (gamma^'s standard deviation and the
+        noise factors NaN where the columns carry none)."""
         st = self._node_for(node)
         if st is None:
             return
@@ -291,6 +298,9 @@ class RecordingSink(RecordingOutlet):
             put_output_columns(st.estimated[:, dst], cols.estimated[src], cols.predicted, src)
             st.gamma[dst] = cols.gamma[src]
             st.gamma_sd[dst] = math.nan if cols.gamma_sd is None else cols.gamma_sd[src]
+            put_output_columns(st.output_noise[:, dst], math.nan, cols.output_noise, src)
+            st.process_noise[dst] = (math.nan if cols.process_noise is None
+                                     else cols.process_noise[src])
             st.true_gamma[dst] = cols.true_gamma[src]
             st.rules[dst] = cols.rules[src]
             st.health[dst] = cols.state[src]
@@ -396,6 +406,7 @@ class RecordingSink(RecordingOutlet):
         for st in self._nodes.values():
             st.true_styled = False
             st.runs.restart()  # the new file starts its runs anew
+            st.slow_last_t = -math.inf  # and its slow series' bins
             self._style_node(st)
         self._send_blueprint()
 
@@ -461,6 +472,9 @@ class RecordingSink(RecordingOutlet):
                                                     MEASURED_COLOR, 1.0, False))
             self._log_static(estimated, series_style(signal_legend(signal, "estimated"),
                                                      ESTIMATED_COLOR, 1.5, False))
+            # a ratio: the signal's name without its unit
+            self._log_static(st.noise_paths[j], series_style(
+                signal_legend((signal[0], None), "noise factor"), NOISE_COLOR, 1.0, False))
         for index, buf in st.inputs.items():
             self._style_input(buf, index)
 
@@ -506,6 +520,12 @@ class RecordingSink(RecordingOutlet):
             send(estimated, indexes=index, columns=scalars(scalars=st.estimated[j, :n]))
         send(path["gamma/estimate"], indexes=index, columns=scalars(scalars=st.gamma[:n]))
         send(path["gamma/sd"], indexes=index, columns=scalars(scalars=st.gamma_sd[:n]))
+        slow = bin_starts(t, st.slow_last_t, SLOW_ROW_S)
+        st.slow_last_t = float(t[-1])
+        if slow.any():
+            st.slow.append((t[slow], st.output_noise[:, :n][:, slow], st.process_noise[:n][slow]))
+        if st.slow and t[-1] - st.slow_sent_t >= RUN_TAIL_S:
+            self._send_slow(st)
         true_gamma = st.true_gamma[:n]
         given = ~np.isnan(true_gamma)
         if not st.true_styled and given.any():
@@ -535,10 +555,25 @@ class RecordingSink(RecordingOutlet):
             columns=rr.Scalars.columns(scalars=v),
         )
 
+    def _send_slow(self, st: NodeColumns) -> None:
+        """Send the slowly varying series' rows held back (`NodeColumns.slow`)."""
+        t = np.concatenate([b[0] for b in st.slow])
+        index = [rr.TimeColumn(TIMELINE, timestamp=t)]
+        output_noise = np.concatenate([b[1] for b in st.slow], axis=1)
+        for j, noise in enumerate(st.noise_paths):
+            self._rec.send_columns(noise, indexes=index,
+                                   columns=rr.Scalars.columns(scalars=output_noise[j]))
+        self._rec.send_columns(st.path["process_noise"], indexes=index, columns=rr.Scalars.columns(
+            scalars=np.concatenate([b[2] for b in st.slow])))
+        st.slow.clear()
+        st.slow_sent_t = float(t[-1])
+
     def _send_pending(self) -> None:
-        """Send the rows the run thinning held back, so the lines reach the end of the
-        data."""
+        """Send the rows the run thinning and the slow series held back, so the lines reach
+        the end of the data."""
         for st in self._nodes.values():
+            if st.slow:
+                self._send_slow(st)
             for suffix, t, v in st.runs.held():
                 self._send_rows(st, suffix, t, v)
 

@@ -19,10 +19,12 @@ change shows up as a step where it took effect.
 Piecewise-constant series (`RUNS`: the thresholds, the rule count, the health state, the
 model-mismatch flag, a simulator's true gamma) are recorded as their runs
 (`monitor.sinks.runs`: the rows that draw the line; `close` and `switch_file` send the one
-held back). All of them but the thresholds are rows of a sample: 4 of the 9 a sample fills on
-a one-output rig (each further output adds two, measured and estimated). The other 5 (the
-output measured and estimated, gamma^ and its standard deviation, NIS) keep every sample, and
-so do the inputs (own rate, own buffer).
+held back). All of them but the thresholds are rows of a sample: 4 of the 11 a sample fills on
+a one-output rig (each further output adds three: measured, estimated and its noise factor).
+The estimator's noise factors (each output's and the process noise's), which move over
+seconds, keep ten rows a second (`monitor.sinks.runs.bin_starts`). The other 5 (the output
+measured and estimated, gamma^ and its standard deviation, NIS) keep every sample, and so do
+the inputs (own rate, own buffer).
 
 All data goes on one timeline, ``time``: a timestamp timeline of the bus time in float seconds
 since the Unix epoch (CAN kernel time stamps), sent as ``rr.TimeColumn("time",
@@ -56,11 +58,12 @@ Arrow schema and metadata, LZ4-compressed like the rest of the message, and ~33 
 manifest); a row of a scalar costs 36 bytes before compression (16-byte row id, 8-byte time,
 8-byte float64 value, 4-byte list offset), ~16-24 after. One 100 Hz node (``python -m
 tests.bench.recording_size``, bytes per hour, against 38 MB for the candump ``.log`` of its
-frames and 12 MB for the ``.blf``): flushed every 0.1 s, 337 MB (framing, ~72 chunks/s); every
-2 s, which is sound when another record bounds what a kill may lose (``run --raw-dir``), 83 MB;
+frames and 12 MB for the ``.blf``): flushed every 0.1 s, 347 MB (framing, ~74 chunks/s); every
+2 s, which is sound when another record bounds what a kill may lose (``run --raw-dir``), 88 MB;
 compacted by ``rerun rrd optimize`` (`monitor.sinks.compact`: one chunk per entity and ~2 MiB),
-43-44 MB, the rows themselves (gamma^'s standard deviation, a full-rate series like gamma^,
-is 8-9 MB of it): `RotatingRerunSink` compacts every file it closes.
+45 MB, the rows themselves (gamma^'s standard deviation, a full-rate series like gamma^, is
+8-9 MB of it; the noise factors about 2 MB): `RotatingRerunSink` compacts every file it
+closes.
 
 Week-long runs: `monitor.sinks.rotation.RotatingRerunSink` writes a directory of ``.rrd``
 files; when the current one exceeds a size or an age it is finished (footer) and recording

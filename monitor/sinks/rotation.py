@@ -122,9 +122,9 @@ class RotatingRerunSink(RecordingOutlet):
     The defaults (64 MiB, 1 h, 48 files) bound the directory to ~3 GiB.
 
     Sizing (one 100 Hz node, ``python -m tests.bench.recording_size``): a flush every 0.1 s
-    makes ~72 chunks/s, ~0.34 GB/h; every 2 s ~11 chunks/s, ~83 MB/h; a compacted file ~44 MB
+    makes ~74 chunks/s, ~0.35 GB/h; every 2 s ~12 chunks/s, ~88 MB/h; a compacted file ~45 MB
     an hour. The SDK keeps ~0.3-0.45 kB of footer manifest in memory per chunk of the open
-    file (measured), which without rotation would grow by ~17 GB per node and week at 0.1 s.
+    file (measured), which without rotation would grow by ~18 GB per node and week at 0.1 s.
 
     Memory: one `RecordingStream` serves the whole run (the Python SDK never frees a
     `RecordingStream`'s threads, so a new one per file would leak them); only its `FileSink` is

@@ -10,12 +10,18 @@ that much before the others, on a value that had not changed). The line through 
 stepped or straight, is the line through every sample, the latest value at any time is the
 same, and the viewer draws them without its per-pixel averaging, which would slant a run's
 line between two changes (`EXACT_LINE`).
+
+Slowly varying series (the estimator's noise factors, ``<Output>/noise`` and
+``process_noise``, which move over its noise window, 2 s by default) keep the first row of
+every `SLOW_ROW_S` of bus time (`bin_starts`), sent at most once a second (`RUN_TAIL_S`, as
+the runs' tails): ten rows a second draw them, where every sample would grow a compacted
+recording by about a fifth per series, and a chunk per flush the live one by as much.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Final
+from typing import Any, Final
 
 import numpy as np
 import rerun as rr
@@ -23,12 +29,16 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["EXACT_LINE", "RUNS", "RUN_TAIL_S", "RunThinner", "run_ends"]
+__all__ = ["EXACT_LINE", "RUNS", "RUN_TAIL_S", "SLOW_ROW_S", "RunThinner", "bin_starts",
+           "run_ends"]
 
 RUNS: Final = ("gamma/true", "gamma/F1", "gamma/F2", "rules", "health", "model_mismatch")
 """Series that are piecewise constant by nature (the truth a simulator sends, the thresholds,
 the estimator's rule count, the health state and the model-mismatch flag): recorded as their
 runs (`run_ends`), drawn without the viewer's zoom-dependent aggregation (`EXACT_LINE`)."""
+
+SLOW_ROW_S: Final = 0.1
+"""A slowly varying series keeps one row per this much bus time (`bin_starts`)."""
 
 RUN_TAIL_S: Final = 1.0
 """A `RUNS` series sends a row that only continues its run at most this often."""
@@ -54,6 +64,19 @@ def run_ends(v: Array, previous: float = math.nan) -> NDArray[np.bool_]:
         same_before[1:] = v[1:] == v[:-1]
         same_after[:-1] = same_before[1:]
     return ~(same_before & same_after)
+
+
+def bin_starts(t: NDArray[np.floating[Any]], previous: float, width: float
+               ) -> NDArray[np.bool_]:
+    """Which rows of times `t` (ascending) open a new bin of `width` seconds of the time
+    axis (bins aligned on its zero), ``previous`` the time of the row before the first
+    (-inf: none, so the first row is kept): one row per bin, whatever the batches."""
+    b = np.floor(np.asarray(t, dtype=np.float64) / width)
+    before = np.empty_like(b)
+    if len(b):
+        before[0] = math.floor(previous / width) if math.isfinite(previous) else -math.inf
+        before[1:] = b[:-1]
+    return np.asarray(b != before)
 
 
 class RunThinner:

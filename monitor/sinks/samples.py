@@ -16,6 +16,12 @@ it as an attribute name; the unit, where there is one, is the name's last part:
   input's unit (what the diagnosis reports as `fault_input` for the worst one);
 * ``gamma_sd``: the standard deviation of the largest gamma^, the one the diagnosis reads
   (what `[diagnosis] significance` weighs an alarm by);
+* ``noise_<Output>``: each output's noise variance as the estimator has adapted it, a
+  multiple of the model's (1: the model's noise fits; above 1: the sensor is noisier than
+  the model says);
+* ``process_noise``: the factor the estimator has put on the model's process noise (1 to
+  100; far above 1: the model misses dynamics, and the estimator is less sensitive to a
+  loss);
 * ``nis``: the normalised innovation squared; ``state``: the reported health state
   (``fault_free``, ``fault``, ...); ``model_mismatch``: the model-mismatch flag beside it
   (Parquet: a boolean; CSV: 1 or 0).
@@ -115,7 +121,10 @@ class SampleTable:
                   self.inputs[j][0]) for j in self.fault_inputs]
         cols += [(self._name("f", *self.inputs[j]), pa.float64(), self.inputs[j][1],
                   self.inputs[j][0]) for j in self.fault_inputs]
-        cols += [("gamma_sd", pa.float64(), None, None),
+        cols += [("gamma_sd", pa.float64(), None, None)]
+        cols += [(self._name("noise", s, None), pa.float64(), None, s)
+                 for s, _ in self.outputs]
+        cols += [("process_noise", pa.float64(), None, None),
                  ("nis", pa.float64(), None, None), ("state", pa.string(), None, None),
                  ("model_mismatch", pa.bool_(), None, None)]
         seen: dict[str, int] = {}
@@ -235,7 +244,8 @@ class SamplesFileSink(Sink):
                 np.array([r.t for r in rs]), np.array([r.node for r in rs], np.int64),
                 _matrix([r.inputs for r in rs], m), _matrix([r.outputs for r in rs], p),
                 _matrix([r.predicted for r in rs], p), _matrix([r.gammas for r in rs], m),
-                np.array([r.gamma_sd for r in rs]), np.array([r.nis for r in rs]),
+                np.array([r.gamma_sd for r in rs]), _matrix([r.output_noise for r in rs], p),
+                np.array([r.process_noise for r in rs]), np.array([r.nis for r in rs]),
                 np.array([r.state.label for r in rs], dtype=object),
                 np.array([bool(getattr(r, "model_mismatch", False)) for r in rs]),
             ))
@@ -249,15 +259,18 @@ class SamplesFileSink(Sink):
             parts.append((
                 c.t, np.full(n, node, np.int64), full(c.inputs, m), full(c.outputs, p),
                 full(c.predicted, p), full(c.gammas, m),
-                np.full(n, np.nan) if c.gamma_sd is None else c.gamma_sd, c.nis,
+                np.full(n, np.nan) if c.gamma_sd is None else c.gamma_sd,
+                full(c.output_noise, p),
+                np.full(n, np.nan) if c.process_noise is None else c.process_noise, c.nis,
                 _STATE_LABELS[c.state],
                 np.zeros(n, np.bool_) if mm is None else np.asarray(mm, np.bool_),
             ))
-        t, nodes, u, y, yh, g, gsd, nis, state, flag = (np.concatenate(x)
-                                                        for x in zip(*parts, strict=True))
+        t, nodes, u, y, yh, g, gsd, on, pn, nis, state, flag = (
+            np.concatenate(x) for x in zip(*parts, strict=True))
         fi = list(self.table.fault_inputs)
         gf = g[:, fi]
-        return [t, nodes, *u.T, *y.T, *yh.T, *gf.T, *(gf * u[:, fi]).T, gsd, nis, state, flag]
+        return [t, nodes, *u.T, *y.T, *yh.T, *gf.T, *(gf * u[:, fi]).T, gsd, *on.T, pn, nis,
+                state, flag]
 
     def flush(self) -> None:
         """Write the buffered rows: one Parquet row group, or CSV lines."""

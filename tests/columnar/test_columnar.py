@@ -229,7 +229,8 @@ def test_rerun_sink_gets_the_same_columns(tmp_path: Path) -> None:
     from monitor.sinks.rerun import RerunSink
 
     path = write_log(tmp_path / "r.log", sim_frames("fault-outage-recovery"))
-    names = ("t", "measured", "estimated", "gamma", "gamma_sd", "rules", "health", "nis")
+    names = ("t", "measured", "estimated", "gamma", "gamma_sd", "rules", "health", "nis",
+             "output_noise", "process_noise")
 
     def spy(sink: RerunSink) -> dict[str, list[np.ndarray]]:
         rows: dict[str, list[np.ndarray]] = {k: [] for k in (*names, "tu", "u")}

@@ -6,7 +6,9 @@ flag stays up. With it (`FuzzyUKFConfig.adaptive_noise`, covariance matching on 
 innovations), the windowed NIS returns to the mismatch detector's band within seconds,
 gamma^ stays near 0, an abrupt 0.4 loss under that noise is still found by gamma^ (and
 moves the learnt noise little), and the compiled `step_many` gives the numbers of the
-per-frame `step`.
+per-frame `step`. What is learnt is reported per sample as factors on the model's noises
+(`EstimatorOutput.output_noise`, `.process_noise`): 1 until the noise shows, then the
+sensor's.
 """
 
 from __future__ import annotations
@@ -67,6 +69,12 @@ def test_noise_above_the_model_is_learnt(seed: int) -> None:
     assert not flag[run.t >= 15.0].any()
     # the learnt R is the sensor's (9x the model's) within 25 %
     assert est.noise_excess[0] + MODEL_R == pytest.approx(9.0 * MODEL_R, rel=0.25)
+    # and reported as a factor on the model's, per sample: the filter's R + rx over R after
+    # it, from 1 (the model's, before anything is learnt) up to near 9
+    assert res.output_noise[-1, 0] == pytest.approx((est.noise_excess[0] + MODEL_R) / MODEL_R,
+                                                    rel=1e-12)
+    assert res.output_noise[0, 0] == 1.0 and np.all(res.output_noise[:, 0] >= 1.0)
+    assert res.process_noise[-1] == pytest.approx(est.process_scale, rel=1e-12)
     # a healthy motor stays healthy
     assert float(np.abs(res.gamma[late, 0]).mean()) < 0.05
     assert float(res.gamma[late, 0].max()) < DEFAULT_THRESHOLDS.f1
@@ -123,10 +131,14 @@ def test_step_many_is_step_with_adaptive_noise(chunk: int) -> None:
     n = len(run.t)
     nis = np.empty(n)
     g = np.empty(n)
+    noise = np.empty(n)
+    process = np.empty(n)
     for k in range(n):
         out = a.step(run.u[k], run.y[k], T)
         nis[k] = out.nis
         g[k] = out.gamma[0]
+        noise[k] = out.output_noise[0]
+        process[k] = out.process_noise[0]
     dt = np.full(n, T)
     parts = [b.step_many(run.u[s:s + chunk], run.y[s:s + chunk], dt[s:s + chunk])
              for s in range(0, n, chunk)]
@@ -134,4 +146,8 @@ def test_step_many_is_step_with_adaptive_noise(chunk: int) -> None:
     assert a.noise_excess[0] > 0.0
     np.testing.assert_array_equal(np.concatenate([p.gamma[:, 0] for p in parts]), g)
     np.testing.assert_array_equal(np.concatenate([p.nis for p in parts]), nis)
+    # the noise factors as each sample left them, re-processed samples included
+    np.testing.assert_array_equal(np.concatenate([p.output_noise[:, 0] for p in parts]), noise)
+    np.testing.assert_array_equal(np.concatenate([p.process_noise for p in parts]), process)
+    assert noise[-1] > 2.0
     np.testing.assert_array_equal(a._st, b._st)

@@ -5,6 +5,7 @@ where no journald runs)."""
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 import subprocess
@@ -81,6 +82,16 @@ def test_metrics_file_parses_and_agrees_with_the_counters(tmp_path: Path) -> Non
     (sd,) = fams["motor_monitor_node_gamma_sd"].samples  # the last sample's, to the digit
     assert sd.labels == {"node": "0"}
     assert sd.value == float(pipe.nodes[0].estimator.out.gamma_sd[0]) > 0.0
+    # the estimator's noise factors after the last sample, to the digit: finite, >= 1 (on
+    # the model's), the output named as the rig names it
+    out = pipe.nodes[0].estimator.out
+    (noise,) = fams["motor_monitor_node_output_noise_factor"].samples
+    assert noise.labels == {"node": "0", "output": "ArmatureCurrent"}
+    assert noise.value == float(out.output_noise[0]) >= 1.0 and math.isfinite(noise.value)
+    (process,) = fams["motor_monitor_node_process_noise_factor"].samples
+    assert process.labels == {"node": "0"}
+    assert process.value == float(out.process_noise[0]) >= 1.0
+    assert math.isfinite(process.value)
     ids = {s.labels["id"]: s.value for s in fams["motor_monitor_id_period_seconds"].samples}
     assert ids["0x110"] == pytest.approx(0.01, rel=1e-6)  # MotorCurrent_N0 at 100 Hz
     (load,) = fams["motor_monitor_bus_load_ratio"].samples

@@ -6,17 +6,18 @@ back:
 
 * the events' JSON lines carry the fault as ``fault_input`` with the inputs' unit, and no
   ``fault_volts``; a line of an older monitor (``fault_volts``) is still taken as an event;
-* the recording's entities are ``/node/<n>/<Output>/measured|estimated`` and
-  ``/node/<n>/<Input>`` of the rig's signal names, with their units in the legends, and the
-  tab is "node <n>";
+* the recording's entities are ``/node/<n>/<Output>/measured|estimated|noise`` and
+  ``/node/<n>/<Input>`` of the rig's signal names, with their units in the legends (none for
+  a noise factor, a ratio), and the tab is "node <n>";
 * the metrics count the inputs as ``samples/input`` (and the outputs before any input as
-  ``samples/no_input``);
+  ``samples/no_input``), and label each output's noise factor with the output's name;
 * the built-in rig's names are `PlantSignals`' default, which names our bus's entities.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -33,6 +34,7 @@ from monitor.rig import build_decoder, builtin_rig, load_rig
 from monitor.sinks.base import Sink
 from monitor.sinks.blueprint import signal_parts
 from monitor.sinks.metrics import MetricsSink
+from monitor.sinks.runs import SLOW_ROW_S
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.archive.logs import write_log
@@ -120,12 +122,19 @@ def test_events_and_recording_carry_the_rigs_names(drive: tuple[Path, Path], tmp
     assert not [e for e in series if e.startswith("/motor/") or "current" in e
                 or "voltage" in e]
     legends = _legends(rrd)
+    for name in OUTPUTS:
+        assert legends[f"{n}/{name}/noise"] == [f"{name} noise factor"]
+        # a slowly varying factor: a row every SLOW_ROW_S, not every sample
+        t_noise, t_all = series[f"{n}/{name}/noise"][0], series[f"{n}/{name}/measured"][0]
+        assert 0 < len(t_noise) <= (t_all[-1] - t_all[0]) / SLOW_ROW_S + 2 < len(t_all)
+    assert legends[f"{n}/process_noise"] == ["process noise factor"]
     assert legends[f"{n}/Speed/measured"] == ["Speed measured (rad/s)"]
     assert legends[f"{n}/Position/estimated"] == ["Position estimated (rad)"]
     assert legends[f"{n}/CurrentCmdA"] == ["CurrentCmdA (A)"]
     assert legends[f"{n}/CurrentCmdB"] == ["CurrentCmdB (A)"]
     tabs = blueprint_names(rrd)
-    assert {f"node {NODE}", "Speed: measured vs estimated", "CurrentCmdA (A)"} <= tabs, tabs
+    assert {f"node {NODE}", "Speed: measured vs estimated", "CurrentCmdA (A)",
+            "noise factors (1: the model's)"} <= tabs, tabs
 
 
 def test_both_engines_write_the_same_entities(drive: tuple[Path, Path],
@@ -140,8 +149,8 @@ def test_both_engines_write_the_same_entities(drive: tuple[Path, Path],
     a, b = got["columnar"], got["per-frame"]
     assert set(a) == set(b)
     n = f"/node/{NODE}"
-    for e in [f"{n}/{o}/{k}" for o in OUTPUTS for k in ("measured", "estimated")] + \
-             [f"{n}/{INPUTS[0]}", f"{n}/gamma/sd"]:
+    for e in [f"{n}/{o}/{k}" for o in OUTPUTS for k in ("measured", "estimated", "noise")] + \
+             [f"{n}/{INPUTS[0]}", f"{n}/gamma/sd", f"{n}/process_noise"]:
         assert list(a[e][0]) == list(b[e][0]) and list(a[e][1]) == list(b[e][1]), e
 
 
@@ -150,7 +159,8 @@ def test_metrics_count_inputs(drive: tuple[Path, Path], tmp_path: Path, engine: 
     rig, log = drive
     prom = tmp_path / "monitor.prom"
     setup = monitor_setup(ReplaySettings(rig=str(rig)))
-    open_sinks: Callable[[], list[Sink]] = lambda: [MetricsSink(prom, live=False)]  # noqa: E731
+    open_sinks: Callable[[], list[Sink]] = lambda: [  # noqa: E731
+        MetricsSink(prom, live=False, signals=outputs.plant_signals(load_rig(rig)))]
     run = ENGINES[engine](log, setup, open_sinks)
     fams = {f.name: f for f in text_string_to_metric_families(prom.read_text())}
     events = {s.labels["name"]: s.value for s in fams["motor_monitor_events"].samples
@@ -158,6 +168,10 @@ def test_metrics_count_inputs(drive: tuple[Path, Path], tmp_path: Path, engine: 
     # the counters as last handed to the sinks (the per-frame engine's about once a second)
     assert 0 < events["samples/input"] <= run.counters["samples/input"]
     assert not [name for name in events if "voltage" in name]
+    noise = {s.labels["output"]: s.value
+             for s in fams["motor_monitor_node_output_noise_factor"].samples}
+    assert list(noise) == list(OUTPUTS)  # the rig's names, in its order
+    assert all(v >= 1.0 and math.isfinite(v) for v in noise.values()), noise
 
 
 def test_old_event_lines_are_still_events(tmp_path: Path) -> None:

@@ -32,11 +32,12 @@ from monitor.pipeline.events import (
     Diagnosis,
     DiagnosisEvent,
     InputSample,
+    PlantSignals,
     Sample,
     SampleColumns,
 )
 from monitor.sinks.base import Sink
-from monitor.sinks.blueprint import STYLES, default_blueprint, node_path
+from monitor.sinks.blueprint import STYLES, default_blueprint, node_path, signal_parts
 from monitor.sinks.rerun import (
     DEFAULT_FLUSH_INTERVAL_S,
     RUNS,
@@ -45,6 +46,7 @@ from monitor.sinks.rerun import (
     run_ends,
 )
 from monitor.sinks.rotation import RotatingRerunSink
+from monitor.sinks.runs import SLOW_ROW_S, bin_starts
 from tests.conftest import _ci_enabled
 from tests.support.rrd import blueprint_names, chunk_series, entity_chunks, recording_rows
 
@@ -54,7 +56,8 @@ N = 2000
 RERUN_EXE = Path(sys.executable).with_name("rerun")
 
 
-def _values(k: int, node: int) -> tuple[float, float, float, int, int, float, float]:
+def _values(k: int, node: int
+            ) -> tuple[float, float, float, int, int, float, float, float, float]:
     measured = math.sin(0.01 * k) + 0.1 * node
     estimated = measured + 1e-3 * math.cos(0.1 * k)
     gamma = k / N + 0.25 * node
@@ -62,7 +65,10 @@ def _values(k: int, node: int) -> tuple[float, float, float, int, int, float, fl
     health = min(3, k // 600)
     nis = 0.5 + (k % 7) / 7
     gamma_sd = 0.2 / (1 + k) + 0.01 * node
-    return measured, estimated, gamma, rules, health, nis, gamma_sd
+    output_noise = 1.0 + k / N + 0.5 * node
+    process_noise = 1.0 + 0.3 * math.sin(0.02 * k) ** 2 + node
+    return (measured, estimated, gamma, rules, health, nis, gamma_sd, output_noise,
+            process_noise)
 
 
 def _static_entities(path: Path) -> set[str]:
@@ -74,9 +80,9 @@ def _write_run(sink: RerunSink) -> None:
     for k in range(N):
         t = T0 + k * DT
         for node in (0, 1):
-            m, e, g, r, h, nis, sd = _values(k, node)
+            m, e, g, r, h, nis, sd, on, pn = _values(k, node)
             sink.add_sample(node, t, m, e, g, r, h, nis, true_gamma=0.5 if node == 0 else None,
-                            gamma_sd=sd)
+                            gamma_sd=sd, output_noise=(on,), process_noise=pn)
         if k % 20 == 0:
             sink.add_input(0, t, 24.0 + k / N)
         if k == 1200:
@@ -124,6 +130,7 @@ def test_recording_and_blueprint_stores(recorded: Path) -> None:
         "gamma^ vs thresholds",
         "rule count",
         "health state",
+        "noise factors (1: the model's)",
         "events",
         "daemon counters",
     } <= names
@@ -149,6 +156,27 @@ def test_gamma_view_shows_every_gamma_series() -> None:
     assert node_path(4, "gamma/sd").startswith(f"{view.origin}/")
 
 
+def test_noise_factors_have_a_view_of_their_own() -> None:
+    """The estimator's noise factors (ratios near 1) are drawn together in one view, not in
+    their outputs' measured-vs-estimated views (amperes, volts...), which show those two
+    series only."""
+    sig = PlantSignals(outputs=(("Speed", "rad/s"), ("Position", "rad")))
+    root = default_blueprint([4], sig).root_container
+    assert root is not None
+    views = {v.name: v for v in _views(root)}
+    for output in ("Speed", "Position"):
+        view = views[f"{output}: measured vs estimated"]
+        assert view.origin == f"/node/4/{output}"
+        assert view.contents == ["$origin/measured", "$origin/estimated"]
+    noise = views["noise factors (1: the model's)"]
+    assert noise.origin == "/node/4"
+    assert noise.contents == ["$origin/Speed/noise", "$origin/Position/noise",
+                              "$origin/process_noise"]
+    assert "process_noise" in [s[0] for s in STYLES]
+    assert signal_parts(PlantSignals(outputs=(("process_noise", None),)))[1] == (
+        "process_noise_signal",)  # a signal cannot take the factor's entity
+
+
 def _latest_at(t: NDArray[np.float64], v: NDArray[np.float64],
                at: NDArray[np.float64]) -> NDArray[np.float64]:
     """The value a latest-at query (the viewer's at a time cursor) gives at each time `at`."""
@@ -166,7 +194,7 @@ def test_samples_read_back_exactly(recorded: Path) -> None:
         t_samples, _ = chunk_series(ents[f"/node/{node}/gamma/estimate"])
         for col, suffix in enumerate(
             ["ArmatureCurrent/measured", "ArmatureCurrent/estimated", "gamma/estimate", "rules",
-             "health", "nis", "gamma/sd"]
+             "health", "nis", "gamma/sd", "ArmatureCurrent/noise", "process_noise"]
         ):
             t, v = chunk_series(ents[f"/node/{node}/{suffix}"])
             if suffix in RUNS:
@@ -176,6 +204,13 @@ def test_samples_read_back_exactly(recorded: Path) -> None:
                 np.testing.assert_array_equal(_latest_at(t, v, t_samples), vals[:, col])
                 np.testing.assert_array_equal(np.interp(t_samples, t, v), vals[:, col])
                 np.testing.assert_array_equal(t[[0, -1]], t_samples[[0, -1]])
+                continue
+            if suffix.endswith("noise"):
+                # slowly varying: the samples that open each SLOW_ROW_S of the time axis
+                kept = bin_starts(expected_t, -math.inf, SLOW_ROW_S)
+                assert 0 < kept.sum() < N // 5, suffix
+                np.testing.assert_array_equal(v, vals[kept, col], err_msg=suffix)
+                np.testing.assert_allclose(t, expected_t[kept], rtol=0, atol=1e-6)
                 continue
             assert len(v) == N, suffix
             np.testing.assert_array_equal(v, vals[:, col], err_msg=suffix)
@@ -220,6 +255,27 @@ def test_run_ends_keep_the_line() -> None:
         np.testing.assert_array_equal(np.interp(t, tk, vk), v)  # the straight line
         np.testing.assert_array_equal(_latest_at(tk, vk, t), v)  # the stepped one
         assert len(tk) <= 2 * (np.count_nonzero(np.diff(v)) + 1) + len(cuts)
+
+
+def test_bin_starts_keep_one_row_per_bin_across_batches() -> None:
+    """One row per bin of the time axis, the first of it, however the rows are batched."""
+    assert list(bin_starts(np.array([0.0, 0.05, 0.1, 0.15, 0.31]), -math.inf, 0.1)) == [
+        True, False, True, False, True]
+    assert list(bin_starts(np.array([0.12, 0.25]), 0.11, 0.1)) == [False, True]
+    assert len(bin_starts(np.zeros(0), -math.inf, 0.1)) == 0
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        t = np.cumsum(rng.uniform(0.001, 0.05, int(rng.integers(2, 400)))) + 1.7e9
+        cuts = np.sort(rng.choice(np.arange(1, t.size), size=min(t.size - 1, 5),
+                                  replace=False))
+        previous, kept = -math.inf, []
+        for tb in np.split(t, cuts):
+            kept.append(tb[bin_starts(tb, previous, 0.1)])
+            previous = float(tb[-1])
+        tk = np.concatenate(kept)
+        bins = np.floor(t / 0.1)
+        assert len(tk) == len(np.unique(bins))  # one row per bin the rows fall in
+        np.testing.assert_array_equal(np.floor(tk / 0.1), np.unique(bins))
 
 
 def test_thresholds_span_the_data_and_step(recorded: Path) -> None:
@@ -326,6 +382,9 @@ def test_unannounced_node_is_added(tmp_path: Path) -> None:
     assert list(v) == [0.25]
     _, sd = chunk_series(entity_chunks(path)["/node/7/gamma/sd"])  # none given: NaN
     assert len(sd) == 1 and math.isnan(sd[0])
+    for noise in ("ArmatureCurrent/noise", "process_noise"):  # none given: NaN
+        _, v = chunk_series(entity_chunks(path)[f"/node/7/{noise}"])
+        assert len(v) == 1 and math.isnan(v[0]), noise
 
 
 def test_needs_a_destination() -> None:

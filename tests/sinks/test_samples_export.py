@@ -8,9 +8,14 @@ pandas' `read_parquet` reads through pyarrow).
 * gamma^, f^ and the health state agree with the diagnosis events: each state change between
   a node's rows is a transition at that sample, and each transition an estimate makes is a
   row in that state with that gamma^ and f^.
-* Both engines give the same rows; the Parquet and the CSV file hold the same values.
+* Both engines give the same rows, the estimator's noise factors (``noise_<Output>``,
+  ``process_noise``) included; the Parquet and the CSV file hold the same values.
+* The noise factors say what the estimator learnt: a sensor twice as noisy as the model
+  says from 20 s on raises its output's factor well above 1 after it and not before; a
+  fitting model keeps both factors near 1.
 * The recording the same replay writes (``--rrd``) holds the file's ``gamma_sd`` as
-  ``/node/<n>/gamma/sd``, sample for sample, from either engine.
+  ``/node/<n>/gamma/sd`` and its noise factors as ``/node/<n>/<Output>/noise`` and
+  ``/node/<n>/process_noise``, sample for sample, from either engine.
 * Written in batches (row groups) and atomically (no temporary file left), our own file
   replaced, a foreign one or an input refused, a wrong suffix one line (exit 2).
 """
@@ -20,6 +25,7 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -33,10 +39,12 @@ from monitor.app.cli import main
 from monitor.archive.engine import ENGINES, ReplaySettings, monitor_setup
 from monitor.rig import build_decoder, load_rig
 from monitor.sinks.base import Sink
+from monitor.sinks.runs import SLOW_ROW_S, bin_starts
 from monitor.sinks.samples import PARQUET_KEY, SamplesFileSink, SampleTable
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.archive.logs import ecu_frames, write_log
+from tests.support.identify import T0, our_capture
 from tests.support.paths import TEST_RIGS
 from tests.support.rrd import read_rrd, series
 
@@ -44,13 +52,18 @@ ENGINE_NAMES = ("columnar", "per-frame")
 
 OUR_COLUMNS = ["t_s", "node", "u_VoltageCommand_V", "y_ArmatureCurrent_A",
                "yhat_ArmatureCurrent_A", "gamma_VoltageCommand", "f_VoltageCommand_V",
-               "gamma_sd", "nis", "state", "model_mismatch"]
+               "gamma_sd", "noise_ArmatureCurrent", "process_noise", "nis", "state",
+               "model_mismatch"]
 TWIN_COLUMNS = ["t_s", "node", "u_U1_V", "u_U2_V", "y_Y1", "y_Y2", "yhat_Y1", "yhat_Y2",
-                "gamma_U1", "gamma_U2", "f_U1_V", "f_U2_V", "gamma_sd", "nis", "state",
-                "model_mismatch"]
+                "gamma_U1", "gamma_U2", "f_U1_V", "f_U2_V", "gamma_sd", "noise_Y1", "noise_Y2",
+                "process_noise", "nis", "state", "model_mismatch"]
 PRESS_COLUMNS = ["t_s", "node", "u_SupplyVoltage_V", "y_MotorCurrent_A",
                  "yhat_MotorCurrent_A", "gamma_SupplyVoltage", "f_SupplyVoltage_V",
-                 "gamma_sd", "nis", "state", "model_mismatch"]
+                 "gamma_sd", "noise_MotorCurrent", "process_noise", "nis", "state",
+                 "model_mismatch"]
+# the estimator's noise factors, and the output each one is of (the recording's entity)
+OUR_NOISE = {"noise_ArmatureCurrent": "ArmatureCurrent"}
+TWIN_NOISE = {"noise_Y1": "Y1", "noise_Y2": "Y2"}
 
 
 @pytest.fixture(scope="module")
@@ -183,6 +196,9 @@ def test_our_bus_parquet_metadata(our_log: Path, tmp_path: Path,
     assert schema.field("t_s").metadata == {b"unit": b"s"}
     assert str(schema.field("state").type) == "string"
     assert str(schema.field("model_mismatch").type) == "bool"
+    # a noise factor is a ratio: no unit, the output it is of as its signal
+    assert schema.field("noise_ArmatureCurrent").metadata == {b"signal": b"ArmatureCurrent"}
+    assert schema.field("process_noise").metadata is None
 
 
 def test_engines_and_formats_give_the_same_rows(our_log: Path, tmp_path: Path,
@@ -196,6 +212,12 @@ def test_engines_and_formats_give_the_same_rows(our_log: Path, tmp_path: Path,
     first = got["columnar", ".parquet"]
     for key, rows in got.items():
         assert rows == first, key  # exact: the CSV holds each float's shortest repr
+    # the noise factors are in what was compared: a factor on the model's noise, >= 1, that
+    # moves (the adaptation writes every sample's, not a constant)
+    for name in ("noise_ArmatureCurrent", "process_noise"):
+        v = np.array([r[name] for r in first])
+        assert np.all(np.isfinite(v) & (v >= 1.0)), name
+        assert len(np.unique(v)) > 100, name
 
 
 @pytest.mark.parametrize("engine", ENGINE_NAMES)
@@ -226,12 +248,17 @@ def test_two_input_two_output_rig(twin_log: Path, tmp_path: Path, engine: str,
 
 @pytest.mark.parametrize("engine", ENGINE_NAMES)
 @pytest.mark.parametrize("rig", [None, "twin.toml"])
-def test_recording_holds_the_files_gamma_sd(request: pytest.FixtureRequest, tmp_path: Path,
-                                            engine: str, rig: str | None,
-                                            capsys: pytest.CaptureFixture[str]) -> None:
+def test_recording_holds_the_files_gamma_sd_and_noise(request: pytest.FixtureRequest,
+                                                      tmp_path: Path, engine: str,
+                                                      rig: str | None,
+                                                      capsys: pytest.CaptureFixture[str]
+                                                      ) -> None:
     """``replay --samples --rrd``: the recording's ``/node/<n>/gamma/sd`` is the samples
     file's ``gamma_sd``, the very floats at the same times, on our bus (two nodes) and on the
-    twin, whose two inputs may both lose effectiveness (the larger gamma^'s)."""
+    twin, whose two inputs may both lose effectiveness (the larger gamma^'s); so are its
+    ``/node/<n>/<Output>/noise`` (one per output, the twin's two) and
+    ``/node/<n>/process_noise`` the file's noise factors, at the samples that open each
+    tenth of a second (`bin_starts`: they move over the noise window, seconds)."""
     log = request.getfixturevalue("our_log" if rig is None else "twin_log")
     out, rrd = tmp_path / "x.parquet", tmp_path / "x.rrd"
     extra = ["--rrd", str(rrd)] + ([] if rig is None else ["--rig", str(TEST_RIGS / rig)])
@@ -247,6 +274,49 @@ def test_recording_holds_the_files_gamma_sd(request: pytest.FixtureRequest, tmp_
         np.testing.assert_array_equal(sd, [r["gamma_sd"] for r in rs])
         np.testing.assert_allclose(t, [r["t_s"] for r in rs], rtol=0, atol=1e-6)
         assert np.all(sd >= 0.0) and np.mean(sd > 0.0) > 0.99  # a variance's root, no NaN
+        # the slowly varying noise factors: the file's rows that open a SLOW_ROW_S bin
+        t_file = np.array([r["t_s"] for r in rs])
+        kept = bin_starts(t_file, -math.inf, SLOW_ROW_S)
+        assert 5 < kept.sum() < 0.2 * len(rs)
+        noise = {**(OUR_NOISE if rig is None else TWIN_NOISE), "process_noise": None}
+        for column, output in noise.items():
+            entity = f"/node/{node}/" + (f"{output}/noise" if output else column)
+            t, v = series(recording, entity)
+            np.testing.assert_array_equal(v, np.array([r[column] for r in rs])[kept],
+                                          err_msg=entity)
+            np.testing.assert_allclose(t, t_file[kept], rtol=0, atol=1e-6)
+            assert np.all(v >= 1.0), entity  # a factor on the model's noise, no NaN
+
+
+def test_noise_factors_say_what_the_estimator_learnt(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """Node 0 of our bus under a PRBS command, its current sensor with 1 A of noise added
+    from 20 s on (the model says 0.5 A: the variance becomes 5 times the model's), read
+    back with pyarrow: ``noise_ArmatureCurrent`` stays near 1 before 20 s and is well
+    above 1 at the end (the estimator learns over its 2 s noise window); the process
+    noise's factor stays near 1, the added noise being white. The same capture without the
+    added noise keeps both near 1 throughout."""
+    frames = {}
+    for name, noisy_from in (("noisy", 20.0), ("healthy", None)):
+        cap = our_capture(tmp_path / f"{name}.log", noisy_from=noisy_from)
+        out = tmp_path / f"{name}.parquet"
+        _replay(capsys, cap, out, "columnar")
+        table = pq.read_table(out)
+        frames[name] = {k: np.array(table.column(k).to_pylist())
+                        for k in ("t_s", "noise_ArmatureCurrent", "process_noise")}
+    noisy = frames["noisy"]
+    t = noisy["t_s"] - T0
+    noise = noisy["noise_ArmatureCurrent"]
+    before, end = t < 20.0, t >= 38.0
+    assert before.sum() > 1000 and end.sum() > 100
+    assert np.all((noise[before] >= 1.0) & (noise[before] < 1.5))
+    assert noise[end].min() > 3.0  # 5 in truth
+    assert np.all(noisy["process_noise"][t >= 25.0] < 2.0)
+    healthy = frames["healthy"]
+    assert np.all((healthy["noise_ArmatureCurrent"] >= 1.0)
+                  & (healthy["noise_ArmatureCurrent"] < 1.5))
+    assert np.all((healthy["process_noise"] >= 1.0) & (healthy["process_noise"] < 2.5))
+    assert float(np.median(healthy["process_noise"])) < 1.5
 
 
 def test_rig_names_and_units(press_log: Path, tmp_path: Path,

@@ -75,10 +75,15 @@ def test_viewer_renders_the_recording(tmp_path: Path) -> None:
     for path in ("/node/0/ArmatureCurrent/measured", "/node/0/ArmatureCurrent/estimated",
                  "/node/0/gamma/estimate", "/node/0/gamma/sd", "/node/0/gamma/F1",
                  "/node/0/gamma/true", "/node/0/health", "/node/0/rules", "/node/0/events",
+                 "/node/0/ArmatureCurrent/noise", "/node/0/process_noise",
                  "/monitor/counters/samples/estimated"):
         assert path in entities, (path, sorted(entities))
     for name in ("node 0", "daemon"):
         assert f"'display_name': '{name}'" in blueprint, blueprint[:500]
+    # the noise factors' view, showing the two series its query names (its name holds a
+    # quote, so the blueprint's repr puts it in double quotes)
+    assert "'display_name': \"noise factors (1: the model's)\"" in blueprint
+    assert "'query': ['$origin/ArmatureCurrent/noise', '$origin/process_noise']" in blueprint
     import matplotlib.image
 
     img = matplotlib.image.imread(shot)
