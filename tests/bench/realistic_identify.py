@@ -199,6 +199,10 @@ def main() -> None:
     ap.add_argument("--motors", default="", help="only these motors, comma-separated")
     args = ap.parse_args()
     chosen = [x for x in args.motors.split(",") if x]
+    unknown = sorted(set(chosen) - {m.name for m in motors()})
+    if unknown:
+        ap.error(f"--motors: no motor named {', '.join(unknown)} (the motors: "
+                 f"{', '.join(m.name for m in motors())})")
     base = args.keep or Path(tempfile.mkdtemp(prefix="realistic-identify-"))
     out: dict[str, Any] = {}
     worst = math.inf
