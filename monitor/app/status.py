@@ -1,6 +1,8 @@
 """`motor-monitor status FILE.prom [--watch S]`: the daemon's figures in the terminal, read
 from the metrics file it writes (`run --metrics`), parsed with prometheus_client's own
-text parser: per node its health, model-mismatch flag, gamma^ and NIS; the bus load,
+text parser: per node its health, model-mismatch flag, gamma^, NIS and the estimator's
+noise factors (the noisiest output's and the process noise's: 1 where the model's noises
+fit); the bus load,
 frames, error frames, drops and rejections; the busiest IDs with their period and jitter;
 the estimation latency.
 
@@ -119,6 +121,11 @@ def _flag(value: float, node: str, path: Path) -> str:
                      f"{node} is {value!r}, not 0 or 1")
 
 
+def _factor(value: float | None) -> str:
+    """A noise factor as the table shows it: three digits, "-" where there is none."""
+    return "-" if value is None else f"{value:.3g}"
+
+
 def render(m: Samples, path: Path, age_s: float) -> str:
     """The figures of `m` as the terminal shows them; `UsageError`, one line, for a sample
     the monitor never writes (see the module's docstring)."""
@@ -134,11 +141,16 @@ def render(m: Samples, path: Path, age_s: float) -> str:
         f"{ev.get('publish/sent', 0):.0f} diagnoses sent",
         "",
         f"{'node':>4s}  {'state':11s} {'mismatch':8s} {'gamma^':>7s} {'NIS':>7s} "
-        f"{'samples':>9s}",
+        f"{'noise x':>8s} {'process x':>9s} {'samples':>9s}",
     ]
     gamma = dict(_labelled(m, _P + "node_gamma", "node", path))
     nis = dict(_labelled(m, _P + "node_nis", "node", path))
     samples = dict(_labelled(m, _P + "node_samples_total", "node", path))
+    # the noisiest output's factor ("-" in a file of a monitor from before the factors)
+    noise: dict[str, float] = {}
+    for n, v in _labelled(m, _P + "node_output_noise_factor", "node", path):
+        noise[n] = max(v, noise.get(n, -math.inf))
+    process = dict(_labelled(m, _P + "node_process_noise_factor", "node", path))
     # "-": a file of a monitor from before the flag (no such gauge)
     mismatch = {n: _flag(v, n, path)
                 for n, v in _labelled(m, _P + "node_model_mismatch", "node", path)}
@@ -147,7 +159,8 @@ def render(m: Samples, path: Path, age_s: float) -> str:
         state = _state_label(v, n, path)
         lines.append(f"{n:>4s}  {state:11s} {mismatch.get(n, '-'):8s} "
                      f"{gamma.get(n, math.nan):7.3f} "
-                     f"{nis.get(n, math.nan):7.2f} {samples.get(n, 0):9.0f}")
+                     f"{nis.get(n, math.nan):7.2f} {_factor(noise.get(n)):>8s} "
+                     f"{_factor(process.get(n)):>9s} {samples.get(n, 0):9.0f}")
     ids = sorted(_labelled(m, _P + "id_frames_total", "id", path), key=lambda r: -r[1])[:8]
     if ids:
         period = dict(_labelled(m, _P + "id_period_seconds", "id", path))

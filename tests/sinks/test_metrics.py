@@ -101,6 +101,11 @@ def test_metrics_file_parses_and_agrees_with_the_counters(tmp_path: Path) -> Non
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert "bus load 5.9 %" in res.stdout and "   0  fault_free" in res.stdout, res.stdout
+    # node, state, mismatch, gamma^, NIS, the noise factors (three digits), samples
+    (row,) = (ln.split() for ln in res.stdout.splitlines() if ln.startswith("   0  "))
+    assert " noise x process x " in res.stdout
+    assert float(row[5]) == pytest.approx(noise.value, rel=5e-3)
+    assert float(row[6]) == pytest.approx(process.value, rel=5e-3)
 
 
 def test_status_of_a_missing_file_is_one_line(tmp_path: Path) -> None:
