@@ -243,6 +243,13 @@ motor_monitor_node_gamma{node="7"} 0.97
 motor_monitor_node_nis{node="0"} 1.0404131431603534
 motor_monitor_node_nis{node="10"} 31.5
 motor_monitor_node_nis{node="2"} 0.9
+# TYPE motor_monitor_node_output_noise_factor gauge
+motor_monitor_node_output_noise_factor{node="0",output="Speed"} 1.0412
+motor_monitor_node_output_noise_factor{node="0",output="Position"} 1.2749
+motor_monitor_node_output_noise_factor{node="10",output="Speed"} 3.21
+# TYPE motor_monitor_node_process_noise_factor gauge
+motor_monitor_node_process_noise_factor{node="0"} 1.0
+motor_monitor_node_process_noise_factor{node="10"} 41.73
 # TYPE motor_monitor_node_samples_total counter
 motor_monitor_node_samples_total{node="0"} 1599.0
 motor_monitor_node_samples_total{node="10"} 12.0
@@ -269,18 +276,19 @@ motor_monitor_estimation_latency_seconds_count 2411.0
 motor_monitor_estimation_latency_seconds_sum 1.2055
 """
 
-# what `status` printed for STATUS_FIXTURE before its checks were added (the file's own
-# write time makes the age; the path is printed as given)
+# what `status` prints for STATUS_FIXTURE (the file's own write time makes the age; the path
+# is printed as given; the noise factors: the noisiest output's, "-" for a node the file
+# has none of, as a file of a monitor from before them)
 STATUS_TABLE = """\
 monitor.prom (written {age} s ago)
 bus load 5.9 %, 3530 frames, 2 error frames, 5 kernel drops, 5 rejected, 3 lost, 40 diagnoses sent
 
-node  state       mismatch  gamma^     NIS   samples
-   0  fault_free  no         0.012    1.04      1599
-   2  fault       no         0.410    0.90       800
-   3  no_data     -            nan     nan         0
-   7  outage      no         0.970     nan         3
-  10  fault       yes        0.500   31.50        12
+node  state       mismatch  gamma^     NIS  noise x process x   samples
+   0  fault_free  no         0.012    1.04     1.27         1      1599
+   2  fault       no         0.410    0.90        -         -       800
+   3  no_data     -            nan     nan        -         -         0
+   7  outage      no         0.970     nan        -         -         3
+  10  fault       yes        0.500   31.50     3.21      41.7        12
 
         id    frames  period ms  jitter ms
      0x110      1600      10.00      0.002
