@@ -563,8 +563,7 @@ class RecordingSink(RecordingOutlet):
         for j, noise in enumerate(st.noise_paths):
             self._rec.send_columns(noise, indexes=index,
                                    columns=rr.Scalars.columns(scalars=output_noise[j]))
-        self._rec.send_columns(st.path["process_noise"], indexes=index, columns=rr.Scalars.columns(
-            scalars=np.concatenate([b[2] for b in st.slow])))
+        self._send_rows(st, "process_noise", t, np.concatenate([b[2] for b in st.slow]))
         st.slow.clear()
         st.slow_sent_t = float(t[-1])
 
