@@ -473,16 +473,14 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         measure = ("response_noise_units", "holdout_error_cut", "width")
         try:
             probe = fit(args.order, friction=motion, delay=ident.input_delay)
-        except SlowModeError as exc:
-            # refused for the span of a slow mode: what it measured of the friction stands
-            # (the rig zoo's seed 59, a free position whose probe's slow mode silenced the
-            # check, then 16 false alarms in a fresh run at other levels)
+        except IdentifyError as exc:
+            # a refit refused after it measured the friction (for a slow mode, halves that
+            # fit differently): the measure stands (the rig zoo's seed 59, a free position
+            # whose probe's refusal silenced the check, then 16 false alarms in a fresh run
+            # at other levels)
             ident.report["friction_probe"] = {
                 "refused": one_line(exc),
                 **({k: exc.friction[k] for k in measure} if exc.friction else {})}
-            return
-        except IdentifyError as exc:
-            ident.report["friction_probe"] = {"refused": one_line(exc)}
             return
         ident.report["friction_probe"] = {
             "order": probe.order, "holdout_fit_pct": probe.report["fit"]["nrmse_holdout_pct"],

@@ -418,11 +418,6 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         return int(self._stats[2])
 
     @property
-    def process_scale(self) -> float:
-        """The factor on the model's process noise learnt so far (step 5c; 1: none)."""
-        return float(np.exp(self._process_log_scale[0]))
-
-    @property
     def rule_count(self) -> int:
         return self.out.rules
 

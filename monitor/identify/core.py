@@ -35,6 +35,7 @@ from monitor.identify.errors import (
     IdentifyError,
     PlantChangeError,
     SlowModeError,
+    carrying_friction,
 )
 from monitor.identify.excitation import RECORDING_ADVICE
 from monitor.identify.friction import FRICTION_ITERATIONS, friction_column, speed_estimate
@@ -958,89 +959,92 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
     timing["fit"] = time.perf_counter() - t
 
     # Refusals after the fit: a change inside the capture first (it spoils every figure).
-    t = time.perf_counter()
-    drops = _consistency(cand, u, y, T)
-    timing["consistency"] = time.perf_counter() - t
-    fit_tr = min(ev["fit"]["nrmse_training_pct"])
-    fit_va = min(ev["fit"]["nrmse_holdout_pct"])
-    # A structure too small for the plant also fits the halves differently, but far less
-    # so than a fault does.
-    if fit_tr < V.MIN_FIT and not ev["cross_correlation"]["passed"] and \
-            max(drops) < V.STRUCTURE_DROP:
-        raise IdentifyError(
-            f"the {cand.kind} model of order {cand.order} does not fit (training fit "
-            f"{fit_tr:.0f} %, residuals correlated with the input): ask for kind "
-            "state_space or a larger order")
-    if max(drops) > V.CONSISTENCY_DROP:
-        half = "first" if drops[0] < drops[1] else "second"
-        raise PlantChangeError(
-            f"the plant changes within the capture (a fault or outage?): the model of the "
-            f"{half} half fits the other half {max(drops):.0f} points worse than its own; "
-            "record a capture of the healthy node only")
-    if fit_va < fit_tr - V.HOLDOUT_DROP:
-        raise PlantChangeError(
-            f"the hold-out fit ({fit_va:.0f} %) is far below the training fit ({fit_tr:.0f} %): "
-            "the plant changes near the end of the capture (a fault or outage?); record a "
-            "capture of the healthy node only")
-    ambiguous = _limit_ambiguity(cand.model.discretize(T), u, y, m, T, ev["innovation_std"],
-                                 ev["dc_gain"])
-    if ambiguous is not None and ambiguous[3]:
-        _, a, b, _ = ambiguous
-        raise IdentifyError(
-            f"the input took two levels alone ({a:.4g} and {b:.4g}) and the output does not "
-            "settle at a level the input sets (a speed held by a spring?): every change is "
-            "a step of one size, and nothing in the capture tells an actuator limit at the "
-            "larger level from a smaller gain; record steps between several levels (random "
-            "steps or a multi-level PRBS) inside the actuator's range")
-    if ambiguous is not None and ambiguous[0] > LIMIT_NOISE:
-        # a limit at the larger level of two looks like a smaller gain plus an offset (the
-        # rig zoo's seed 200: fit 98 %, fresh runs at other levels with the mismatch flag
-        # up 97 % of the time and false alarms); no fit of these two levels tells them
-        # apart, a friction's refit neither (its constant is the offset): said before a
-        # growing mode, which is one way a fit carries it
-        worst, a, b, _ = ambiguous
-        raise IdentifyError(
-            f"the input took two levels alone ({a:.4g} and {b:.4g}) and the output's levels "
-            f"are not in their ratio: an actuator limit at the larger, friction or a sensor "
-            f"offset, which two levels cannot tell apart (up to {worst:.2g} noise units "
-            "wrong at other levels); record steps between several levels (random steps or "
-            "a multi-level PRBS) inside the actuator's range")
-    grown = _growing_input_share(cand.model.discretize(T), u, y, T, ntr * T)
-    if grown is not None and grown[1] > MAX_GROWING_SHARE:
-        # After the refusals of a plant that changes within the capture: its fit can
-        # leave an integrator a little unstable, and the change is what to say. No
-        # healthy drive's current, speed or position grows by itself. A fit makes such a
-        # slow mode to carry what a linear model through zero lacks. An offset alone rides
-        # on its initial state (harmless: a sensor offset with friction gave one whose
-        # input drives 0.05 % of the output's swing). One the input drives stands in for a
-        # gain the capture does not show: an actuator that saturates at one level of a
-        # two-level input looks like a smaller gain plus an offset; the estimator's state
-        # of that mode then takes up part of every loss, and a fresh run at other input
-        # levels meets the true gain (the rig zoo's seed 6: 25 % of the swing; accepted
-        # at order 5, false alarms in a healthy run and a loss of 0.3 read as 0.2).
-        z, share = grown
-        raise GrowingModeError(
-            f"the fitted model has a growing mode (a pole at s = {z.real:.3g}"
-            f"{f' +- {abs(z.imag):.3g}j' if z.imag else ''} 1/s) that the input drives "
-            f"({100 * share:.2g} % of the output's swing over the capture); no healthy drive "
-            "has one: it stands in for a nonlinearity the linear model lacks (an actuator "
-            "that saturates, friction); record with the input stepped between several "
-            "levels (not two) inside the actuator's range, or try another --order")
-    # the capture must span the slowest time constant the fit resolves; an integrator's
-    # pole (`integrating`) is none
-    lam = np.array([complex(re, im) for re, im in ev["poles_continuous"]])
-    tau = V.resolved_time_constant([[z.real, z.imag] for z in lam[~integrating(lam, ntr * T)]],
-                                   cand.params.get("poles_real"),
-                                   cand.params.get("poles_real_std"))
-    if math.isfinite(tau) and ntr * T < V.MIN_TIME_CONSTANTS * tau:
-        need = V.MIN_TIME_CONSTANTS * tau / (1.0 - holdout)
-        raise SlowModeError(
-            f"capture too short for this plant (slowest time constant {tau:.3g} s): record "
-            f"at least {need:.3g} s with the input varying", friction=friction_info)
-    if fit_tr < V.MIN_FIT:
-        raise IdentifyError(
-            f"not exciting enough: the input moves the output too little against its noise "
-            f"(training fit {fit_tr:.0f} %): {RECORDING_ADVICE}, with larger steps")
+    # what the refit measured of a friction stands whatever refuses its model (the
+    # friction probe of `identify` weighs it)
+    with carrying_friction(friction_info):
+        t = time.perf_counter()
+        drops = _consistency(cand, u, y, T)
+        timing["consistency"] = time.perf_counter() - t
+        fit_tr = min(ev["fit"]["nrmse_training_pct"])
+        fit_va = min(ev["fit"]["nrmse_holdout_pct"])
+        # A structure too small for the plant also fits the halves differently, but far less
+        # so than a fault does.
+        if fit_tr < V.MIN_FIT and not ev["cross_correlation"]["passed"] and \
+                max(drops) < V.STRUCTURE_DROP:
+            raise IdentifyError(
+                f"the {cand.kind} model of order {cand.order} does not fit (training fit "
+                f"{fit_tr:.0f} %, residuals correlated with the input): ask for kind "
+                "state_space or a larger order")
+        if max(drops) > V.CONSISTENCY_DROP:
+            half = "first" if drops[0] < drops[1] else "second"
+            raise PlantChangeError(
+                f"the plant changes within the capture (a fault or outage?): the model of the "
+                f"{half} half fits the other half {max(drops):.0f} points worse than its own; "
+                "record a capture of the healthy node only")
+        if fit_va < fit_tr - V.HOLDOUT_DROP:
+            raise PlantChangeError(
+                f"the hold-out fit ({fit_va:.0f} %) is far below the training fit "
+                f"({fit_tr:.0f} %): the plant changes near the end of the capture (a fault or "
+                "outage?); record a capture of the healthy node only")
+        ambiguous = _limit_ambiguity(cand.model.discretize(T), u, y, m, T, ev["innovation_std"],
+                                     ev["dc_gain"])
+        if ambiguous is not None and ambiguous[3]:
+            _, a, b, _ = ambiguous
+            raise IdentifyError(
+                f"the input took two levels alone ({a:.4g} and {b:.4g}) and the output does not "
+                "settle at a level the input sets (a speed held by a spring?): every change is "
+                "a step of one size, and nothing in the capture tells an actuator limit at the "
+                "larger level from a smaller gain; record steps between several levels (random "
+                "steps or a multi-level PRBS) inside the actuator's range")
+        if ambiguous is not None and ambiguous[0] > LIMIT_NOISE:
+            # a limit at the larger level of two looks like a smaller gain plus an offset (the
+            # rig zoo's seed 200: fit 98 %, fresh runs at other levels with the mismatch flag
+            # up 97 % of the time and false alarms); no fit of these two levels tells them
+            # apart, a friction's refit neither (its constant is the offset): said before a
+            # growing mode, which is one way a fit carries it
+            worst, a, b, _ = ambiguous
+            raise IdentifyError(
+                f"the input took two levels alone ({a:.4g} and {b:.4g}) and the output's levels "
+                f"are not in their ratio: an actuator limit at the larger, friction or a sensor "
+                f"offset, which two levels cannot tell apart (up to {worst:.2g} noise units "
+                "wrong at other levels); record steps between several levels (random steps or "
+                "a multi-level PRBS) inside the actuator's range")
+        grown = _growing_input_share(cand.model.discretize(T), u, y, T, ntr * T)
+        if grown is not None and grown[1] > MAX_GROWING_SHARE:
+            # After the refusals of a plant that changes within the capture: its fit can
+            # leave an integrator a little unstable, and the change is what to say. No
+            # healthy drive's current, speed or position grows by itself. A fit makes such a
+            # slow mode to carry what a linear model through zero lacks. An offset alone rides
+            # on its initial state (harmless: a sensor offset with friction gave one whose
+            # input drives 0.05 % of the output's swing). One the input drives stands in for a
+            # gain the capture does not show: an actuator that saturates at one level of a
+            # two-level input looks like a smaller gain plus an offset; the estimator's state
+            # of that mode then takes up part of every loss, and a fresh run at other input
+            # levels meets the true gain (the rig zoo's seed 6: 25 % of the swing; accepted
+            # at order 5, false alarms in a healthy run and a loss of 0.3 read as 0.2).
+            z, share = grown
+            raise GrowingModeError(
+                f"the fitted model has a growing mode (a pole at s = {z.real:.3g}"
+                f"{f' +- {abs(z.imag):.3g}j' if z.imag else ''} 1/s) that the input drives "
+                f"({100 * share:.2g} % of the output's swing over the capture); no healthy drive "
+                "has one: it stands in for a nonlinearity the linear model lacks (an actuator "
+                "that saturates, friction); record with the input stepped between several "
+                "levels (not two) inside the actuator's range, or try another --order")
+        # the capture must span the slowest time constant the fit resolves; an integrator's
+        # pole (`integrating`) is none
+        lam = np.array([complex(re, im) for re, im in ev["poles_continuous"]])
+        tau = V.resolved_time_constant([[z.real, z.imag] for z in lam[~integrating(lam, ntr * T)]],
+                                       cand.params.get("poles_real"),
+                                       cand.params.get("poles_real_std"))
+        if math.isfinite(tau) and ntr * T < V.MIN_TIME_CONSTANTS * tau:
+            need = V.MIN_TIME_CONSTANTS * tau / (1.0 - holdout)
+            raise SlowModeError(
+                f"capture too short for this plant (slowest time constant {tau:.3g} s): record "
+                f"at least {need:.3g} s with the input varying")
+        if fit_tr < V.MIN_FIT:
+            raise IdentifyError(
+                f"not exciting enough: the input moves the output too little against its noise "
+                f"(training fit {fit_tr:.0f} %): {RECORDING_ADVICE}, with larger steps")
 
     report: dict[str, Any] = {
         "kind": cand.kind,

@@ -3,16 +3,38 @@ may answer."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from monitor.errors import MonitorError
 
-__all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError", "SlowModeError"]
+__all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError", "SlowModeError",
+           "carrying_friction"]
 
 
 class IdentifyError(MonitorError, ValueError):
     """A capture (or a fitted model) that cannot give a trustworthy model. The message is
-    one line that says what is wrong and what to record instead."""
+    one line that says what is wrong and what to record instead. `friction` is the
+    report's "friction" entry where a fit with Coulomb friction was refused after it was
+    measured: what the refit measured of the friction stands, its model does not
+    (`identify`'s friction probe weighs it)."""
+
+    def __init__(self, message: str, friction: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.friction = friction
+
+
+@contextmanager
+def carrying_friction(friction: dict[str, Any] | None) -> Iterator[None]:
+    """Gives every IdentifyError raised inside it the friction measured before (None:
+    none was)."""
+    try:
+        yield
+    except IdentifyError as exc:
+        if exc.friction is None:
+            exc.friction = friction
+        raise
 
 
 class GrowingModeError(IdentifyError):
@@ -31,10 +53,4 @@ class SlowModeError(IdentifyError):
     """A fit refused because its slowest mode is too slow for the capture to span
     (`monitor.identify.core`): a plant that needs a longer capture, or a load that steps
     while the capture runs, which a linear fit explains with a slow mode (`identify`'s load
-    refit answers that one). `friction` is the report's "friction" entry of a fit with
-    Coulomb friction refused so: what the refit measured of the friction stands, the model
-    does not (`identify`'s friction probe weighs it)."""
-
-    def __init__(self, message: str, friction: dict[str, Any] | None = None) -> None:
-        super().__init__(message)
-        self.friction = friction
+    refit answers that one)."""

@@ -74,7 +74,9 @@ BATCH_ROWS = 65536
 
 PARQUET_KEY = b"motor_monitor.samples"
 """The key-value metadata key of a samples Parquet file (its value: the format version)."""
-_VERSION = b"1"
+_VERSION = b"2"
+"""The columns' version: 2 has the noise factors (``noise_<Output>``, ``process_noise``)
+that 1 lacks; a reader tells them apart by this or by the names."""
 
 CSV_FIRST = "t_s,node,"
 CSV_LAST = ",nis,state,model_mismatch"

@@ -74,7 +74,7 @@ def test_noise_above_the_model_is_learnt(seed: int) -> None:
     assert res.output_noise[-1, 0] == pytest.approx((est.noise_excess[0] + MODEL_R) / MODEL_R,
                                                     rel=1e-12)
     assert res.output_noise[0, 0] == 1.0 and np.all(res.output_noise[:, 0] >= 1.0)
-    assert res.process_noise[-1] == pytest.approx(est.process_scale, rel=1e-12)
+    assert res.process_noise[-1] == pytest.approx(float(est.out.process_noise[0]), rel=1e-12)
     # a healthy motor stays healthy
     assert float(np.abs(res.gamma[late, 0]).mean()) < 0.05
     assert float(res.gamma[late, 0].max()) < DEFAULT_THRESHOLDS.f1

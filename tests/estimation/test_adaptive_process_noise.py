@@ -52,7 +52,7 @@ def test_process_noise_above_the_models_is_learnt(seed: int) -> None:
     runs fire the structure test 12-19 times a minute, and gamma^ reaches 0.11-0.43."""
     run = _run(5.0, 60.0, seed)
     est, res = _estimate(run)
-    assert 2.5 < est.process_scale < 10.0
+    assert 2.5 < float(est.out.process_noise[0]) < 10.0
     later = run.t > 20.0
     assert float(res.gamma[later, 0].max()) < DEFAULT_THRESHOLDS.f1
     assert est.structure_events <= 3
@@ -70,7 +70,7 @@ def test_a_fitting_model_keeps_its_process_noise(seed: int) -> None:
     for chunk in np.array_split(np.arange(len(run.t)), 240):
         res = est.step_many(run.u[chunk], run.y[chunk], np.full(len(chunk), T))
         assert res.count == len(chunk)
-        scales.append(est.process_scale)
+        scales.append(float(est.out.process_noise[0]))
     assert min(scales) >= 1.0 and max(scales) < 2.0
     assert float(np.median(scales)) < 1.4
 
@@ -81,7 +81,7 @@ def test_a_loss_under_learnt_process_noise_is_reported_in_time(seed: int) -> Non
     noise: gamma^ crosses the fault threshold within 0.3 s, and did not before."""
     run = _run(5.0, 35.0, seed, loss_at=30.0, loss=0.4)
     est, res = _estimate(run)
-    assert est.process_scale > 2.5
+    assert float(est.out.process_noise[0]) > 2.5
     g = res.gamma[:, 0]
     assert float(g[(run.t > 20.0) & (run.t < 30.0)].max()) < DEFAULT_THRESHOLDS.f1
     crossed = run.t[(run.t >= 30.0) & (g > DEFAULT_THRESHOLDS.f1)]
@@ -91,10 +91,10 @@ def test_a_loss_under_learnt_process_noise_is_reported_in_time(seed: int) -> Non
 def test_adaptive_noise_off_keeps_the_models_q() -> None:
     run = _run(5.0, 20.0, 1)
     est, _ = _estimate(run, FuzzyUKFConfig(adaptive_noise=False))
-    assert est.process_scale == 1.0
+    assert float(est.out.process_noise[0]) == 1.0
     # Q's learning alone off: R's still runs
     est, _ = _estimate(run, FuzzyUKFConfig(process_noise_gain=0.0))
-    assert est.process_scale == 1.0 and float(est.noise_excess[0]) > 0.0
+    assert float(est.out.process_noise[0]) == 1.0 and float(est.noise_excess[0]) > 0.0
 
 
 def test_per_frame_and_many_steps_agree() -> None:
@@ -105,5 +105,5 @@ def test_per_frame_and_many_steps_agree() -> None:
     one = FuzzyUKF(MODEL.discretize(T))
     g = np.array([float(one.step(run.u[k], run.y[k], T).gamma[0]) for k in range(len(run.t))])
     assert one.structure_events == many.structure_events >= 1
-    assert one.process_scale == pytest.approx(many.process_scale, rel=1e-9)
+    assert one.out.process_noise[0] == pytest.approx(many.out.process_noise[0], rel=1e-9)
     np.testing.assert_allclose(g, res.gamma[:, 0], atol=1e-9)

@@ -190,7 +190,7 @@ def test_our_bus_parquet_metadata(our_log: Path, tmp_path: Path,
     out = tmp_path / "x.parquet"
     _replay(capsys, our_log, out, "columnar")
     schema = pq.read_schema(out)
-    assert schema.metadata[PARQUET_KEY] == b"1"
+    assert schema.metadata[PARQUET_KEY] == b"2"
     field = schema.field("y_ArmatureCurrent_A")
     assert field.metadata == {b"unit": b"A", b"signal": b"ArmatureCurrent"}
     assert schema.field("t_s").metadata == {b"unit": b"s"}
