@@ -539,8 +539,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         try:
             ident = fit(args.order, load=True)
         except IdentifyError as load_exc:
+            again = one_line(load_exc)
             raise type(exc)(f"{one_line(exc)} (a refit with load steps: "
-                            f"{one_line(load_exc)})") from None
+                            f"{'refused the same way' if again == one_line(exc) else again})"
+                            ) from None
     if refused is not None:
         ident, failed = checked(ident, keep_failed=args.force)
         if failed and not args.force:  # the refusal stands, as without the refit

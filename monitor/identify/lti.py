@@ -1,4 +1,4 @@
-"""Linear time-invariant building blocks of the identification, all on scipy.
+"""Linear time-invariant building blocks of the identification, on scipy and one compiled loop.
 
 * `dsim`: x(k+1) = A x(k) + B u(k), y(k) = C x(k) for a whole record, compiled
   (`monitor.jit`): the fits simulate the record thousands of times (a finite-difference
