@@ -43,6 +43,7 @@ import tomli_w
 
 from monitor.app import options
 from monitor.app.identify_check import (
+    FAULT_ONSETS,
     Check,
     failure_cause,
     fault_detection,
@@ -355,6 +356,14 @@ def _relative(p: Path, base: Path) -> str:
         return os.path.relpath(p, base)
 
 
+def _progress(line: str) -> None:
+    """What identify is doing, on standard error when it is a terminal: at 1-2 kHz a fit
+    and its checks take minutes, which a silent command makes look hung. Nowhere else: a
+    script or a log reads the last line of standard error as the refusal."""
+    if sys.stderr.isatty():
+        print(f"motor-monitor: identify: {line} ...", file=sys.stderr, flush=True)
+
+
 def _cmd_identify(args: argparse.Namespace) -> int:
     rig = options.rig(args, model_optional=True)
     paths = [Path(p) for p in args.captures]
@@ -409,6 +418,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
 
     def fit_once(order: int | None, friction: str | None, delay: int | None,
                  load: bool = False) -> Identification:
+        _progress(f"fitting node {node}'s model{' with Coulomb friction' if friction else ''}"
+                  f"{' with load steps' if load else ''}"
+                  f"{f' of order {order}' if order is not None else ''} to {u.shape[0]} "
+                  f"samples at {1.0 / T:g} Hz")
         ident = identify(u, y, T, kind="state_space" if friction or load else kind,
                          order=order,
                          template=template, input_names=[r.signal for r in rig.inputs],
@@ -437,6 +450,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         """Replay the capture with `ident`'s rig; write it where it passes (or where it
         fails and `keep_failed`, saying so in the file). Returns the failed gating checks."""
         failed: list[Check] = []
+        _progress(f"checking the {ident.kind} model of order {ident.order}: the monitor "
+                  f"replays the capture with it, and with a loss added at {FAULT_ONSETS} onsets")
         try:
             with atomic_output("--out", out) as tmp:
                 tmp.write_text(document(ident, []), encoding="utf-8")

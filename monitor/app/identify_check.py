@@ -54,10 +54,10 @@ from monitor.rig import Rig
 from monitor.setup import frame_decoder, monitor_config
 from monitor.sinks.base import Sink
 
-__all__ = ["DETECT_S", "MAX_MISMATCH_SHARE", "SNR_VISIBLE", "START_SHARE", "STEADY_LOSS_NOISE",
-           "Check", "FaultFigures", "ReplayFigures", "added_loss", "failure_cause",
-           "fault_detection", "gating_failures", "input_levels", "replay_capture",
-           "report_checks"]
+__all__ = ["DETECT_S", "FAULT_ONSETS", "MAX_MISMATCH_SHARE", "SNR_VISIBLE", "START_SHARE",
+           "STEADY_LOSS_NOISE", "Check", "FaultFigures", "ReplayFigures", "added_loss",
+           "failure_cause", "fault_detection", "gating_failures", "input_levels",
+           "replay_capture", "report_checks"]
 
 MAX_MISMATCH_SHARE = 0.01
 """The largest share of the replayed time the model-mismatch flag may be up. A fitting
