@@ -40,6 +40,10 @@ INTEGRATING_RECORDS = 10.0
 def dsim(A: Array, B: Array, C: Array, u: Array, x0: Array | None = None) -> Array:
     """Outputs (N, p) of x(k+1) = A x(k) + B u(k), y(k) = C x(k), x(0) = x0 (zero if None)."""
     n = A.shape[0]
+    if B.shape[0] != n or C.shape[1] != n or u.ndim != 2 or u.shape[1] != B.shape[1]:
+        # the compiled loop does not check its indices: a mismatch would read past an array
+        raise ValueError(f"dsim: A {A.shape}, B {B.shape}, C {C.shape} and u {u.shape} do "
+                         "not fit together")
     f64 = np.float64
     x = np.zeros(n) if x0 is None else np.ascontiguousarray(x0, dtype=f64).reshape(n)
     y = np.empty((u.shape[0], C.shape[0]))
