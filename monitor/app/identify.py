@@ -44,6 +44,7 @@ import tomli_w
 from monitor.app import options
 from monitor.app.identify_check import (
     FAULT_ONSETS,
+    NIS_MARGIN,
     Check,
     failure_cause,
     fault_detection,
@@ -503,19 +504,32 @@ def _cmd_identify(args: argparse.Namespace) -> int:
 
     def checked(ident: Identification, keep_failed: bool
                 ) -> tuple[Identification, list[Check]]:
-        """`check_and_write`; where the replay's mean NIS lies below its band, once more with
-        the noise calibrated by it (`nis_calibrated`: the monitor's filter explains the
-        capture better than the noise was fitted for), which is then the model."""
+        """`check_and_write`; where the replay's mean NIS lies below its band (a model that
+        fails) or below `NIS_MARGIN` times the band's lower edge (one that passes, with too
+        little room for a fresh run), once more with the noise calibrated by it
+        (`nis_calibrated`: the monitor's filter explains the capture better than the noise
+        was fitted for), which is then the model. A model that passed and whose calibration
+        fails stays as it was (the file written for it is left in place)."""
         probe_friction(ident)
         failed = check_and_write(ident, keep_failed)
         replay = ident.report.get("replay", {})
         nis, band = replay.get("mean_nis"), replay.get("nis_band")
-        if not (failed and isinstance(nis, float) and band and 0.0 < nis < band[0]):
+        p = len(rig.outputs)  # the NIS's mean for a filter whose noise is right
+        if not (isinstance(nis, float) and band and 0.0 < nis < p
+                and nis < band[0] * (1.0 if failed else NIS_MARGIN)):
             return ident, failed
+        if not failed:
+            _progress(f"the replay's mean NIS {nis:.3g} lies near its band's lower edge "
+                      f"{band[0]:.3g}: the noise calibrated by it")
         calibrated = nis_calibrated(ident, nis, [None if s is None else s[0] for s in
                                                  known_steps or [None] * len(rig.outputs)])
         calibrated.report["noise"]["calibrated"]["failed_before"] = [c.check for c in failed]
-        return calibrated, check_and_write(calibrated, keep_failed)
+        failed_calibrated = check_and_write(calibrated, keep_failed and bool(failed))
+        if failed_calibrated and not failed:
+            ident.report["noise"] = {**ident.report.get("noise", {}), "calibration_failed": {
+                "replay_mean_nis": nis, "failed": [c.check for c in failed_calibrated]}}
+            return ident, failed
+        return calibrated, failed_calibrated
 
     def attempt(make: Callable[[], Identification], note: dict[str, Any], name: str
                 ) -> tuple[Identification, list[Check]] | None:

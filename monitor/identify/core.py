@@ -699,25 +699,26 @@ def _floored(cand: _Candidate, steps: Sequence[tuple[float, str] | None],
 
 def nis_calibrated(ident: Identification, mean_nis: float,
                    steps: Sequence[float | None]) -> Identification:
-    """`ident` with its process and output noise (Qc, q, R) scaled by `mean_nis`, the mean
-    NIS the monitor's own filter gave on the capture, where that lies below the band of a
-    fitting model: the filter the monitor runs (gamma^ of (51), the bias states) explains
-    the capture better than the steady-state Kalman filter the noise was fitted with, and
-    its innovations are smaller than Q and R say. Scaling both by one factor leaves the
-    linear filter's gain as it is (the Riccati solution scales with them) and divides the
-    NIS by it: the consistency tuning of a Kalman filter by its NIS (Bar-Shalom, Li and
-    Kirubarajan, Estimation with Applications to Tracking and Navigation, 2001, 5.4). R
-    stays at or above each output's quantisation (`quantisation_floor`). The report's
+    """`ident` with its process and output noise (Qc, q, R) scaled by s = `mean_nis` / p,
+    the mean NIS the monitor's own filter gave on the capture per output (p of them), where
+    that lies below 1: the filter the monitor runs (gamma^ of (51), the bias states)
+    explains the capture better than the steady-state Kalman filter the noise was fitted
+    with, and its innovations are smaller than Q and R say. Scaling both by one factor
+    leaves the linear filter's gain as it is (the Riccati solution scales with them) and
+    divides the NIS by it: the consistency tuning of a Kalman filter by its NIS (Bar-Shalom,
+    Li and Kirubarajan, Estimation with Applications to Tracking and Navigation, 2001, 5.4).
+    R stays at or above each output's quantisation (`quantisation_floor`). The report's
     noise entry says so (``calibrated``)."""
-    s = float(mean_nis)
+    p = np.asarray(ident.R).shape[0]
+    s = float(mean_nis) / p
     if not (math.isfinite(s) and 0.0 < s < 1.0):
-        raise ValueError(f"mean NIS {mean_nis!r} is not below 1")
+        raise ValueError(f"mean NIS {mean_nis!r} is not below the {p} output(s)")
     R = quantisation_floor(s * np.asarray(ident.R, dtype=float), steps)
     model = replace(ident.model, Qc=s * np.asarray(ident.model.Qc, dtype=float), R=R)
     report = dict(ident.report)
     report["noise"] = {**report.get("noise", {}), "q": ident.q * s, "Qc": _floats(model.Qc),
                        "R": _floats(R),
-                       "calibrated": {"replay_mean_nis": s, "scale": s,
+                       "calibrated": {"replay_mean_nis": float(mean_nis), "scale": s,
                                       "q_fitted": ident.q, "R_fitted": _floats(ident.R)}}
     return replace(ident, model=model, q=ident.q * s, Qc=model.Qc, R=R, report=report)
 
