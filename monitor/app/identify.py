@@ -568,17 +568,21 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         try:
             ident = fit(args.order, load=True)
         except IdentifyError as load_exc:
-            again = one_line(load_exc)
-            raise type(exc)(f"{one_line(exc)} (a refit with load steps: "
-                            f"{'refused the same way' if again == one_line(exc) else again})"
-                            ) from None
+            # the whole first line (its advice last), and of the refit's only what differs:
+            # a refusal of the same cause, with other figures, is not repeated
+            line = one_line(exc, ERROR_LINE_LIMIT)
+            again = one_line(load_exc, ERROR_LINE_LIMIT)
+            same = again.split(":", 1)[0] == line.split(":", 1)[0]
+            raise type(exc)(f"{line} (a refit with load steps: "
+                            f"{'refused the same way' if same else again})") from None
     if refused is not None:
         ident, failed = checked(ident, keep_failed=args.force)
         if failed and not args.force:  # the refusal stands, as without the refit
             load = retry_key == "load_retry"
             raise type(refused)(
-                f"{one_line(refused)} (a refit with {'load steps' if load else 'friction'} "
-                f"fails on its own capture: {_failed_checks(failed)}"
+                f"{one_line(refused, ERROR_LINE_LIMIT)} (a refit with "
+                f"{'load steps' if load else 'friction'} fails on its own capture: "
+                f"{_failed_checks(failed)}"
                 + (_load_advice(ident.report.get("load")) if load else "") + ")") from None
         ident.report[retry_key] = {**retry_note, "refused": one_line(refused),
                                    **({"failed": [c.check for c in failed]} if failed else {})}

@@ -978,15 +978,19 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                 "state_space or a larger order")
         if max(drops) > V.CONSISTENCY_DROP:
             half = "first" if drops[0] < drops[1] else "second"
+            # what changes is not told by the drop: a fault, and as often a load that steps
+            # or a friction the linear model takes differently at each half's inputs (the
+            # rig zoo's healthy captures 53, 61, 82, 90)
             raise PlantChangeError(
-                f"the plant changes within the capture (a fault or outage?): the model of the "
-                f"{half} half fits the other half {max(drops):.0f} points worse than its own; "
-                "record a capture of the healthy node only")
+                f"the halves of the capture fit different models (the plant or its load "
+                f"changes within it: a fault, an outage, load steps, friction?): the model of "
+                f"the {half} half fits the other half {max(drops):.0f} points worse than its "
+                "own; record the healthy node only, at one load")
         if fit_va < fit_tr - V.HOLDOUT_DROP:
             raise PlantChangeError(
                 f"the hold-out fit ({fit_va:.0f} %) is far below the training fit "
-                f"({fit_tr:.0f} %): the plant changes near the end of the capture (a fault or "
-                "outage?); record a capture of the healthy node only")
+                f"({fit_tr:.0f} %): the plant or its load changes near the end of the capture "
+                "(a fault, an outage, a load step?); record the healthy node only, at one load")
         ambiguous = _limit_ambiguity(cand.model.discretize(T), u, y, m, T, ev["innovation_std"],
                                      ev["dc_gain"])
         if ambiguous is not None and ambiguous[3]:
