@@ -97,7 +97,7 @@ class DiagnosisSpec:
     f2: float = DEFAULT_THRESHOLDS.f2
     dwell_s: float = 0.03
     hysteresis: float = 0.02
-    significance: float = 0.0  # `monitor.diagnosis.rules.cls_update`
+    significance: float = 0.75  # `monitor.diagnosis.rules.cls_update`
     silence_timeout_s: float = 0.5
     mismatch_window_s: float = 2.0
     mismatch_dwell_s: float = 3.0
