@@ -91,8 +91,8 @@ NIS_MARGIN = 1.2
 kept as fitted; below that it is calibrated (`monitor.identify.nis_calibrated`). A fresh run
 of the same plant under other loads and inputs meets windowed NIS values down to about
 three quarters of its capture's mean: the rig zoo's seed 54 (load changes the model lacks)
-replayed its capture at 0.742, inside the band's 0.667, and its fresh healthy run at
-windows down to 0.54, flagged 54 % of the time."""
+replayed its capture at 0.742, just above the band's lower edge 0.667, and its fresh
+healthy run at windows down to 0.54, flagged 54 % of the time."""
 
 FAULT_ONSETS = 4
 """Onsets of the added loss, spread over the fitted stretch (the input differs at each)."""

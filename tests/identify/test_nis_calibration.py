@@ -1,8 +1,8 @@
 """identify calibrates the noise level by the monitor's own filter: where the replay of the
 capture gives a mean NIS below the band of a fitting model (the filter the monitor runs,
 with gamma^ and its bias states, explains the capture better than the steady-state Kalman
-filter the noise was fitted with), Q and R are scaled by it and the capture replayed once
-more (`monitor.identify.nis_calibrated`)."""
+filter the noise was fitted with), or near its lower edge for a model that passes, Q and R
+are scaled by it and the capture replayed once more (`monitor.identify.nis_calibrated`)."""
 
 from __future__ import annotations
 
@@ -66,7 +66,8 @@ def test_r_stays_at_the_quantisation_floor_and_only_a_low_nis_calibrates() -> No
 
 def test_two_outputs_are_calibrated_by_their_nis_per_output() -> None:
     """The NIS of p outputs has mean p where the noise is right: 1.5 over two outputs is a
-    noise overstated by a quarter (a scale of 0.75), 2.2 is not below the band at all."""
+    noise overstated by a quarter (a scale of 0.75); 2.2 is above what a right noise gives,
+    which no calibration by a scale below 1 answers."""
     ident = _ident(0.02)
     model = replace(ident.model, C=np.eye(2), D=np.zeros((2, 1)),
                     R=np.diag([0.02, 0.05]), output_names=("y1", "y2"))
@@ -104,7 +105,7 @@ def test_a_capture_replayed_below_the_nis_band_is_checked_again_calibrated(
 def test_a_capture_replayed_near_the_band_s_edge_is_calibrated_and_a_fresh_run_stays_in_it(
         tmp_path: Path) -> None:
     """The rig zoo's seed 54 (a speed under load changes the model lacks): its fit passes
-    every check, but the replay of its capture gives a mean NIS of 0.74, inside the band's
+    every check, but the replay of its capture gives a mean NIS of 0.74, above the band's
     lower edge 0.667 by little; a fresh healthy run at other loads then meets windows down
     to 0.54 and raised the mismatch flag for half of it. identify calibrates the noise by
     the replay (NIS near 1), and the fresh run replays without the flag."""
