@@ -522,7 +522,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             _progress(f"the replay's mean NIS {nis:.3g} lies near its band's lower edge "
                       f"{band[0]:.3g}: the noise calibrated by it")
         calibrated = nis_calibrated(ident, nis, [None if s is None else s[0] for s in
-                                                 known_steps or [None] * len(rig.outputs)])
+                                                 known_steps or [None] * p])
         calibrated.report["noise"]["calibrated"]["failed_before"] = [c.check for c in failed]
         failed_calibrated = check_and_write(calibrated, keep_failed and bool(failed))
         if failed_calibrated and not failed:

@@ -44,7 +44,7 @@ from monitor.bus.logfile import read_log
 from monitor.diagnosis import HealthState, MismatchDetector
 from monitor.estimation.friction import coulomb, friction_code, speed_row
 from monitor.identify import validate as V
-from monitor.identify.excitation import RECORDING_ADVICE
+from monitor.identify.excitation import ONE_CONDITION_ADVICE, RECORDING_ADVICE
 from monitor.identify.friction import filtered_states
 from monitor.identify.lti import kalman, predict
 from monitor.pipeline import MonitorConfig, MonitorPipeline
@@ -150,7 +150,6 @@ better: the rig zoo's seed 87 (a free position, no friction, diagnosed right) re
 noise units and a cut below zero; seed 84 (friction) cuts 36 %."""
 
 _MORE_DATA = "more excitation (larger, faster input steps or a PRBS), a longer capture"
-_ONE_CONDITION = "record the healthy node only, at one load"
 
 
 @dataclass(frozen=True)
@@ -583,7 +582,8 @@ def report_checks(report: Mapping[str, Any], replay: ReplayFigures,
               f"the innovations still follow the input: {structure}; {_MORE_DATA}",
               gating=False),
         Check("consistency", bool(max(drops or [math.nan]) <= V.CONSISTENCY_DROP),
-              _num(max(drops or [math.nan])), V.CONSISTENCY_DROP, _ONE_CONDITION, gating=False),
+              _num(max(drops or [math.nan])), V.CONSISTENCY_DROP, ONE_CONDITION_ADVICE,
+              gating=False),
         Check("excitation",
               bool(excitation.get("hankel_singular_ratio", math.nan) >= V.MIN_PE_RATIO),
               _num(excitation.get("hankel_singular_ratio", math.nan)), V.MIN_PE_RATIO,
@@ -662,17 +662,17 @@ def _replay_checks(r: ReplayFigures, structure: str, faults: FaultFigures | None
         share = r.share(r.fault_seconds)
         health = Check("replay_fault_free", share == 0.0, _num(share), 0.0,
                        f"fault or outage from {r.first_fault}: the model misses the input's "
-                       f"effect: {structure}; {_MORE_DATA}; {_ONE_CONDITION}",
+                       f"effect: {structure}; {_MORE_DATA}; {ONE_CONDITION_ADVICE}",
                        gating=True)
     if lo <= nis <= hi:
         # consistent on average but not throughout: the innovations grow and shrink
         flag_advice = (f"flag up from {r.first_mismatch} on while the mean NIS fits: the "
-                       f"noise or the plant changes within the capture; {_ONE_CONDITION}")
+                       f"noise or the plant changes within the capture; {ONE_CONDITION_ADVICE}")
     else:
         flag_advice = f"flag up from {r.first_mismatch} on: see replay_mean_nis"
     if nis < lo:
         nis_advice = ("the learned noise is larger than the capture's, so the flag would miss "
-                      f"a drifting plant: a longer capture; {_ONE_CONDITION}")
+                      f"a drifting plant: a longer capture; {ONE_CONDITION_ADVICE}")
     else:
         nis_advice = (f"the model explains the capture worse than its noise says: {structure}; "
                       f"{_MORE_DATA}")
@@ -685,7 +685,7 @@ def _replay_checks(r: ReplayFigures, structure: str, faults: FaultFigures | None
               _num(r.alarm_max), margin if math.isfinite(margin) else 0.0,
               f"{_weighed(r)} reaches {r.alarm_max:.3g} on the healthy capture, close to the "
               f"threshold {r.f1:g}: a fresh run would cross it (false alarms); {structure}; "
-              f"{_MORE_DATA}; {_ONE_CONDITION}", gating=True),
+              f"{_MORE_DATA}; {ONE_CONDITION_ADVICE}", gating=True),
         Check("replay_model_mismatch", bool(mismatch <= MAX_MISMATCH_SHARE), _num(mismatch),
               MAX_MISMATCH_SHARE, flag_advice, gating=True),
         Check("replay_mean_nis", bool(lo <= nis <= hi), _num(nis), [lo, hi], nis_advice,

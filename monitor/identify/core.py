@@ -37,7 +37,7 @@ from monitor.identify.errors import (
     SlowModeError,
     carrying_friction,
 )
-from monitor.identify.excitation import RECORDING_ADVICE
+from monitor.identify.excitation import ONE_CONDITION_ADVICE, RECORDING_ADVICE
 from monitor.identify.friction import FRICTION_ITERATIONS, friction_column, speed_estimate
 from monitor.identify.load import LOAD_ITERATIONS, LoadSteps, load_steps, settled
 from monitor.identify.lti import dsim, integrating, kalman, predict, steady_state_x0
@@ -985,12 +985,12 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
                 f"the halves of the capture fit different models (the plant or its load "
                 f"changes within it: a fault, an outage, load steps, friction?): the model of "
                 f"the {half} half fits the other half {max(drops):.0f} points worse than its "
-                "own; record the healthy node only, at one load")
+                f"own; {ONE_CONDITION_ADVICE}")
         if fit_va < fit_tr - V.HOLDOUT_DROP:
             raise PlantChangeError(
                 f"the hold-out fit ({fit_va:.0f} %) is far below the training fit "
                 f"({fit_tr:.0f} %): the plant or its load changes near the end of the capture "
-                "(a fault, an outage, a load step?); record the healthy node only, at one load")
+                f"(a fault, an outage, a load step?); {ONE_CONDITION_ADVICE}")
         ambiguous = _limit_ambiguity(cand.model.discretize(T), u, y, m, T, ev["innovation_std"],
                                      ev["dc_gain"])
         if ambiguous is not None and ambiguous[3]:

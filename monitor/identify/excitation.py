@@ -16,13 +16,17 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["RECORDING_ADVICE", "prbs"]
+__all__ = ["ONE_CONDITION_ADVICE", "RECORDING_ADVICE", "prbs"]
 
 RECORDING_ADVICE = (
     "record with the input varying: steps between several levels (random steps or a "
     "multi-level PRBS) within +-5 to 10 % of the operating point, switching every 1 to 3 "
     "time constants of the plant, for 60 s"
 )
+
+ONE_CONDITION_ADVICE = "record the healthy node only, at one load"
+"""What to record where the capture holds more than one plant: a fault, an outage or load
+steps within it."""
 
 
 def prbs(
