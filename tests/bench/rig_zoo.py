@@ -219,9 +219,10 @@ def _frames_desc(rig: gen.Rig) -> str:
     return f"2 frames ({order}), input {in_rate:g} Hz +{rig.in_msg.phase}/4 T"
 
 
-def prepare(seed: int, d: Path) -> tuple[gen.Rig, list[gen.Timeline], RigResult]:
+def prepare(seed: int, d: Path, *, binary_prbs: bool = False
+            ) -> tuple[gen.Rig, list[gen.Timeline], RigResult]:
     """Make the rig, simulate every run, write the DBC, rig file and captures."""
-    rig = gen.make_rig(seed)
+    rig = gen.make_rig(seed, binary_prbs=binary_prbs)
     tls = gen.timelines(rig)
     sims: list[dict[int, gen.NodeRun]] = []
     for tl in tls:
@@ -291,10 +292,10 @@ def run_start(rig: gen.Rig, tl: gen.Timeline, node: int) -> float:
     return 1_760_000_000.0 + rig.seed * 1000.0 + tl.index * 100.0 + rig.node_shift[node] / rig.rate
 
 
-def zoo_rig(seed: int, keep: str | None) -> RigResult:
+def zoo_rig(seed: int, keep: str | None, binary_prbs: bool = False) -> RigResult:
     """One rig, start to verdict; a failure of the zoo itself is a verdict `zoo-error`."""
     try:
-        return _zoo_rig_in_dir(seed, keep)
+        return _zoo_rig_in_dir(seed, keep, binary_prbs)
     except Exception as exc:  # the zoo's own bug: report it, run the other rigs
         tb = traceback.format_exc()
         res = RigResult(seed=seed, layout="?", rate=math.nan, order=0, kinds="?",
@@ -305,17 +306,17 @@ def zoo_rig(seed: int, keep: str | None) -> RigResult:
         return res
 
 
-def _zoo_rig_in_dir(seed: int, keep: str | None) -> RigResult:
+def _zoo_rig_in_dir(seed: int, keep: str | None, binary_prbs: bool) -> RigResult:
     t_start = time.perf_counter()
     if keep is not None:
         d = Path(keep) / f"seed-{seed}"
         if d.exists():
             shutil.rmtree(d)
         d.mkdir(parents=True)
-        res = _zoo_rig(seed, d)
+        res = _zoo_rig(seed, d, binary_prbs)
     else:
         with tempfile.TemporaryDirectory(prefix=f"zoo-{seed}-") as tmp:
-            res = _zoo_rig(seed, Path(tmp))
+            res = _zoo_rig(seed, Path(tmp), binary_prbs)
             res.directory = ""
     res.seconds = time.perf_counter() - t_start
     return res
@@ -328,8 +329,8 @@ def _note_cmd(res: RigResult, c: Cmd) -> None:
                                "last_line": c.last_line, "where": c.where})
 
 
-def _zoo_rig(seed: int, d: Path) -> RigResult:
-    rig, tls, res = prepare(seed, d)
+def _zoo_rig(seed: int, d: Path, binary_prbs: bool) -> RigResult:
+    rig, tls, res = prepare(seed, d, binary_prbs=binary_prbs)
     node_arg = ["--node", str(rig.nodes[0])] if len(rig.nodes) > 1 else []
     ident = ["identify", "identify.log", "--rig", "rig.toml", "--out", "learned.toml",
              *node_arg]
@@ -563,6 +564,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="rig i has seed S + i (default 0)")
     ap.add_argument("--jobs", type=int, default=1, help="rigs at once (default 1)")
     ap.add_argument("--keep", metavar="DIR", help="keep each rig's files in DIR/seed-<S>")
+    ap.add_argument("--binary-prbs", action="store_true",
+                    help="the PRBS rigs' healthy minute takes two levels, not the several "
+                         "the README asks for (each such rig must be refused or right)")
     a = ap.parse_args(argv)
     if a.rigs < 1 or a.jobs < 1:
         ap.error("--rigs and --jobs must be at least 1")
@@ -572,11 +576,11 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     if a.jobs == 1:
         for s in seeds:
-            results.append(zoo_rig(s, a.keep))
+            results.append(zoo_rig(s, a.keep, a.binary_prbs))
             _progress(results[-1], len(results), len(seeds), t0)
     else:
         with ProcessPoolExecutor(max_workers=a.jobs) as pool:
-            futs = [pool.submit(zoo_rig, s, a.keep) for s in seeds]
+            futs = [pool.submit(zoo_rig, s, a.keep, a.binary_prbs) for s in seeds]
             for fut in as_completed(futs):
                 results.append(fut.result())
                 _progress(results[-1], len(results), len(seeds), t0)

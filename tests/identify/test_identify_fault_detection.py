@@ -28,7 +28,7 @@ def test_a_rig_whose_loss_the_noise_hides_is_refused(tmp_path: Path) -> None:
     # a 2 rad quantum) that the model fits to 97 % over the minute, yet a loss of 0.3
     # moves the angle by under 2 noise units in 0.3 s: accepted, the monitor missed the
     # loss for up to 1.3 s and raised a false alarm in a healthy run.
-    identify_files(1, tmp_path)
+    identify_files(1, tmp_path, binary_prbs=True)
     out = tmp_path / "learned.toml"
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", out.name, cwd=tmp_path)
     assert res.returncode == 1, res.stdout + res.stderr
@@ -57,7 +57,7 @@ def test_a_rig_whose_healthy_gamma_comes_near_the_threshold_is_refused(tmp_path:
     # reported a loss of 0.3 as 0.17, on and off. What an alarm weighs, gamma^ less 0.75 of
     # its standard deviation (`[diagnosis] significance`), stays under the margin (0.088);
     # the refusal is then the model-mismatch flag, up most of the capture.
-    identify_files(103, tmp_path)
+    identify_files(103, tmp_path, binary_prbs=True)
     out = tmp_path / "learned.toml"
     res = run_identify("identify.log", "--rig", "rig.toml", "--node", "1", "--out", out.name,
                     cwd=tmp_path)

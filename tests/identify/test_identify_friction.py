@@ -98,7 +98,7 @@ def test_a_two_level_capture_of_a_one_signed_friction_is_refused(tmp_path: Path)
     term, and a run at other levels would meet a limit, if it is one, wrong. Refused in one
     line before the friction's refit (which fitted order 1 and passed every check on the
     capture)."""
-    res, _ = identify_zoo_rig(203, tmp_path)
+    res, _ = identify_zoo_rig(203, tmp_path, binary_prbs=True)
     assert res.returncode != 0
     last = res.stderr.strip().splitlines()[-1]
     assert "two levels alone" in last and "friction" in last and "several levels" in last
@@ -114,14 +114,14 @@ def test_a_two_level_capture_of_a_friction_that_matters_is_refused(tmp_path: Pat
     Seed 94 (a spring-held position, friction of 4.3 noise units) is accepted."""
     for seed in (84, 94):
         (tmp_path / str(seed)).mkdir()
-    res, report = identify_zoo_rig(84, tmp_path / "84")
+    res, report = identify_zoo_rig(84, tmp_path / "84", binary_prbs=True)
     assert res.returncode == 1
     last = res.stderr.strip().splitlines()[-1]
     assert "friction_two_levels" in last and "several levels" in last
     assert report["friction_probe"]["response_noise_units"] > 10.0
     assert report["friction_probe"]["holdout_error_cut"] > FRICTION_SHOWN
     assert not (tmp_path / "84" / "learned.toml").exists()
-    res, report = identify_zoo_rig(94, tmp_path / "94")
+    res, report = identify_zoo_rig(94, tmp_path / "94", binary_prbs=True)
     assert res.returncode == 0, res.stdout + res.stderr
     assert report["friction_probe"]["response_noise_units"] < 10.0
     assert {c["check"]: c["passed"] for c in report["checks"]}["friction_two_levels"]
@@ -136,7 +136,7 @@ def test_a_refused_friction_probe_still_weighs_the_friction(
     of the linear model's hold-out error) still stands, and
     friction_two_levels refuses the rig. Left silent, the linear model passed every check
     and a fresh run of random steps met the friction's other shares as 16 false alarms."""
-    prepare(59, tmp_path)  # as the zoo writes it: the DBC's scale spans its fresh runs too
+    prepare(59, tmp_path, binary_prbs=True)  # as the zoo writes it: the DBC's scale spans its fresh runs too
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
                        cwd=tmp_path)
     assert res.returncode == 1

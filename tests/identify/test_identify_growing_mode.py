@@ -94,7 +94,7 @@ def test_the_zoo_rig_that_once_needed_one_gets_none(tmp_path: Path) -> None:
     cannot tell the limit from a smaller gain plus an offset (`test_limit_ambiguity`), and
     not for the growing mode (so identify does not try the friction's refit); or the model
     drives no growing mode (order 3 at 86 %, diagnosed right in the zoo's fresh runs)."""
-    identify_files(6, tmp_path)
+    identify_files(6, tmp_path, binary_prbs=True)
     u, y, T = _series(tmp_path)
     try:
         ident = identify(u, y, T, kind="state_space", run_filter=False)

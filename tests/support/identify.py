@@ -70,12 +70,12 @@ def run_identify(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
                           capture_output=True, text=True, timeout=300)
 
 
-def identify_zoo_rig(seed: int, d: Path, *args: str
+def identify_zoo_rig(seed: int, d: Path, *args: str, binary_prbs: bool = False
                      ) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
-    """`identify` as the rig zoo runs it on rig `seed`'s healthy minute (written to `d`), its
-    first node, into learned.toml (more options `args`): the command's result and the report
-    it wrote (empty where none)."""
-    rig = identify_files(seed, d)
+    """`identify` as the rig zoo runs it on rig `seed`'s healthy minute (written to `d`; a
+    PRBS rig's of two levels with `binary_prbs`), its first node, into learned.toml (more
+    options `args`): the command's result and the report it wrote (empty where none)."""
+    rig = identify_files(seed, d, binary_prbs=binary_prbs)
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
                        "--node", str(rig.nodes[0]), *args, cwd=d)
     report = d / "learned.identify.json"

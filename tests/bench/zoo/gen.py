@@ -108,6 +108,9 @@ class Rig:
     offset: float = 0.0
     quantum: float = 0.0
     notes: list[str] = field(default_factory=list)
+    # the healthy minute's PRBS takes two levels (the README asks for several: a user who
+    # records a binary sequence anyway, each of whose rigs identify must refuse or get right)
+    binary_prbs: bool = False
 
     @property
     def kinds(self) -> str:
@@ -123,7 +126,7 @@ def _pick(rng: np.random.Generator, seq: tuple[str, ...] | list[str]) -> str:
     return str(seq[int(rng.integers(0, len(seq)))])
 
 
-def make_rig(seed: int) -> Rig:
+def make_rig(seed: int, *, binary_prbs: bool = False) -> Rig:
     rng = np.random.default_rng(seed)
     rate = float(rng.choice(RATES, p=[0.12, 0.2, 0.14, 0.1, 0.16, 0.16, 0.12]))
     # -- plant
@@ -278,7 +281,7 @@ def make_rig(seed: int) -> Rig:
         sigma_ratio=sigma_ratio, offset_ratio=offset_ratio, quant_ratio=quant_ratio,
         jitter=float(rng.uniform(0.0, 0.03)), latency=float(rng.uniform(0.02, 0.2)),
         node_shift={n: float(rng.uniform(0.0, 1.0)) for n in nodes}, foreign=foreign,
-        extra_msgs=extra_msgs, nodes_key=nodes_key)
+        extra_msgs=extra_msgs, nodes_key=nodes_key, binary_prbs=binary_prbs)
 
 
 def _units(rng: np.random.Generator, sig: SignalEnc, kind: str) -> None:
@@ -408,7 +411,15 @@ def commands(rig: Rig, tl: Timeline, node: int) -> Array:
     clock = max(1, round(rig.clock_s / (p * h)))
     clock = max(clock, math.ceil(3 * SUB / p))
     vals = np.empty(nin)
-    if tl.name == "identify" and rig.excitation == "prbs":
+    if tl.name == "identify" and rig.excitation == "prbs" and not rig.binary_prbs:
+        # a multi-level PRBS, as the README asks a user to record: 3-7 levels evenly spaced
+        # over the band (how many from a stream of its own: the rig's other draws stay)
+        levels = np.linspace(-1.0, 1.0, int(np.random.default_rng([rig.seed, 7]).integers(3, 8)))
+        k = 0
+        while k < nin:
+            vals[k:k + clock] = rig.level + rig.amplitude * float(rng.choice(levels))
+            k += clock
+    elif tl.name == "identify" and rig.excitation == "prbs":
         # a maximal-length 9-bit LFSR (x^9 + x^5 + 1), one bit per clock
         reg = int(rng.integers(1, 512))
         k = 0
@@ -627,11 +638,12 @@ def write_capture(rig: Rig, tl: Timeline, runs: dict[int, NodeRun], path: Path,
     return int(t_all.size)
 
 
-def identify_files(seed: int, d: Path, duration: float | None = None) -> Rig:
+def identify_files(seed: int, d: Path, duration: float | None = None, *,
+                   binary_prbs: bool = False) -> Rig:
     """Rig `seed`'s DBC, rig file (rig.dbc, rig.toml) and healthy minute (identify.log, or
     `duration` seconds of it) in directory `d`: what `identify` is given, without the
     scored runs (for tests of identify on one zoo rig)."""
-    rig = make_rig(seed)
+    rig = make_rig(seed, binary_prbs=binary_prbs)
     tl = timelines(rig)[0]
     if duration is not None:
         tl = Timeline(tl.name, duration, tl.index)
