@@ -543,48 +543,66 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             return None
         return checked(other, keep_failed=False)
 
-    # a refusal of the linear fit that a refit may answer: a growing mode the input drives
-    # (a friction that keeps one sign: the rig zoo's seed 203, a speed with friction 10 %
-    # of the input's level, the fit's slow mode driven by 4.9 % of the swing) or halves
-    # that fit differently, or a mode too slow for the capture (a load that steps while the
-    # capture runs: the rig zoo's seeds 55, 61, 91; the paper's motor under load steps of
-    # 2-5 N m, a mode of 5.9 s); the refit is checked like any model, and the refusal
-    # stands where it fails
-    refused: IdentifyError | None = None
-    retry_key, retry_note = "", {}  # the report's entry for the refit that answered it
+    def answered(exc: IdentifyError) -> tuple[Identification, list[Check], str, dict[str, Any]]:
+        """The refits that may answer the first fit's refusal `exc`, each checked like any
+        model: with friction for a growing mode the input drives where the output is a
+        speed or a position (a friction that keeps one sign: the rig zoo's seed 203, a speed
+        with friction 10 % of the input's level, the fit's slow mode driven by 4.9 % of the
+        swing); with load steps for halves that fit differently or a mode too slow for the
+        capture (a load that steps while the capture runs: the rig zoo's seeds 55, 61, 91;
+        the paper's motor under load steps of 2-5 N m, a mode of 5.9 s); then, where the
+        data chose the order, one order lower (a spare state of the chosen order makes a
+        mode the plant lacks: the rig zoo's seed 6, order 4 with a mode of 7 s where the
+        slowest is 0.45 s, order 3 passing every check). The first that fits and passes;
+        else the refusal stands, saying what each refit met (with --force the first that
+        fitted is written, saying what it fails)."""
+        line = one_line(exc, ERROR_LINE_LIMIT)
+        motion = _motion(rig)
+        tries: list[tuple[str, str, dict[str, Any], Callable[[], Identification]]] = []
+        if isinstance(exc, GrowingModeError) and motion is not None:
+            tries.append(("friction_retry", "friction", {"speed": motion},
+                          lambda: fit(args.order, friction=motion)))
+        elif not isinstance(exc, GrowingModeError):
+            tries.append(("load_retry", "load steps", {}, lambda: fit(args.order, load=True)))
+        lower = (exc.order or 0) - 1
+        if lower >= 1:
+            tries.append(("order_down_retry", f"order {lower}", {"order": lower},
+                          lambda: fit(lower)))
+        met: list[str] = []
+        first_fitted: tuple[Identification, list[Check], str, dict[str, Any]] | None = None
+        for key, what, note, make in tries:
+            try:
+                other = make()
+            except IdentifyError as again_exc:
+                if key == "friction_retry":
+                    continue  # a friction the data do not bear out: the refusal says enough
+                again = one_line(again_exc, ERROR_LINE_LIMIT)
+                same = again.split(":", 1)[0] == line.split(":", 1)[0]
+                met.append(f"a refit with {what}: "
+                           f"{'refused the same way' if same else again}")
+                continue
+            other, failed = checked(other, keep_failed=False)
+            if not failed:
+                return other, failed, key, note
+            met.append(f"a refit with {what} fails on its own capture: {_failed_checks(failed)}"
+                       + (_load_advice(other.report.get("load")) if key == "load_retry"
+                          else ""))
+            first_fitted = first_fitted or (other, failed, key, note)
+        if first_fitted is not None and args.force:
+            with atomic_output("--out", out) as tmp:
+                tmp.write_text(document(first_fitted[0], first_fitted[1]), encoding="utf-8")
+            return first_fitted
+        if not met:
+            raise exc
+        # the whole first line (its advice last), and of each refit only what differs: a
+        # refusal of the same cause, with other figures, is not repeated
+        raise type(exc)(f"{line} ({'; '.join(met)})") from None
+
     try:
         ident = fit(args.order)
-    except GrowingModeError as exc:
-        motion = _motion(rig)
-        if motion is None:
-            raise
-        refused, retry_key, retry_note = exc, "friction_retry", {"speed": motion}
-        try:
-            ident = fit(args.order, friction=motion)
-        except IdentifyError:
-            raise exc from None
-    except (PlantChangeError, SlowModeError) as exc:
-        refused, retry_key = exc, "load_retry"
-        try:
-            ident = fit(args.order, load=True)
-        except IdentifyError as load_exc:
-            # the whole first line (its advice last), and of the refit's only what differs:
-            # a refusal of the same cause, with other figures, is not repeated
-            line = one_line(exc, ERROR_LINE_LIMIT)
-            again = one_line(load_exc, ERROR_LINE_LIMIT)
-            same = again.split(":", 1)[0] == line.split(":", 1)[0]
-            raise type(exc)(f"{line} (a refit with load steps: "
-                            f"{'refused the same way' if same else again})") from None
-    if refused is not None:
-        ident, failed = checked(ident, keep_failed=args.force)
-        if failed and not args.force:  # the refusal stands, as without the refit
-            load = retry_key == "load_retry"
-            raise type(refused)(
-                f"{one_line(refused, ERROR_LINE_LIMIT)} (a refit with "
-                f"{'load steps' if load else 'friction'} fails on its own capture: "
-                f"{_failed_checks(failed)}"
-                + (_load_advice(ident.report.get("load")) if load else "") + ")") from None
-        ident.report[retry_key] = {**retry_note, "refused": one_line(refused),
+    except (GrowingModeError, PlantChangeError, SlowModeError) as exc:
+        ident, failed, retry_key, retry_note = answered(exc)
+        ident.report[retry_key] = {**retry_note, "refused": one_line(exc),
                                    **({"failed": [c.check for c in failed]} if failed else {})}
     else:
         # A black box whose order the data chose (the lowest within a margin of the best

@@ -35,7 +35,7 @@ from monitor.identify.errors import (
     IdentifyError,
     PlantChangeError,
     SlowModeError,
-    carrying_friction,
+    carrying_fit,
 )
 from monitor.identify.excitation import ONE_CONDITION_ADVICE, RECORDING_ADVICE
 from monitor.identify.friction import FRICTION_ITERATIONS, friction_column, speed_estimate
@@ -961,8 +961,9 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
 
     # Refusals after the fit: a change inside the capture first (it spoils every figure).
     # what the refit measured of a friction stands whatever refuses its model (the
-    # friction probe of `identify` weighs it)
-    with carrying_friction(friction_info):
+    # friction probe of `identify` weighs it), and so does the order the data chose
+    with carrying_fit(friction_info,
+                      cand.order if cand.kind == "state_space" and order is None else None):
         t = time.perf_counter()
         drops = _consistency(cand, u, y, T)
         timing["consistency"] = time.perf_counter() - t

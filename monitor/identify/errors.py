@@ -10,7 +10,7 @@ from typing import Any
 from monitor.errors import MonitorError
 
 __all__ = ["GrowingModeError", "IdentifyError", "PlantChangeError", "SlowModeError",
-           "carrying_friction"]
+           "carrying_fit"]
 
 
 class IdentifyError(MonitorError, ValueError):
@@ -18,22 +18,28 @@ class IdentifyError(MonitorError, ValueError):
     one line that says what is wrong and what to record instead. `friction` is the
     report's "friction" entry where a fit with Coulomb friction was refused after it was
     measured: what the refit measured of the friction stands, its model does not
-    (`identify`'s friction probe weighs it)."""
+    (`identify`'s friction probe weighs it). `order` is the order the data chose where a
+    black box of an automatic order was refused after its fit (None otherwise): one order
+    lower may fit without what refused it (`identify` tries it)."""
 
-    def __init__(self, message: str, friction: dict[str, Any] | None = None) -> None:
+    def __init__(self, message: str, friction: dict[str, Any] | None = None,
+                 order: int | None = None) -> None:
         super().__init__(message)
         self.friction = friction
+        self.order = order
 
 
 @contextmanager
-def carrying_friction(friction: dict[str, Any] | None) -> Iterator[None]:
-    """Gives every IdentifyError raised inside it the friction measured before (None:
-    none was)."""
+def carrying_fit(friction: dict[str, Any] | None, order: int | None) -> Iterator[None]:
+    """Gives every IdentifyError raised inside it the friction measured before and the
+    order the data chose (None: none was)."""
     try:
         yield
     except IdentifyError as exc:
         if exc.friction is None:
             exc.friction = friction
+        if exc.order is None:
+            exc.order = order
         raise
 
 

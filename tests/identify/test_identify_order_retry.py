@@ -3,7 +3,8 @@ through every refusal, and written where that serves; the report says which orde
 refused and why (the rig zoo's seed 308: a first-order plant whose input frames arrive half
 an output period after the output's: order 1 fits the hold-out about as well as order 2,
 but the input arriving part way through a period is a fractional delay, and gamma^ reached
-0.225 on the healthy capture; order 2 holds it). A given --order is never changed."""
+0.225 on the healthy capture; order 2 holds it). A chosen order whose fit is refused for
+a mode the plant lacks is tried one order down. A given --order is never changed."""
 
 from __future__ import annotations
 
@@ -32,3 +33,22 @@ def test_the_chosen_order_that_fails_its_replay_is_tried_one_up(tmp_path: Path) 
     assert res.returncode == 1, res.stdout + res.stderr
     assert "replay_gamma_margin" in res.stderr and not given.exists()
     assert "order_retry" not in _report(given)
+
+
+def test_the_chosen_order_refused_for_a_mode_it_made_up_is_tried_one_down(tmp_path: Path) -> None:
+    """The rig zoo's seed 6 (a speed behind a current loop on two masses, slowest time
+    constant 0.45 s, an actuator limit), from its multi-level PRBS: the order the data
+    chose (4) carries a mode of 7 s and was refused as a capture too short for the plant;
+    order 3 passes every check and is written, the report saying why."""
+    res, report = identify_zoo_rig(6, tmp_path)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert report["order"] == 3
+    down = report["order_down_retry"]
+    assert down["order"] == 3 and "capture too short" in down["refused"], down
+    assert "failed" not in down and "FAIL" not in res.stdout
+
+    given = tmp_path / "given.toml"
+    res = run_identify("identify.log", "--rig", "rig.toml", "--out", given.name,
+                       "--order", "4", cwd=tmp_path)
+    assert res.returncode == 2 and "capture too short" in res.stderr.splitlines()[-1]
+    assert not given.exists()
