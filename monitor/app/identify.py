@@ -44,6 +44,7 @@ import tomli_w
 from monitor.app import options
 from monitor.app.identify_check import (
     FAULT_ONSETS,
+    FRICTION_FEW_LEVELS,
     NIS_MARGIN,
     Check,
     failure_cause,
@@ -479,12 +480,12 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         return failed
 
     def probe_friction(ident: Identification) -> None:
-        """A linear black box of a speed or position learned from an input of two levels
-        alone gets `friction_probe`: the friction's refit, whose size the check
-        `friction_two_levels` weighs (two levels show one share of a friction)."""
+        """A linear black box of a speed or position learned from an input of few levels
+        (FRICTION_FEW_LEVELS) gets `friction_probe`: the friction's refit, whose size the
+        check `friction_levels` weighs (few levels show few shares of a friction)."""
         motion = _motion(rig)
         if ident.kind != "state_space" or "friction" in ident.report or motion is None \
-                or input_levels(ident.report) != 2:
+                or not input_levels(ident.report) <= FRICTION_FEW_LEVELS:
             return
         measure = ("response_noise_units", "holdout_error_cut", "width")
         try:

@@ -54,8 +54,9 @@ from monitor.rig import Rig
 from monitor.setup import frame_decoder, monitor_config
 from monitor.sinks.base import Sink
 
-__all__ = ["DETECT_S", "FAULT_ONSETS", "MAX_MISMATCH_SHARE", "NIS_MARGIN", "SNR_VISIBLE",
-           "START_SHARE", "STEADY_LOSS_NOISE", "Check", "FaultFigures", "ReplayFigures",
+__all__ = ["DETECT_S", "FAULT_ONSETS", "FRICTION_FEW_LEVELS", "MAX_MISMATCH_SHARE",
+           "NIS_MARGIN", "SNR_VISIBLE", "START_SHARE", "STEADY_LOSS_NOISE", "Check",
+           "FaultFigures", "ReplayFigures",
            "added_loss", "failure_cause", "fault_detection", "gating_failures", "input_levels",
            "replay_capture", "report_checks"]
 
@@ -129,17 +130,26 @@ spring-held speeds whose own capture replayed as faulty (seeds 202 and 209), 0.7
 another (seed 4), 0.003 on one diagnosed right (seed 207), 6.6 to 140 on the other rigs
 diagnosed right."""
 
-FRICTION_TWO_LEVELS_NOISE = 10.0
+FRICTION_LEVELS_NOISE = 10.0
 """The largest friction, as its own response's standard deviation over the capture in
 innovation standard deviations (the report's friction `response_noise_units`, or that of
 `friction_probe`, the friction's refit of a linear model), that a model learned from an
-input of two levels alone may carry or leave out where the capture shows friction
-(FRICTION_SHOWN). Two levels give friction, whose share of a step changes with the step's
-size, one share: the fit takes it into the gain (or splits it between gain and friction as
-the transients allow), and runs at other levels meet the difference. A gate. Measured on
-the rig zoo: 52 on seed 84 (a free position, false alarms in its healthy run with the
-linear model and with the friction's), 4.3 on seed 94 (a spring-held position, diagnosed
-right)."""
+input of few levels may carry or leave out where the capture shows friction
+(FRICTION_SHOWN). Friction's share of a step changes with the step's size. Two levels give
+one share: the fit takes it into the gain (or splits it between gain and friction as the
+transients allow), and runs at other levels meet the difference. Three (a PRBS of -A, 0
+and +A) give steps of two sizes and a coast to rest, which a friction's refit resolves but
+a linear model takes into its gain as well. A gate: of the linear model up to
+FRICTION_FEW_LEVELS levels, of a model with friction at two. Measured on the rig zoo: 52
+on seed 84 (a free position, two levels, false alarms in its healthy run with the linear
+model and with the friction's), 4.3 on seed 94 (a spring-held position, two levels,
+diagnosed right), 205 on seed 98 (a free position, three levels: the linear model passed
+every other check on its capture, then raised 24 false alarms in a healthy run of random
+steps)."""
+
+FRICTION_FEW_LEVELS = 3
+"""The most levels of an input under which a linear model of a speed or a position is
+probed for friction (`friction_probe`) and gated by FRICTION_LEVELS_NOISE."""
 
 FRICTION_SHOWN = 0.1
 """The least share of the linear model's hold-out error (100 - fit %) that the friction's
@@ -612,23 +622,27 @@ def input_levels(report: Mapping[str, Any]) -> float:
 
 
 def _friction_check(report: Mapping[str, Any], levels: float) -> list[Check]:
-    """Where the input took two levels and the friction's refit is known (the model's own
-    or its probe's): whether the friction it shows (FRICTION_SHOWN) is small enough that
-    the levels' single share of it does not matter (`FRICTION_TWO_LEVELS_NOISE`); its
-    value is the friction's size where the capture shows it, else 0; no check otherwise."""
-    friction = report.get("friction") or report.get("friction_probe") or {}
+    """Where the input took few levels and the friction's refit is known (a model's own
+    friction under two levels, a linear model's probe under up to FRICTION_FEW_LEVELS):
+    whether the friction it shows (FRICTION_SHOWN) is small enough that the levels' few
+    shares of it do not matter (`FRICTION_LEVELS_NOISE`); its value is the friction's size
+    where the capture shows it, else 0; no check otherwise."""
+    own = report.get("friction")
+    friction = (own if levels == 2 else None) if own else report.get("friction_probe")
+    friction = friction or {}
     size, cut = friction.get("response_noise_units"), friction.get("holdout_error_cut")
-    if levels != 2 or size is None or cut is None:
+    if not levels <= FRICTION_FEW_LEVELS or size is None or cut is None:
         return []
     shown = cut > FRICTION_SHOWN
     return [Check(
-        "friction_two_levels", bool(not shown or size <= FRICTION_TWO_LEVELS_NOISE),
+        "friction_levels", bool(not shown or size <= FRICTION_LEVELS_NOISE),
         _num(size if shown else 0.0),
-        FRICTION_TWO_LEVELS_NOISE,
+        FRICTION_LEVELS_NOISE,
         f"the output moves with Coulomb friction ({size:.2g} noise units over the capture), "
-        "whose share of a step changes with the step's size, and an input of two levels "
-        "shows one share of it: runs at other levels meet the rest as false alarms; record "
-        "steps between several levels (random steps or a multi-level PRBS)", gating=True)]
+        f"whose share of a step changes with the step's size, and an input of {levels:g} "
+        f"levels shows {'one share' if levels == 2 else 'few shares'} of it: runs at other "
+        "levels meet the rest as false alarms; record steps between several levels (random "
+        "steps or a multi-level PRBS of more levels)", gating=True)]
 
 
 def _steady_check(report: Mapping[str, Any], f1: float) -> Check:

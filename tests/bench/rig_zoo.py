@@ -1,6 +1,6 @@
 """The rig zoo: random rigs nobody tuned the monitor to, run through its command line.
 
-    python -m tests.bench.rig_zoo [--rigs N] [--seed S] [--jobs J] [--keep DIR]
+    python -m tests.bench.rig_zoo [--rigs N] [--seed S] [--jobs J] [--keep DIR] [--binary-prbs]
 
 What it does. For each of N random rigs (rig i has seed S + i, so one rig is re-made with
 `--rigs 1 --seed <its seed>`), written the way a new user would write them from the
@@ -21,8 +21,10 @@ README's "Your own rig" and the example rigs, without looking at the monitor's c
    steps, a sensor offset, a coarse sensor quantum, sensor noise (1-15 % of the output's
    swing) and a disturbance on the delivered input. The fault: the actuator delivers
    (1 - gamma) of its command;
-3. a healthy, excited minute (a PRBS or random steps around the operating point, switching
-   every 1-3 time constants) as a candump `.log` (python-can's writer), then
+3. a healthy, excited minute as the README asks a user to record it (a PRBS of 3-7 levels
+   or random steps around the operating point, switching every 1-3 time constants;
+   `--binary-prbs`: the PRBS of two levels, which the README advises against, each such
+   rig to be refused or right) as a candump `.log` (python-can's writer), then
 
        motor-monitor identify identify.log --rig rig.toml --out learned.toml [--node N]
 
