@@ -56,9 +56,8 @@ from monitor.sinks.base import Sink
 
 __all__ = ["DETECT_S", "FAULT_ONSETS", "FRICTION_FEW_LEVELS", "MAX_MISMATCH_SHARE",
            "NIS_MARGIN", "SNR_VISIBLE", "START_SHARE", "STEADY_LOSS_NOISE", "Check",
-           "FaultFigures", "ReplayFigures",
-           "added_loss", "failure_cause", "fault_detection", "gating_failures", "input_levels",
-           "replay_capture", "report_checks"]
+           "FaultFigures", "ReplayFigures", "added_loss", "failure_cause", "fault_detection",
+           "gating_failures", "input_levels", "replay_capture", "report_checks"]
 
 MAX_MISMATCH_SHARE = 0.01
 """The largest share of the replayed time the model-mismatch flag may be up. A fitting
@@ -628,8 +627,8 @@ def _friction_check(report: Mapping[str, Any], levels: float) -> list[Check]:
     shares of it do not matter (`FRICTION_LEVELS_NOISE`); its value is the friction's size
     where the capture shows it, else 0; no check otherwise."""
     own = report.get("friction")
-    friction = (own if levels == 2 else None) if own else report.get("friction_probe")
-    friction = friction or {}
+    # three levels resolve a model's own friction (FRICTION_LEVELS_NOISE): two gate it
+    friction = (own if levels == 2 else {}) if own else report.get("friction_probe") or {}
     size, cut = friction.get("response_noise_units"), friction.get("holdout_error_cut")
     if not levels <= FRICTION_FEW_LEVELS or size is None or cut is None:
         return []
