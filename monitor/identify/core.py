@@ -973,10 +973,14 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         # so than a fault does.
         if fit_tr < V.MIN_FIT and not ev["cross_correlation"]["passed"] and \
                 max(drops) < V.STRUCTURE_DROP:
+            advice = ("try --model state_space"
+                      if cand.kind != "state_space" else
+                      f"no larger order fitted the hold-out more than {ORDER_MARGIN} points "
+                      f"better: {RECORDING_ADVICE}" if order is None
+                      else "try a larger --order")
             raise IdentifyError(
                 f"the {cand.kind} model of order {cand.order} does not fit (training fit "
-                f"{fit_tr:.0f} %, residuals correlated with the input): ask for kind "
-                "state_space or a larger order")
+                f"{fit_tr:.0f} %, residuals correlated with the input): {advice}")
         if max(drops) > V.CONSISTENCY_DROP:
             half = "first" if drops[0] < drops[1] else "second"
             # what changes is not told by the drop: a fault, and as often a load that steps

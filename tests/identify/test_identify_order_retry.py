@@ -52,3 +52,15 @@ def test_the_chosen_order_refused_for_a_mode_it_made_up_is_tried_one_down(tmp_pa
                        "--order", "4", cwd=tmp_path)
     assert res.returncode == 2 and "capture too short" in res.stderr.splitlines()[-1]
     assert not given.exists()
+
+
+def test_no_order_that_fits_asks_for_another_recording(tmp_path: Path) -> None:
+    """The rig zoo's seed 21 (a current in, a speed held by a spring out, 1 kHz): no order
+    of the black box fits (order 1, the data's choice, fits 0 %, and no larger one fits the
+    hold-out 1.5 points better). The line says to record with the input varying, not to
+    ask for the kind of model it already is."""
+    res, _ = identify_zoo_rig(21, tmp_path)
+    assert res.returncode == 2
+    last = res.stderr.strip().splitlines()[-1]
+    assert "does not fit" in last and "record with the input varying" in last, last
+    assert "--model state_space" not in last and "kind" not in last
