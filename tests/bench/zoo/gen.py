@@ -411,23 +411,25 @@ def commands(rig: Rig, tl: Timeline, node: int) -> Array:
     clock = max(1, round(rig.clock_s / (p * h)))
     clock = max(clock, math.ceil(3 * SUB / p))
     vals = np.empty(nin)
-    if tl.name == "identify" and rig.excitation == "prbs" and not rig.binary_prbs:
-        # a multi-level PRBS, as the README asks a user to record: 3-7 levels evenly spaced
-        # over the band (how many from a stream of its own: the rig's other draws stay)
-        levels = np.linspace(-1.0, 1.0, int(np.random.default_rng([rig.seed, 7]).integers(3, 8)))
+    if tl.name == "identify" and rig.excitation == "prbs":
         k = 0
-        while k < nin:
-            vals[k:k + clock] = rig.level + rig.amplitude * float(rng.choice(levels))
-            k += clock
-    elif tl.name == "identify" and rig.excitation == "prbs":
-        # a maximal-length 9-bit LFSR (x^9 + x^5 + 1), one bit per clock
-        reg = int(rng.integers(1, 512))
-        k = 0
-        while k < nin:
-            bit = ((reg >> 8) ^ (reg >> 4)) & 1
-            reg = ((reg << 1) | bit) & 0x1FF
-            vals[k:k + clock] = rig.level + rig.amplitude * (1.0 if bit else -1.0)
-            k += clock
+        if rig.binary_prbs:
+            # a maximal-length 9-bit LFSR (x^9 + x^5 + 1), one bit per clock
+            reg = int(rng.integers(1, 512))
+            while k < nin:
+                bit = ((reg >> 8) ^ (reg >> 4)) & 1
+                reg = ((reg << 1) | bit) & 0x1FF
+                vals[k:k + clock] = rig.level + rig.amplitude * (1.0 if bit else -1.0)
+                k += clock
+        else:
+            # a multi-level PRBS, as the README asks a user to record: 3-7 levels evenly
+            # spaced over the band (how many from a stream of its own: the rig's other
+            # draws stay)
+            levels = np.linspace(-1.0, 1.0,
+                                 int(np.random.default_rng([rig.seed, 7]).integers(3, 8)))
+            while k < nin:
+                vals[k:k + clock] = rig.level + rig.amplitude * float(rng.choice(levels))
+                k += clock
     else:  # random steps within the band, random holds of 0.5-2 clocks
         k = 0
         while k < nin:
