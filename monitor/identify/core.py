@@ -973,11 +973,13 @@ def _identify(u_in: ArrayLike, y_in: ArrayLike, T: float, kind: str, order: int 
         # so than a fault does.
         if fit_tr < V.MIN_FIT and not ev["cross_correlation"]["passed"] and \
                 max(drops) < V.STRUCTURE_DROP:
-            advice = ("try --model state_space"
-                      if cand.kind != "state_space" else
-                      f"no larger order fitted the hold-out more than {ORDER_MARGIN} points "
-                      f"better: {RECORDING_ADVICE}" if order is None
-                      else "try a larger --order")
+            if cand.kind != "state_space":
+                advice = "try --model state_space"
+            elif order is None:  # the data chose it: no larger one fitted much better
+                advice = (f"no larger order fitted the hold-out more than {ORDER_MARGIN} "
+                          f"points better: {RECORDING_ADVICE}")
+            else:
+                advice = "try a larger --order"
             raise IdentifyError(
                 f"the {cand.kind} model of order {cand.order} does not fit (training fit "
                 f"{fit_tr:.0f} %, residuals correlated with the input): {advice}")

@@ -22,11 +22,10 @@ class IdentifyError(MonitorError, ValueError):
     black box of an automatic order was refused after its fit (None otherwise): one order
     lower may fit without what refused it (`identify` tries it)."""
 
-    def __init__(self, message: str, friction: dict[str, Any] | None = None,
-                 order: int | None = None) -> None:
+    def __init__(self, message: str, friction: dict[str, Any] | None = None) -> None:
         super().__init__(message)
         self.friction = friction
-        self.order = order
+        self.order: int | None = None
 
 
 @contextmanager
