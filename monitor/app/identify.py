@@ -91,6 +91,10 @@ __all__ = ["NodeCapture", "add_command", "collect", "rig_document"]
 
 log = logging.getLogger("motor_monitor")
 GAP_PERIODS = 1.5  # an output spacing above this many periods is a lost sample
+LOAD_SHOWN_BY = ("replay_fault_free", "replay_gamma_margin", "replay_model_mismatch",
+                 "replay_mean_nis")
+"""The failed checks after which a model is fitted once more with load steps: what a load
+the fit carried makes the replay of its own capture meet (a loss, a mismatch)."""
 
 
 @dataclass
@@ -649,6 +653,32 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                     ident, failed = with_friction, []
             if failed:
                 ident.report["friction_retry"] = tried
+        # A load that steps while the capture runs leaves a fit that passes its own checks
+        # of fit and consistency biased by it, whose filter then reads the capture's load
+        # steps as losses (the rig zoo's seed 66, a position under load steps of 6 % of the
+        # input: gamma^ 0.65 on its own capture, false alarms in every fresh run; with the
+        # load fitted, every run right). Where the model still fails its replay, the black
+        # box is fitted once more with unmeasured load steps, as for a refusal (`answered`),
+        # and, where the data chose its order and it fails too, once more one order up (as
+        # the first fit was: seed 66's load shows at order 3, where order 2 finds none).
+        if failed and any(c.check in LOAD_SHOWN_BY for c in failed):
+            loaded: dict[str, Any] = {"failed": [c.check for c in failed]}
+            refit = attempt(lambda: fit(args.order, load=True), loaded, "load")
+            if refit is not None and refit[1] and retry and refit[0].order < MAX_ORDER:
+                load_up = refit[0].order + 1
+                loaded["load_order"] = refit[0].order
+                loaded["load_order_failed"] = [c.check for c in refit[1]]
+                refit = attempt(lambda: fit(load_up, load=True), loaded, "load_next_order") \
+                    or refit
+            if refit is not None and not refit[1]:
+                for key in ("order_retry", "friction_retry"):
+                    if key in ident.report:
+                        refit[0].report[key] = ident.report[key]
+                ident, failed = refit[0], []
+            elif refit is not None:
+                loaded["load_failed"] = [c.check for c in refit[1]]
+                loaded["load"] = refit[0].report.get("load")
+            ident.report["load_retry"] = loaded
         if failed and args.force and not forced:  # the data's first choice, written as asked
             with atomic_output("--out", out) as tmp:  # (checked)
                 tmp.write_text(document(ident, failed), encoding="utf-8")
@@ -757,6 +787,15 @@ def _summary(ident: Identification, node: int, T: float, n: int) -> str:
         lines.append(f"  Coulomb friction following the output's {what} (width "
                      f"{fr.width:.3g}), fitted where the model without it failed "
                      f"{', '.join(rep.get('friction_retry', {}).get('failed', []))}")
+    load = rep.get("load")
+    if load is not None:
+        why = rep.get("load_retry", {}).get("failed") or []
+        lines.append(f"  fitted with load steps: {load['changes']} change(s) of an "
+                     "unmeasured load, up to "
+                     f"{max(load['largest_step_of_input'], default=0.0):.2g} of the input's "
+                     "mean level (the model written lacks it: the monitor's bias states carry a "
+                     "load)" + (f", where the model without it failed {', '.join(why)}"
+                                if why else ""))
     lines.append(f"  R = {json.dumps(np.asarray(ident.R).tolist())}, q = {ident.q:.4g}")
     for f in rep.get("noise", {}).get("quantisation_floor", []):
         if f["applied"]:
