@@ -92,15 +92,22 @@ def test_an_added_loss_is_reported_in_time_where_it_shows(tmp_path: Path) -> Non
 
 
 def test_the_fault_check_gates_and_says_how_far_the_loss_moves_the_output() -> None:
-    missed = FaultFigures(0.3, [0.1, math.inf], [1.0, 0.0], [3.0, 1.0], ["a", "b"])
+    missed = FaultFigures(0.3, [0.1, math.inf], [1.0, 0.0], [30.0, 6.0], ["a", "b"])
+    hidden = FaultFigures(0.3, [0.1, 0.2], [1.0, 1.0], [3.0, 1.0], ["a", "b"])
     caught = FaultFigures(0.3, [0.1, 0.2], [1.0, 0.995], [30.0, 40.0], ["a", "b"])
     empty: dict[str, object] = {}
     replay = ReplayFigures([], 0.0, 10, 1.0, {"fault_free": 1.0}, 0.0, 1.0, (0.5, 1.5),
                            gamma_max=0.02, f1=0.15)
     bad = {c.check: c for c in report_checks(empty, replay, missed)}["fault_detection"]
     assert bad.gating and not bad.passed and bad.value == 0.5
-    assert bad.advice.startswith("a loss of 0.3 moves the model's innovations by 2 noise units "
-                                 "within 0.3 s (shows at 0 and reported in time at 1 of 2")
+    assert bad.advice.startswith("a loss of 0.3 moves the model's innovations by 18 noise "
+                                 "units within 0.3 s (shows at 2 and reported in time at 1 of 2")
+    # every onset reported, but the loss shows at none: the figure that fails is its effect
+    unseen = {c.check: c for c in report_checks(empty, replay, hidden)}["fault_detection"]
+    assert unseen.gating and not unseen.passed
+    assert unseen.value == 3.0 and unseen.limit == SNR_VISIBLE
+    assert unseen.advice.startswith("a loss of 0.3 shows at none of the 2 onsets: it moves "
+                                    "the model's innovations by at most 3 noise units")
     good = {c.check: c for c in report_checks(empty, replay, caught)}["fault_detection"]
     assert good.passed and good.advice == ""
     short = FaultFigures(0.3, [], [], [], [])  # no stretch long enough to add a loss to
