@@ -723,9 +723,8 @@ def _fault_check(f: FaultFigures) -> Check:
                      f"no stretch of {WARM_S + FAULT_S:g} s within one capture to add a loss "
                      "to and replay: record a longer capture", gating=True)
     if not f.visible:
-        # every onset may be in time, so the share would read as a pass: the figure that
-        # fails is the loss's largest effect, under what shows (the rig zoo's seed 95:
-        # "fault_detection 1 (limit 1)" before)
+        # every onset may be in time, and a share of 1 against its limit 1 reads as a pass:
+        # the figure that fails is the loss's largest effect, under what shows
         largest = float(np.max(f.snr))
         return Check(
             "fault_detection", False, _num(largest), SNR_VISIBLE,
