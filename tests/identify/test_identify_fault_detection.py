@@ -36,7 +36,10 @@ def test_a_rig_whose_loss_the_noise_hides_is_refused(tmp_path: Path) -> None:
     assert len(lines) == 1 and "Traceback" not in res.stderr, res.stderr
     # the loss's advice leads: gamma^ wanders near the threshold too (replay_gamma_margin)
     assert "fault_detection" in lines[0]
-    assert "a loss of 0.3 moves the model's innovations by" in lines[0]
+    # it shows at no onset: the line says so, with the largest effect against what shows
+    assert "fault_detection" in lines[0] and "(limit 5)" in lines[0], lines[0]
+    assert "a loss of 0.3 shows at none of the 4 onsets: it moves the model's innovations " \
+        "by at most" in lines[0]
     assert "noise units within 0.3 s" in lines[0], lines[0]
     assert not out.exists()
     report = json.loads(out.with_suffix(".identify.json").read_text())
