@@ -18,7 +18,7 @@ from monitor.rig import build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
 from tests.support import BIN
-from tests.support.identify import PRESS, press_capture, run_identify
+from tests.support.identify import PRESS, press_capture, run_identify, run_replay
 
 
 def test_identify_writes_a_rig_that_runs(tmp_path: Path) -> None:
@@ -35,8 +35,7 @@ def test_identify_writes_a_rig_that_runs(tmp_path: Path) -> None:
     report = json.loads(out.with_suffix(".identify.json").read_text())
     assert {"fit", "whiteness", "cross_correlation"} <= set(report)
     # run --rig RIG_OUT works at once: the learned rig replays a capture
-    rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(cap), "--rig", str(out)],
-                         capture_output=True, text=True, timeout=300)
+    rep = run_replay(str(cap), "--rig", str(out))
     assert rep.returncode == 0, rep.stderr
     assert "0 rejected" in rep.stderr
 

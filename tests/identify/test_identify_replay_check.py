@@ -7,14 +7,12 @@ input, and nothing else's."""
 from __future__ import annotations
 
 import json
-import subprocess
 from pathlib import Path
 
 import pytest
 
 from monitor.rig import RigError, load_rig
-from tests.support import BIN
-from tests.support.identify import PRESS, our_capture, press_capture, run_identify
+from tests.support.identify import PRESS, our_capture, press_capture, run_identify, run_replay
 
 GATING = {"replay_fault_free", "replay_gamma_margin", "replay_model_mismatch", "replay_mean_nis",
           "fault_detection"}
@@ -98,8 +96,7 @@ def test_c_a_rig_without_model_is_identifys_input_only(tmp_path: Path) -> None:
                     cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert load_rig(out).rate == pytest.approx(100.0)
-    rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(cap), "--rig", str(bare)],
-                         capture_output=True, text=True, timeout=300)
+    rep = run_replay(str(cap), "--rig", str(bare))
     assert rep.returncode == 2
     lines = rep.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in rep.stderr, rep.stderr

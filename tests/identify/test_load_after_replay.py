@@ -11,12 +11,10 @@ without an alarm."""
 from __future__ import annotations
 
 import json
-import subprocess
 from pathlib import Path
 
 from tests.bench.rig_zoo import prepare
-from tests.support import BIN
-from tests.support.identify import run_identify
+from tests.support.identify import run_identify, run_replay
 
 
 def test_a_model_whose_replay_fails_is_fitted_with_load_steps(tmp_path: Path) -> None:
@@ -32,9 +30,8 @@ def test_a_model_whose_replay_fails_is_fitted_with_load_steps(tmp_path: Path) ->
     assert "fitted with load steps" in res.stdout, res.stdout
 
     events = tmp_path / "healthy.jsonl"
-    run = subprocess.run([str(BIN / "motor-monitor"), "replay", "healthy.log", "--rig",
-                          "learned.toml", "--events", events.name], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=300)
+    run = run_replay("healthy.log", "--rig", "learned.toml", "--events", events.name,
+                     cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     states = [json.loads(line)["state"] for line in events.read_text().splitlines()]
     assert "fault_free" in states and "fault" not in states and "outage" not in states, states

@@ -7,7 +7,6 @@ are scaled by it and the capture replayed once more (`monitor.identify.nis_calib
 from __future__ import annotations
 
 import json
-import subprocess
 from dataclasses import replace
 from pathlib import Path
 
@@ -19,8 +18,7 @@ from monitor.app.identify_check import NIS_MARGIN
 from monitor.estimation.model import ContinuousDescriptor
 from monitor.identify import Identification, nis_calibrated
 from tests.bench.rig_zoo import prepare
-from tests.support import BIN
-from tests.support.identify import identify_zoo_rig, run_identify
+from tests.support.identify import identify_zoo_rig, run_identify, run_replay
 
 
 def _ident(R: float) -> Identification:
@@ -121,9 +119,8 @@ def test_a_capture_replayed_near_the_band_s_edge_is_calibrated_and_a_fresh_run_s
     learned = (tmp_path / "learned.toml").read_text()
     assert repr(report["noise"]["R"][0][0]) in learned  # the calibrated model is written
     events = tmp_path / "healthy.jsonl"
-    run = subprocess.run([str(BIN / "motor-monitor"), "replay", "healthy.log", "--rig",
-                          "learned.toml", "--events", events.name], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=300)
+    run = run_replay("healthy.log", "--rig", "learned.toml", "--events", events.name,
+                     cwd=tmp_path)
     assert run.returncode == 0, run.stderr
     kinds = [json.loads(line)["kind"] for line in events.read_text().splitlines()]
     assert "health" in kinds and "model_mismatch" not in kinds, kinds

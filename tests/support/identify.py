@@ -1,7 +1,7 @@
 """Captures for `motor-monitor identify` and the command itself, as the identify tests run
 them: the press rig's twin (`press_capture`), node 0 of our bus under a PRBS command
 (`our_capture`), `identify` in a subprocess (`run_identify`), and on a rig of the rig zoo
-(`identify_zoo_rig`)."""
+(`identify_zoo_rig`); `replay` of what it wrote (`run_replay`)."""
 
 from __future__ import annotations
 
@@ -24,7 +24,8 @@ from tests.support import BIN
 from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import changed_currents
 
-__all__ = ["PRESS", "T0", "identify_zoo_rig", "our_capture", "press_capture", "run_identify"]
+__all__ = ["PRESS", "T0", "identify_zoo_rig", "our_capture", "press_capture", "run_identify",
+           "run_replay"]
 
 PRESS = TEST_RIGS / "press.toml"
 T0 = 1.7e9
@@ -64,10 +65,21 @@ def our_capture(path: Path, *, noisy_from: float | None = None) -> Path:
     return path
 
 
+def _motor_monitor(*args: str, cwd: Path | None) -> subprocess.CompletedProcess[str]:
+    """`motor-monitor ARGS` in `cwd` (None: here), its output captured."""
+    return subprocess.run([str(BIN / "motor-monitor"), *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
+
+
 def run_identify(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     """`motor-monitor identify ARGS` in `cwd`, its output captured."""
-    return subprocess.run([str(BIN / "motor-monitor"), "identify", *args], cwd=cwd,
-                          capture_output=True, text=True, timeout=300)
+    return _motor_monitor("identify", *args, cwd=cwd)
+
+
+def run_replay(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """`motor-monitor replay ARGS` in `cwd` (None: here), its output captured: how the
+    identify tests replay what identify wrote."""
+    return _motor_monitor("replay", *args, cwd=cwd)
 
 
 def identify_zoo_rig(seed: int, d: Path, *args: str, binary_prbs: bool = False
