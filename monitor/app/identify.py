@@ -47,12 +47,15 @@ from monitor.app.identify_check import (
     FRICTION_FEW_LEVELS,
     NIS_MARGIN,
     Check,
+    failed_line,
     failure_cause,
     fault_detection,
     gating_failures,
     input_levels,
+    plant_bound,
     replay_capture,
     report_checks,
+    shown,
 )
 from monitor.bus.cia402 import IGNORED_NOT_OPERATIONAL, IGNORED_PROTOCOL, drive_watch
 from monitor.bus.codec import Decoded, Rejected, RejectReason
@@ -464,6 +467,11 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                 # the monitor replays the capture with the rig as it loads from this very file
                 learned = _check_rig(tmp, out)
                 figures = replay_capture(learned, paths, node, span)
+                # the rig monitors each node it lists with this model: the capture's others
+                # too (rig.nodes None: every node decoded)
+                others = {n: replay_capture(learned, paths, n, span) for n in sorted(samples)
+                          if n != node and samples[n] > 1
+                          and (learned.nodes is None or n in learned.nodes)}
                 faults = None
                 if figures.samples and not figures.fault_seconds:
                     # a loss is added to a capture that replays fault-free: where it does
@@ -471,8 +479,11 @@ def _cmd_identify(args: argparse.Namespace) -> int:
                     faults = fault_detection(learned, paths, node, series.t, u, series.where,
                                              outputs=y)
                     ident.report["fault_detection"] = faults.as_dict()
-                checks = report_checks(ident.report, figures, faults)
+                checks = report_checks(ident.report, figures, faults, others)
                 ident.report["replay"] = figures.as_dict()
+                if others:
+                    ident.report["replay_other_nodes"] = {
+                        str(n): f.as_dict() for n, f in others.items()}
                 ident.report["checks"] = [c.as_dict() for c in checks]
                 failed = gating_failures(checks)
                 if failed and not keep_failed:
@@ -589,7 +600,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             other, failed = checked(other, keep_failed=False)
             if not failed:
                 return other, failed, key, note
-            met.append(f"a refit with {what} fails on its own capture: {_failed_checks(failed)}"
+            met.append(f"a refit with {what} fails on its own capture: {failed_line(failed)}"
                        + (_load_advice(other.report.get("load")) if key == "load_retry"
                           else ""))
             first_fitted = first_fitted or (other, failed, key, note)
@@ -617,7 +628,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         retry = args.order is None and ident.kind == "state_space" and ident.order < MAX_ORDER
         forced = args.force and not retry
         ident, failed = checked(ident, keep_failed=forced)
-        if failed and retry:
+        if failed and retry and not plant_bound(failed):
             first: dict[str, Any] = {"order": ident.order, "failed": [c.check for c in failed]}
             order_up = ident.order + 1
             higher = attempt(lambda: fit(order_up), first, "next_order")
@@ -631,7 +642,8 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         # as a loss at every reversal. Where the model without it fails its replay and the
         # output is a speed or a position (its unit says which), the black box is fitted once
         # more with the friction, the order chosen again, and checked the same way.
-        motion = _motion(rig) if failed and ident.kind == "state_space" else None
+        motion = _motion(rig) if failed and ident.kind == "state_space" \
+            and not plant_bound(failed) else None
         if motion is not None:
             tried: dict[str, Any] = {"speed": motion, "failed": [c.check for c in failed]}
             delay = ident.input_delay
@@ -661,7 +673,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         # box is fitted once more with unmeasured load steps, as for a refusal (`answered`),
         # and, where the data chose its order and it fails too, once more one order up (as
         # the first fit was: seed 66's load shows at order 3, where order 2 finds none).
-        if failed and any(c.check in LOAD_SHOWN_BY for c in failed):
+        if failed and any(c.check in LOAD_SHOWN_BY for c in failed) and not plant_bound(failed):
             loaded: dict[str, Any] = {"failed": [c.check for c in failed]}
             refit = attempt(lambda: fit(args.order, load=True), loaded, "load")
             if refit is not None and refit[1] and retry and refit[0].order < MAX_ORDER:
@@ -696,9 +708,10 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     if failed:
         cause = failure_cause(ident.report.get("checks", []))
         # a cause the checks name comes first: a line cut at the limit keeps it
-        why = (f"node {node}'s learned model fails on its own capture: "
+        advice = next((c.advice for c in failed if c.advice != cause), "")
+        why = (f"node {node}'s learned model fails its checks: "
                + (f"{cause}: " if cause else "")
-               + _failed_checks(failed) + f": {failed[0].advice}")
+               + failed_line(failed) + (f": {advice}" if advice else ""))
         if not args.force:
             print(f"wrote {reports}")
             # what to record or try comes last: a line cut at the limit loses only advice
@@ -712,11 +725,6 @@ def _cmd_identify(args: argparse.Namespace) -> int:
               file=sys.stderr)
     print(f"wrote {out}, {reports}")
     return 0
-
-
-def _failed_checks(failed: list[Check]) -> str:
-    """The failed checks in one line: each with its value and limit."""
-    return "; ".join(f"{c.check} {_shown(c.value)} (limit {_shown(c.limit)})" for c in failed)
 
 
 def _load_advice(load: dict[str, Any] | None) -> str:
@@ -808,26 +816,17 @@ def _summary(ident: Identification, node: int, T: float, n: int) -> str:
         lines.append(f"  replay of the fitted stretch after its first {r['start_s']:.2f} s: "
                      f"{states}; "
                      f"model mismatch {r['mismatch_seconds']:.1f} s; mean NIS "
-                     f"{_shown(r['mean_nis'])} (band {_shown(r['nis_band'])})")
+                     f"{shown(r['mean_nis'])} (band {shown(r['nis_band'])})")
     if rep.get("checks"):
         lines.append("  checks (the replay's gate: a model that fails one is not written):")
         for c in rep["checks"]:
             # a failed check that does not gate is advice: it does not keep the model out
             verdict = "PASS" if c["passed"] else "FAIL" if c["gating"] else "NOTE"
             lines.append(f"    {verdict} {c['check']}: "
-                         f"{_shown(c['value'])} (limit {_shown(c['limit'])}"
+                         f"{shown(c['value'])} (limit {shown(c['limit'])}"
                          f"{'' if c['gating'] else ', advice only'})"
                          + (f": {c['advice']}" if c["advice"] else ""))
     return "\n".join(lines)
-
-
-def _shown(v: Any) -> str:
-    """A check's value or limit as the summary prints it."""
-    if v is None:
-        return "n/a"
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_shown(x) for x in v) + "]"
-    return f"{v:.3g}" if isinstance(v, float) else str(v)
 
 
 def add_command(sub: argparse._SubParsersAction[Any]) -> None:
