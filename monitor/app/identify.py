@@ -52,7 +52,6 @@ from monitor.app.identify_check import (
     fault_detection,
     gating_failures,
     input_levels,
-    plant_bound,
     replay_capture,
     report_checks,
     shown,
@@ -628,7 +627,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         retry = args.order is None and ident.kind == "state_space" and ident.order < MAX_ORDER
         forced = args.force and not retry
         ident, failed = checked(ident, keep_failed=forced)
-        if failed and retry and not plant_bound(failed):
+        if failed and retry:
             first: dict[str, Any] = {"order": ident.order, "failed": [c.check for c in failed]}
             order_up = ident.order + 1
             higher = attempt(lambda: fit(order_up), first, "next_order")
@@ -642,8 +641,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         # as a loss at every reversal. Where the model without it fails its replay and the
         # output is a speed or a position (its unit says which), the black box is fitted once
         # more with the friction, the order chosen again, and checked the same way.
-        motion = _motion(rig) if failed and ident.kind == "state_space" \
-            and not plant_bound(failed) else None
+        motion = _motion(rig) if failed and ident.kind == "state_space" else None
         if motion is not None:
             tried: dict[str, Any] = {"speed": motion, "failed": [c.check for c in failed]}
             delay = ident.input_delay
@@ -673,7 +671,7 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         # box is fitted once more with unmeasured load steps, as for a refusal (`answered`),
         # and, where the data chose its order and it fails too, once more one order up (as
         # the first fit was: seed 66's load shows at order 3, where order 2 finds none).
-        if failed and any(c.check in LOAD_SHOWN_BY for c in failed) and not plant_bound(failed):
+        if failed and any(c.check in LOAD_SHOWN_BY for c in failed):
             loaded: dict[str, Any] = {"failed": [c.check for c in failed]}
             refit = attempt(lambda: fit(args.order, load=True), loaded, "load")
             if refit is not None and refit[1] and retry and refit[0].order < MAX_ORDER:
@@ -708,10 +706,9 @@ def _cmd_identify(args: argparse.Namespace) -> int:
     if failed:
         cause = failure_cause(ident.report.get("checks", []))
         # a cause the checks name comes first: a line cut at the limit keeps it
-        advice = next((c.advice for c in failed if c.advice != cause), "")
-        why = (f"node {node}'s learned model fails its checks: "
+        why = (f"node {node}'s learned model fails on its own capture: "
                + (f"{cause}: " if cause else "")
-               + failed_line(failed) + (f": {advice}" if advice else ""))
+               + failed_line(failed) + f": {failed[0].advice}")
         if not args.force:
             print(f"wrote {reports}")
             # what to record or try comes last: a line cut at the limit loses only advice
