@@ -127,9 +127,9 @@ the loss while the input holds, and it shows only after the input changes. Advic
 gate (a spring-held speed the model describes well is diagnosed right); where the replay
 fails it is what the refusal says first. Measured on the rig zoo: 0.03 and 0.34 on the
 spring-held speeds whose own capture replayed as faulty (seeds 202 and 209), 0.72 on
-another (seed 4); 0.0003, 0.003 and 0.07 on three diagnosed right (seeds 39, 207 and 48),
+another (seed 4); 0.0003 to 0.9 on five diagnosed right (seeds 39, 69, 207, 48, 75),
 0.002 on one accepted and then wrong (seed 24: a loss of 0.25 held for 4.9 s after an
-outage ended, the return's transient missed by its model by 10 noise units), 1.5 to 140
+outage ended, the return's transient missed by its model by 10 noise units); 1.5 to 140
 on the other rigs diagnosed right."""
 
 FRICTION_LEVELS_NOISE = 10.0
