@@ -388,7 +388,10 @@ def test_flood_is_survived_counted_and_bounded(boot_b: BootB) -> None:
           f"{ {k: v for k, v in sorted(delta.items())} }")
     print(f"[flood] RSS MB: before {rss0:.1f}, middle {mid:.1f}, end {end:.1f}, "
           f"max {max(during):.1f} ({len(boot_b.rss)} samples)")
-    assert frames > 10_000  # ~1,000 frames/s or more: 10x the ECU's, beyond the daemon's pace
+    # A flood: the bus carries more than twice the healthy ECU's own 220 frames/s (current and
+    # truth at 100 Hz, voltage at 20 Hz); ~1,000 frames/s on a quiet machine, 450 in a CI
+    # guest on a slow host. Beyond the daemon's pace either way: its socket drops, next line.
+    assert frames > 2 * 220 * (f1 - f0), frames
     assert delta.get("bus/socket_drops", 0) > 0, delta  # dropped frames are counted
     # (a few hundred at least, even on a guest the two cangens starve; ~20k on a quiet one)
     assert delta.get("rejected/unknown_id", 0) > 100, delta
