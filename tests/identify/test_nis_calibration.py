@@ -18,7 +18,7 @@ from monitor.app.identify_check import NIS_MARGIN
 from monitor.estimation.model import ContinuousDescriptor
 from monitor.identify import Identification, nis_calibrated
 from tests.bench.rig_zoo import prepare
-from tests.support.identify import identify_zoo_rig, run_identify, run_replay
+from tests.support.identify import identify_zoo_rig, monitor_only, run_identify, run_replay
 
 
 def _ident(R: float) -> Identification:
@@ -111,10 +111,7 @@ def test_a_capture_replayed_near_the_band_s_edge_is_calibrated_and_a_fresh_run_s
     0's model replays with a fault and gamma^ 0.47 (`replay_other_nodes`,
     `test_other_nodes`)."""
     prepare(54, tmp_path)  # as the zoo writes it: the capture and the fresh runs
-    rig = tmp_path / "rig.toml"
-    listed = "nodes = [0, 1, 7]"
-    assert listed in rig.read_text()
-    rig.write_text(rig.read_text().replace(listed, "nodes = [0]"))
+    monitor_only(tmp_path / "rig.toml", 0)
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
                        "--node", "0", cwd=tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from tests.support.identify import identify_zoo_rig, run_identify
+from tests.support.identify import identify_zoo_rig, monitor_only, run_identify
 
 
 def test_a_listed_node_the_model_does_not_fit_keeps_it_from_being_written(
@@ -30,10 +30,7 @@ def test_a_listed_node_the_model_does_not_fit_keeps_it_from_being_written(
     assert set(report["replay_other_nodes"]) == {"3"}
     assert not (tmp_path / "learned.toml").exists()
 
-    rig = tmp_path / "rig.toml"
-    text = rig.read_text()
-    assert "nodes = [2, 3]" in text
-    rig.write_text(text.replace("nodes = [2, 3]", "nodes = [2]"))
+    monitor_only(tmp_path / "rig.toml", 2)
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
                        "--node", "2", cwd=tmp_path)
     assert res.returncode == 0, res.stderr

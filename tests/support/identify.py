@@ -6,6 +6,7 @@ them: the press rig's twin (`press_capture`), node 0 of our bus under a PRBS com
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -92,3 +93,11 @@ def identify_zoo_rig(seed: int, d: Path, *args: str, binary_prbs: bool = False
                        "--node", str(rig.nodes[0]), *args, cwd=d)
     report = d / "learned.identify.json"
     return res, (json.loads(report.read_text()) if report.exists() else {})
+
+
+def monitor_only(rig: Path, node: int) -> None:
+    """Rewrite the rig file `rig` (as the zoo writes it: one ``nodes = [...]`` line, its
+    `[bus]` list) to monitor node `node` alone."""
+    text, n = re.subn(r"(?m)^nodes = \[[0-9, ]*\]$", f"nodes = [{node}]", rig.read_text())
+    assert n == 1, f"{rig}: {n} nodes lines"
+    rig.write_text(text)
