@@ -546,15 +546,15 @@ def _cmd_identify(args: argparse.Namespace) -> int:
             return ident, failed
         return calibrated, failed_calibrated
 
-    def attempt(make: Callable[[], Identification], note: dict[str, Any], name: str
-                ) -> tuple[Identification, list[Check]] | None:
-        """Another fit where the first failed its checks, checked the same way: it and
-        its failed checks, or None where the fit itself is refused (`note[name_refused]`
-        says why)."""
+    def attempt(make: Callable[[], Identification], note: dict[str, Any], name: str,
+                limit: int = 200) -> tuple[Identification, list[Check]] | None:
+        """Another fit where the first failed its checks or was refused, checked the same
+        way: it and its failed checks, or None where the fit itself is refused
+        (`note[name_refused]` says why, in one line of at most `limit` characters)."""
         try:
             other = make()
         except IdentifyError as exc:
-            note[f"{name}_refused"] = one_line(exc)
+            note[f"{name}_refused"] = one_line(exc, limit)
             return None
         return checked(other, keep_failed=False)
 
@@ -586,17 +586,17 @@ def _cmd_identify(args: argparse.Namespace) -> int:
         met: list[str] = []
         first_fitted: tuple[Identification, list[Check], str, dict[str, Any]] | None = None
         for key, what, note, make in tries:
-            try:
-                other = make()
-            except IdentifyError as again_exc:
+            refusal: dict[str, Any] = {}
+            outcome = attempt(make, refusal, key, ERROR_LINE_LIMIT)
+            if outcome is None:
                 if key == "friction_retry":
                     continue  # a friction the data do not bear out: the refusal says enough
-                again = one_line(again_exc, ERROR_LINE_LIMIT)
+                again = refusal[f"{key}_refused"]
                 same = again.split(":", 1)[0] == line.split(":", 1)[0]
                 met.append(f"a refit with {what}: "
                            f"{'refused the same way' if same else again}")
                 continue
-            other, failed = checked(other, keep_failed=False)
+            other, failed = outcome
             if not failed:
                 return other, failed, key, note
             met.append(f"a refit with {what} fails on its own capture: {failed_line(failed)}"
