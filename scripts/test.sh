@@ -12,9 +12,9 @@ shellcheck -x scripts/*.sh .ci/run .ci/*.sh tests/support/scripts/*.sh tests/sys
 .venv/bin/mypy
 .venv/bin/lint-imports --no-cache
 # Two runs of pytest: the tests that need no bus in parallel (pytest-xdist, one worker a
-# core, at most 4: they are CPU-bound), then the vcan tests (marker `vcan`) alone, one after the other,
-# since their guest's timing is what they measure. Exit status 5 is "no test selected"
-# (arguments that name only tests of the other run).
+# core, at most 4: they are CPU-bound), then the vcan tests (marker `vcan`) alone, one
+# after the other, since their guest's timing is what they measure. Exit status 5 is "no
+# test selected" (arguments that name only tests of the other run).
 workers=$(nproc)
 (( workers > 4 )) && workers=4
 status=0
