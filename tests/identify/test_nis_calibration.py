@@ -111,7 +111,7 @@ def test_a_capture_replayed_near_the_band_s_edge_is_calibrated_and_a_fresh_run_s
     0's model replays with a fault and gamma^ 0.47 (`replay_other_nodes`,
     `test_other_nodes`)."""
     prepare(54, tmp_path)  # as the zoo writes it: the capture and the fresh runs
-    monitor_only(tmp_path / "rig.toml", 0)
+    monitor_only(tmp_path / "rig.toml", 0, listed=(0, 1, 7))
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
                        "--node", "0", cwd=tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr

@@ -30,7 +30,7 @@ def test_a_listed_node_the_model_does_not_fit_keeps_it_from_being_written(
     assert set(report["replay_other_nodes"]) == {"3"}
     assert not (tmp_path / "learned.toml").exists()
 
-    monitor_only(tmp_path / "rig.toml", 2)
+    monitor_only(tmp_path / "rig.toml", 2, listed=(2, 3))
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
                        "--node", "2", cwd=tmp_path)
     assert res.returncode == 0, res.stderr

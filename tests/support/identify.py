@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import re
 import subprocess
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -95,9 +96,10 @@ def identify_zoo_rig(seed: int, d: Path, *args: str, binary_prbs: bool = False
     return res, (json.loads(report.read_text()) if report.exists() else {})
 
 
-def monitor_only(rig: Path, node: int) -> None:
-    """Rewrite the rig file `rig` (as the zoo writes it: one ``nodes = [...]`` line, its
-    `[bus]` list) to monitor node `node` alone."""
-    text, n = re.subn(r"(?m)^nodes = \[[0-9, ]*\]$", f"nodes = [{node}]", rig.read_text())
-    assert n == 1, f"{rig}: {n} nodes lines"
+def monitor_only(rig: Path, node: int, listed: Sequence[int]) -> None:
+    """Rewrite the rig file `rig`, which lists the nodes `listed` (as the zoo writes it: one
+    ``nodes = [...]`` line, its `[bus]` list), to monitor node `node` alone."""
+    line = f"nodes = [{', '.join(map(str, listed))}]"
+    text, n = re.subn(rf"(?m)^{re.escape(line)}$", f"nodes = [{node}]", rig.read_text())
+    assert n == 1, f"{rig}: {n} lines {line!r}"
     rig.write_text(text)
