@@ -7,6 +7,7 @@ events must follow the scenario and equal the capture replayed through the same 
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import subprocess
@@ -14,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from monitor.pipeline.feed import TICK_S
+from monitor.rig import load_rig
 from tests.support import BIN
 from tests.support.paths import ROOT
 from tests.support.vcan_scripts import RunOnVcan, logs_tail, run_ready
@@ -32,6 +35,9 @@ start = 4.0
 end = 6.0
 gamma = 1.0
 """
+SILENCE_S = load_rig(RIG).diagnosis.silence_timeout_s
+TICK_SLACK_S = 2 * TICK_S  # a silence is told at one of the daemon's next ticks
+
 
 @pytest.mark.vcan
 def test_cia402_twin_monitor_and_a_canopen_master_on_vcan(vcan: RunOnVcan,
@@ -65,10 +71,23 @@ def test_cia402_twin_monitor_and_a_canopen_master_on_vcan(vcan: RunOnVcan,
     tpdo4 = [float(t) for t in re.findall(r"^\((\d+\.\d+)\) vcan0 481#",
                                           (tmp_path / "cap.log").read_text(), re.MULTILINE)]
     assert len(tpdo4) == sent["TPDO4"]
-    states = [(e["state"], e["cause"], round(e["t"], 6)) for e in live]
+    # A twin starved for the silence timeout (a stall of the busy guest, seen in the
+    # capture as a gap between two TPDO4s outside the outage) is a silent node, rightly
+    # reported: such a silence, timed inside its gap, is taken out with the repeat of the
+    # state it interrupted; any other silence is the monitor's own.
+    stalls = [(tpdo4[i - 1], tpdo4[i]) for i in range(1, len(tpdo4))
+              if tpdo4[i] - tpdo4[i - 1] >= SILENCE_S and not 400 <= i <= 600]
+    states: list[tuple[str, str, float]] = []
+    for e in live:
+        if e["state"] == "no_data" and any(a + SILENCE_S <= e["t"] <= b + TICK_SLACK_S
+                                           for a, b in stalls):
+            continue
+        if not states or states[-1][0] != e["state"]:
+            states.append((e["state"], e["cause"], round(e["t"], 6)))
+    gap = max(b - a for a, b in itertools.pairwise(tpdo4))
     assert [(s, c) for s, c, _ in states] == [
         ("fault_free", "estimate"), ("fault", "estimate"), ("no_data", "silence"),
-        ("fault_free", "estimate"), ("no_data", "silence")], states
+        ("fault_free", "estimate"), ("no_data", "silence")], (states, stalls, gap)
     assert 0.0 <= states[1][2] - tpdo4[200] <= 0.5, (states, tpdo4[200])
     assert 0.5 <= states[2][2] - tpdo4[399] <= 1.0, (states, tpdo4[399])
     assert 0.0 <= states[3][2] - tpdo4[600] <= 0.5, (states, tpdo4[600])
