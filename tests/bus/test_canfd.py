@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +32,7 @@ from monitor.runtime.canbus import CAN_MTU, interface_mtu, open_bus
 from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
-from tests.support import BIN
+from tests.support import motor_monitor
 from tests.support.log_readers import write_log
 from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import pipeline
@@ -248,9 +247,8 @@ def test_candump_fd_lines_parse_as_python_can_reads_them(tmp_path: Path) -> None
 def test_replay_command_takes_an_fd_log(tmp_path: Path, engine: str) -> None:
     path = write_log(tmp_path / "fd.log", _fd_frames(scenario="fault-outage-recovery"))
     # node 1's frames: --nodes 1 (the rig's node 2 would have no sample, which is no success)
-    rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(path), "--rig", str(FD_RIG),
-                          "--nodes", "1", "--engine", engine], capture_output=True, text=True,
-                         timeout=300)
+    rep = motor_monitor("replay", str(path), "--rig", str(FD_RIG), "--nodes", "1",
+                        "--engine", engine)
     assert rep.returncode == 0, rep.stderr
     events = [json.loads(x) for x in rep.stdout.splitlines()]
     assert [e["state"] for e in events if e["cause"] == "estimate"][:3] == \

@@ -10,14 +10,13 @@ from __future__ import annotations
 import itertools
 import json
 import re
-import subprocess
 from pathlib import Path
 
 import pytest
 
 from monitor.pipeline.feed import TICK_S
 from monitor.rig import load_rig
-from tests.support import BIN
+from tests.support import motor_monitor
 from tests.support.paths import ROOT
 from tests.support.vcan_scripts import RunOnVcan, logs_tail, run_ready
 
@@ -94,9 +93,7 @@ def test_cia402_twin_monitor_and_a_canopen_master_on_vcan(vcan: RunOnVcan,
 
     # ... and replaying the capture through the same rig gives the same transitions (but
     # the last: the live run's clock after the bus fell silent).
-    rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(tmp_path / "cap.log"),
-                          "--rig", str(RIG), "--nodes", "1"],
-                         capture_output=True, text=True, timeout=300)
+    rep = motor_monitor("replay", str(tmp_path / "cap.log"), "--rig", str(RIG), "--nodes", "1")
     assert rep.returncode == 0, rep.stderr
     again = [e for e in map(json.loads, rep.stdout.splitlines()) if e["kind"] == "health"]
     assert [(e["state"], e["previous"], e["cause"]) for e in again] == [

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -31,7 +30,7 @@ from monitor.runtime.paths import is_own_file
 from monitor.sinks.base import Sink
 from sim_ecu.cia402 import EMCY_OUTAGE, STATUS_FAULT, STATUS_OPERATION_ENABLED, Cia402ECU
 from sim_ecu.scenario import scenario_from_dict
-from tests.support import BIN
+from tests.support import motor_monitor
 from tests.support.cli_cases import CliCase, run_cli_case
 from tests.support.dbc import REPO_DBC
 from tests.support.paths import ROOT, TEST_DATA
@@ -472,9 +471,8 @@ def test_the_events_carry_what_the_drive_says(tmp_path: Path) -> None:
     lines = {}
     for engine in ("columnar", "per-frame"):
         ev = tmp_path / f"{engine}.jsonl"
-        done = subprocess.run([str(BIN / "motor-monitor"), "replay", str(log), "--rig",
-                               str(EXAMPLE), "--engine", engine, "--events", str(ev)],
-                              capture_output=True, text=True, timeout=300)
+        done = motor_monitor("replay", str(log), "--rig", str(EXAMPLE), "--engine", engine,
+                             "--events", str(ev))
         assert done.returncode == 0, done.stderr
         lines[engine] = [json.loads(x) for x in ev.read_text().splitlines()]
         assert is_own_file(ev, "events")

@@ -28,7 +28,7 @@ from monitor.pipeline.feed import feed_log
 from monitor.rig import RigError, build_decoder, load_rig
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario
-from tests.support import BIN
+from tests.support import BIN, motor_monitor
 from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import pipeline
 
@@ -176,9 +176,8 @@ def test_replay_with_the_key_from_the_command_line(tmp_path: Path) -> None:
     key.write_text(KEY.hex() + "\n")
     key.chmod(0o600)
     events = tmp_path / "events.jsonl"
-    res = subprocess.run([str(BIN / "motor-monitor"), "replay", "--rig", str(RIG), "--key",
-                          str(key), "--nodes", "1", "--events", str(events), str(log)],
-                         capture_output=True, text=True, timeout=300)
+    res = motor_monitor("replay", "--rig", str(RIG), "--key", str(key), "--nodes", "1",
+                        "--events", str(events), str(log))
     assert res.returncode == 0, res.stderr
     lines = [json.loads(x) for x in events.read_text().splitlines()]
     _, expected = _monitor(KEY, frames)
@@ -187,9 +186,8 @@ def test_replay_with_the_key_from_the_command_line(tmp_path: Path) -> None:
     # the wrong key: every data frame refused, so nothing decoded: a failure, in one line
     # with the counts by outcome and the cause
     key.write_text(OTHER_KEY.hex() + "\n")
-    res = subprocess.run([str(BIN / "motor-monitor"), "replay", "--rig", str(RIG), "--key",
-                          str(key), "--nodes", "1", "--events", str(events), str(log)],
-                         capture_output=True, text=True, timeout=300)
+    res = motor_monitor("replay", "--rig", str(RIG), "--key", str(key), "--nodes", "1",
+                        "--events", str(events), str(log))
     assert res.returncode == 1, res.stderr
     [line] = [ln for ln in res.stderr.splitlines() if "error:" in ln]
     assert " 0 samples: " in line and "check --key" in line, res.stderr

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support import BIN
+from tests.support import BIN, motor_monitor
 from tests.support.paths import TEST_RIGS
 from tests.support.vcan_scripts import RunOnVcan, run_ready
 
@@ -58,9 +58,7 @@ def test_user_rig_on_vcan(vcan: RunOnVcan, tmp_path: Path) -> None:
     assert (events[-1]["state"], events[-1]["cause"]) == ("no_data", "silence")
 
     # ... and equals the capture replayed through the same rig, frame for frame.
-    rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(tmp_path / "cap.log"),
-                          "--rig", str(RIG), "--nodes", "2"],
-                         capture_output=True, text=True, timeout=300)
+    rep = motor_monitor("replay", str(tmp_path / "cap.log"), "--rig", str(RIG), "--nodes", "2")
     assert rep.returncode == 0, rep.stderr
     replayed = [json.loads(x) for x in rep.stdout.splitlines()]
     again = [e for e in replayed if e["cause"] == "estimate"]
@@ -72,8 +70,7 @@ def test_user_rig_on_vcan(vcan: RunOnVcan, tmp_path: Path) -> None:
     # The monitor's own raw record (BLF, kernel timestamps) replays to exactly the live
     # events: the raw bus is the record a diagnosis can be re-run from.
     (raw,) = (tmp_path / "raw").glob("bus-*.blf")
-    rep = subprocess.run([str(BIN / "motor-monitor"), "replay", str(raw), "--rig", str(RIG),
-                          "--nodes", "2"], capture_output=True, text=True, timeout=300)
+    rep = motor_monitor("replay", str(raw), "--rig", str(RIG), "--nodes", "2")
     assert rep.returncode == 0, rep.stderr
     from_raw = [json.loads(x) for x in rep.stdout.splitlines()]
     # (the live run's last event, no_data by silence, came from the clock after the bus

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import subprocess
 from dataclasses import replace
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from monitor.bus.rigcodec import RigCodec
 from monitor.columnar.replay import replay_file
 from monitor.rig import RigError, build_decoder, build_model, builtin_rig, load_rig
 from tests.archive.logs import ecu_frames, write_log
-from tests.support import BIN
+from tests.support import motor_monitor
 from tests.support.dbc import REPO_DBC
 from tests.support.paths import ROOT, TEST_RIGS
 from tests.support.pipeline import Recorder
@@ -300,8 +299,7 @@ def test_a_clashing_dbc_is_one_line_on_the_command_line(tmp_path: Path) -> None:
     (tmp_path / "twin.dbc").write_text((TEST_RIGS / "twin.dbc").read_text().replace("1553", "1537"))
     path = written_rig(tmp_path, TWIN)
     (tmp_path / "x.log").write_text("")
-    res = subprocess.run([str(BIN / "motor-monitor"), "replay", "x.log", "--rig", str(path)],
-                         cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    res = motor_monitor("replay", "x.log", "--rig", str(path), cwd=tmp_path, timeout=120)
     assert res.returncode == 2, res.stderr
     assert res.stderr.splitlines() == [
         f"motor-monitor: error: rig file {path}: bus.dbc: {tmp_path / 'twin.dbc'}: messages "

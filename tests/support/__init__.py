@@ -17,12 +17,22 @@
 * `vcan_scripts`: the scripts of ``scripts/`` run on vcan, and what they print.
 * `log_readers`: a log's frames as each reader gives them, random frames, MF4 files.
 * `daemon`: ``motor-monitor`` started under a service manager's notify socket.
+
+`motor_monitor` runs the installed command once, its output captured.
 """
 
 from __future__ import annotations
 
+import subprocess
 import sys
 from pathlib import Path
 
 #: The virtual environment's bin directory: motor-monitor, sim-ecu, rerun.
 BIN = Path(sys.executable).parent
+
+
+def motor_monitor(*args: str, cwd: Path | None = None, timeout: float = 300.0
+                  ) -> subprocess.CompletedProcess[str]:
+    """`motor-monitor ARGS` in `cwd` (None: here), its output captured, as a user runs it."""
+    return subprocess.run([str(BIN / "motor-monitor"), *args], cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout)

@@ -22,7 +22,7 @@ from sim_ecu.ecu import VirtualECU
 from sim_ecu.rig_ecu import RigECU
 from sim_ecu.scenario import load_scenario, scenario_from_dict
 from tests.bench.zoo.gen import identify_files
-from tests.support import BIN
+from tests.support import motor_monitor
 from tests.support.paths import TEST_RIGS
 from tests.support.pipeline import changed_currents
 
@@ -67,21 +67,15 @@ def our_capture(path: Path, *, noisy_from: float | None = None) -> Path:
     return path
 
 
-def _motor_monitor(*args: str, cwd: Path | None) -> subprocess.CompletedProcess[str]:
-    """`motor-monitor ARGS` in `cwd` (None: here), its output captured."""
-    return subprocess.run([str(BIN / "motor-monitor"), *args], cwd=cwd,
-                          capture_output=True, text=True, timeout=300)
-
-
 def run_identify(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     """`motor-monitor identify ARGS` in `cwd`, its output captured."""
-    return _motor_monitor("identify", *args, cwd=cwd)
+    return motor_monitor("identify", *args, cwd=cwd)
 
 
 def run_replay(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     """`motor-monitor replay ARGS` in `cwd` (None: here), its output captured: how the
     identify tests replay what identify wrote."""
-    return _motor_monitor("replay", *args, cwd=cwd)
+    return motor_monitor("replay", *args, cwd=cwd)
 
 
 def identify_zoo_rig(seed: int, d: Path, *args: str, binary_prbs: bool = False
