@@ -13,6 +13,7 @@ from monitor.estimation.fuzzy_ukf import FuzzyUKF, FuzzyUKFConfig
 from monitor.estimation.model import dc_motor
 from sim_ecu.plant import simulate
 from sim_ecu.scenario import scenario_from_dict
+from tests.bench.realistic_identify import excitation
 
 T = 0.01
 ONSET = 3.0
@@ -86,24 +87,14 @@ def test_a_jump_the_slow_average_cannot_tell_from_zero_starts_no_event() -> None
     assert not est._negligible(zero, np.array([0.05]), est.config.min_jump)
 
 
-def _stepping(seed: int, seconds: float) -> list[list[float]]:
-    """Steps between 25 % and 100 % of 220 V, each held 0.05-0.5 s: how the realistic
-    runs after identify record a healthy minute (tests.bench.realistic_identify)."""
-    rng = np.random.default_rng(seed)
-    steps, t = [], 0.0
-    while t < seconds:
-        steps.append([t, float(220.0 * rng.uniform(0.25, 1.0))])
-        t += float(rng.uniform(0.05, 0.5))
-    return steps
-
-
 def test_the_spread_does_not_learn_a_change_that_builds_up() -> None:
     # Under a stepping input gamma^ follows part of a loss at each step, and the slow
     # average builds up over several of its windows. Its statistic is in units of its own
     # long-run spread; while the spread learnt from every sample the short test passed, it
     # grew with the change and the statistic stayed under its threshold: these two losses
     # were reported after 0.49 s and 1.41 s, now 0.27 s and 0.22 s (the true model, so a
-    # fit's error plays no part)
+    # fit's error plays no part; the voltage steps as the realistic runs after identify
+    # record a healthy minute)
     for seed, onset in ((3, 5.0), (5, 7.0)):
-        delay = _delay(0.0, seed, FuzzyUKFConfig(), onset, _stepping(seed, onset + 3.0))
+        delay = _delay(0.0, seed, FuzzyUKFConfig(), onset, excitation(220.0, onset + 3.0, seed))
         assert delay <= 0.3, (seed, onset, delay)
