@@ -17,7 +17,10 @@ flicker while the estimate settles; that is printed, not failed.
 Timing on vcan: the monitor time-stamps frames with their kernel receive time and turns an
 interval of >= 1.5 nominal periods into predicted-through samples. Under User-Mode Linux with
 several busy processes, frames are often delayed by 10-25 ms without any being lost; the
-tests print how many (``jitter_report``).
+tests print how many (``jitter_report``). A guest whose processes starve for longer (a CI
+machine under load: an ECU that took 16.96 s for 16 s of samples) holds the frames a
+diagnosis needs: the time the capture shows a stream standing still (``stalled``) is added
+to the frame-by-frame bound, and printed.
 
 Run with ``-s`` to see the measured detection delays.
 """
@@ -70,6 +73,10 @@ DELAY_BOUND_S = 0.5
 #: processes the socket's backlog late. The estimator's delay itself (in sample time, from
 #: the events) is held to DELAY_BOUND_S by `check_event_sequence`.
 FRAME_LAG_S = 1.5
+#: The nominal periods of a node's current frames and of the monitor's steady diagnosis
+#: frames: an interval past 1.5 of them is a stream standing still (`stalled`).
+CURRENT_PERIOD_S = 0.01
+DIAGNOSIS_PERIOD_S = 0.1
 #: Hand-over from no_data to the first estimate, left out of the frame-by-frame comparison.
 STARTUP_S = 0.1
 #: The monitor turns a node no_data after 0.5 s without current frames.
@@ -161,21 +168,39 @@ def detection_delays(
     return out
 
 
+def stalled(times: list[float], period: float, t0: float, t1: float) -> float:
+    """How long a stream of frames sent every `period` (`times`, sorted) stood still within
+    [t0, t1]: the excess over 1.5 periods of each interval between two of its frames, as
+    far as the interval lies inside [t0, t1]."""
+    out = 0.0
+    for a, b in itertools.pairwise(times):
+        if b - a > 1.5 * period:
+            out += max(0.0, min(b, t1) - max(a + 1.5 * period, t0))
+    return out
+
+
+def stall_allowance(cap: Capture, node: int, t0: float, t1: float) -> float:
+    """The time within [t0, t1] that the node's current frames or its diagnosis frames stood
+    still, whichever is longer: the ECU or the daemon starved on the guest's CPU."""
+    return max(stalled([t for t, _ in cap.current[node]], CURRENT_PERIOD_S, t0, t1),
+               stalled([t for t, _, _ in cap.diag[node]], DIAGNOSIS_PERIOD_S, t0, t1))
+
+
 def disagreements(
-    truth: list[tuple[float, float]], diag: list[tuple[float, int, float]], skip_start: float
+    truth: list[tuple[float, float]], diag: list[tuple[float, int, float]], skip_start: float,
+    settle: list[tuple[float, float]],
 ) -> tuple[int, list[str]]:
     """Diagnosis frames whose state is not the true class, while the ECU runs.
 
-    Left out: the first `skip_start` s after the first truth frame and `DELAY_BOUND_S` +
-    `FRAME_LAG_S` after each true change. Returns (frames compared, descriptions of mismatches).
+    Left out: the first `skip_start` s after the first truth frame and each (t, span) of
+    `settle` (a true change and the time the diagnosis has to follow it). Returns (frames
+    compared, descriptions of mismatches).
     """
     times = [t for t, _ in truth]
     start, end = times[0] + skip_start, times[-1]
-    settle = [t for t, _, _ in class_changes(truth)]
     compared, bad = 0, []
     for td, state, g in diag:
-        if not start <= td <= end or any(tc <= td < tc + DELAY_BOUND_S + FRAME_LAG_S
-                                         for tc in settle):
+        if not start <= td <= end or any(tc <= td < tc + span for tc, span in settle):
             continue
         compared += 1
         expected = true_class(truth[bisect.bisect_right(times, td) - 1][1])
@@ -192,22 +217,28 @@ def check_follows_truth(cap: Capture, node: int, label: str, skip_start: float =
     assert truth and diag, f"{label}: no SimTruth or no MonitorDiagnosis frames of node {node}"
     t_first = truth[0][0]
     delays = detection_delays(truth, diag)
+    settle: list[tuple[float, float]] = []
     for t, prev, new, delay in delays:
         shown = "never" if delay is None else f"{1e3 * delay:.0f} ms"
+        span = DELAY_BOUND_S + FRAME_LAG_S
+        stall = stall_allowance(cap, node, t, t + (span if delay is None else delay))
+        settle.append((t, span + stall))
         print(f"[{label}] node {node}: true {LABELS[prev]} -> {LABELS[new]} at "
-              f"{t - t_first:.2f} s, diagnosed after {shown}")
-    for t, prev, new, delay in delays:
-        assert delay is not None and 0.0 <= delay <= DELAY_BOUND_S + FRAME_LAG_S, (
-            f"{label}: {LABELS[prev]} -> {LABELS[new]} at {t - t_first:.2f} s: delay {delay}"
+              f"{t - t_first:.2f} s, diagnosed after {shown}"
+              + (f" (the frames stood still {1e3 * stall:.0f} ms of it)" if stall else ""))
+    for (t, prev, new, delay), (_, span) in zip(delays, settle, strict=True):
+        assert delay is not None and 0.0 <= delay <= span, (
+            f"{label}: {LABELS[prev]} -> {LABELS[new]} at {t - t_first:.2f} s: delay {delay} "
+            f"> {span:.2f} s ({DELAY_BOUND_S} + {FRAME_LAG_S} + the frames standing still)"
         )
     startup = [f"{td - t_first:.2f}s {LABELS[s]}" for td, s, _ in diag
                if t_first <= td < t_first + skip_start and s != true_class(truth[0][1])]
     if startup:
         print(f"[{label}] node {node}: diagnosis before {skip_start} s: "
               f"{startup[0]} .. {startup[-1]} ({len(startup)} frames)")
-    compared, bad = disagreements(truth, diag, skip_start)
+    compared, bad = disagreements(truth, diag, skip_start, settle)
     # The monitor publishes at 10 Hz (more at changes): expect most of those frames.
-    span = truth[-1][0] - t_first - skip_start - (DELAY_BOUND_S + FRAME_LAG_S) * len(delays)
+    span = truth[-1][0] - t_first - skip_start - sum(s for _, s in settle)
     assert compared >= 0.8 * 10 * span, f"{label}: {compared} diagnosis frames in {span:.1f} s"
     assert not bad, f"{label}: {len(bad)} of {compared} diagnosis frames disagree: {bad[:5]}"
 
