@@ -132,10 +132,12 @@ def test_a_refused_friction_probe_still_weighs_the_friction(
     """The rig zoo's seed 59 (a torque in, a free position out, Coulomb friction, a PRBS):
     the friction's refit, probed because the input took two levels, is refused after it
     measured the friction (for a slow mode the capture does not span, or for halves that fit
-    differently: the fit's rounding decides); what it measured (over 100 noise units, most
-    of the linear model's hold-out error) still stands, and
-    friction_levels refuses the rig. Left silent, the linear model passed every check
-    and a fresh run of random steps met the friction's other shares as 16 false alarms."""
+    differently) or fitted: the fit's floating point decides, which differs between CPUs
+    (refused on the machines of earlier runs, fitted on a Xeon of 2026-12-02's CI). Either
+    way what it measured (over 100 noise units, most of the linear model's hold-out error)
+    stands, and friction_levels refuses the rig. Left silent, the linear model passed
+    every check and a fresh run of random steps met the friction's other shares as 16
+    false alarms."""
     # as the zoo writes it: the DBC's scale spans its fresh runs too
     prepare(59, tmp_path, binary_prbs=True)
     res = run_identify("identify.log", "--rig", "rig.toml", "--out", "learned.toml",
@@ -145,7 +147,11 @@ def test_a_refused_friction_probe_still_weighs_the_friction(
     assert "friction_levels" in last and "several levels" in last
     report = json.loads((tmp_path / "learned.identify.json").read_text())
     probe = report["friction_probe"]
-    assert "capture too short" in probe["refused"] or "fit different models" in probe["refused"]
+    if "refused" in probe:
+        assert "capture too short" in probe["refused"] \
+            or "fit different models" in probe["refused"], probe
+    else:
+        assert probe["order"] >= 1, probe
     assert probe["response_noise_units"] > 10.0 and probe["holdout_error_cut"] > FRICTION_SHOWN
 
 
