@@ -217,19 +217,19 @@ def check_follows_truth(cap: Capture, node: int, label: str, skip_start: float =
     assert truth and diag, f"{label}: no SimTruth or no MonitorDiagnosis frames of node {node}"
     t_first = truth[0][0]
     delays = detection_delays(truth, diag)
-    settle: list[tuple[float, float]] = []
+    settle: list[tuple[float, float]] = []  # (true change, the time its report may take)
     for t, prev, new, delay in delays:
         shown = "never" if delay is None else f"{1e3 * delay:.0f} ms"
-        span = DELAY_BOUND_S + FRAME_LAG_S
-        stall = stall_allowance(cap, node, t, t + (span if delay is None else delay))
-        settle.append((t, span + stall))
+        base = DELAY_BOUND_S + FRAME_LAG_S
+        stall = stall_allowance(cap, node, t, t + (base if delay is None else delay))
+        settle.append((t, base + stall))
         print(f"[{label}] node {node}: true {LABELS[prev]} -> {LABELS[new]} at "
               f"{t - t_first:.2f} s, diagnosed after {shown}"
               + (f" (the frames stood still {1e3 * stall:.0f} ms of it)" if stall else ""))
-    for (t, prev, new, delay), (_, span) in zip(delays, settle, strict=True):
-        assert delay is not None and 0.0 <= delay <= span, (
+    for (t, prev, new, delay), (_, bound) in zip(delays, settle, strict=True):
+        assert delay is not None and 0.0 <= delay <= bound, (
             f"{label}: {LABELS[prev]} -> {LABELS[new]} at {t - t_first:.2f} s: delay {delay} "
-            f"> {span:.2f} s ({DELAY_BOUND_S} + {FRAME_LAG_S} + the frames standing still)"
+            f"> {bound:.2f} s ({DELAY_BOUND_S} + {FRAME_LAG_S} + the frames standing still)"
         )
     startup = [f"{td - t_first:.2f}s {LABELS[s]}" for td, s, _ in diag
                if t_first <= td < t_first + skip_start and s != true_class(truth[0][1])]
@@ -238,8 +238,9 @@ def check_follows_truth(cap: Capture, node: int, label: str, skip_start: float =
               f"{startup[0]} .. {startup[-1]} ({len(startup)} frames)")
     compared, bad = disagreements(truth, diag, skip_start, settle)
     # The monitor publishes at 10 Hz (more at changes): expect most of those frames.
-    span = truth[-1][0] - t_first - skip_start - sum(s for _, s in settle)
-    assert compared >= 0.8 * 10 * span, f"{label}: {compared} diagnosis frames in {span:.1f} s"
+    steady = truth[-1][0] - t_first - skip_start - sum(b for _, b in settle)
+    assert compared >= 0.8 * 10 * steady, \
+        f"{label}: {compared} diagnosis frames in {steady:.1f} s"
     assert not bad, f"{label}: {len(bad)} of {compared} diagnosis frames disagree: {bad[:5]}"
 
 
