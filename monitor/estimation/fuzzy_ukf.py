@@ -484,8 +484,10 @@ class FuzzyUKF(StructureLearning, ManyStepping):
         for _ in range(2):
             self.step(np.zeros(m), np.zeros(p), self.model.T)
         k = self.steps - 1
-        j, _, _, models = self._onset(k)
-        self._reprocess(j, k, k - len(models[2]) + 1, models)
+        j, _, _, _, models = self._onset(k)
+        first = k - len(models[2]) + 1
+        self._held_error(first, k, models)
+        self._reprocess(j, k, first, models)
         self.step_many(np.zeros((2, m)), np.zeros((2, p)), np.full(2, self.model.T))
 
     def _init_from_sample(self, u: Array, y: Array) -> bool:

@@ -98,7 +98,7 @@ After the sample, OUT's `output_noise` ((R_ii + rx_i) / R_ii) and `process_noise
 uses them: 1 where the model's noises fit.
 
 Why the update is built this way (the object API, `monitor.estimation.fuzzy_ukf`, gives
-the failures on a stiff servo that led here; (a), (b), (g) are the structure event's,
+the failures on a stiff servo that led here; (a), (b), (g), (i) are the structure event's,
 `monitor.estimation.structure`):
 
 (c) gamma^ = sum xi_j a_j also changes when z fires other rules; x^ = x_bar + V gamma^ must
@@ -167,7 +167,8 @@ from monitor.jit import njit
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-__all__ = ["fuzzy_ukf_step", "kernel_layout", "reprocess_loop", "select_kernel", "step_loop"]
+__all__ = ["HELD_EVENT", "JUMP_EVENT", "fuzzy_ukf_step", "kernel_layout", "reprocess_loop",
+           "select_kernel", "step_loop"]
 
 _log = logging.getLogger(__name__)
 
@@ -189,6 +190,13 @@ SLOW_SPREAD_WINDOWS = 10.0
 # output) or 0.83 (two): where it is above a white innovation's (a coloured model), the
 # slow test fires a little more often, and its events must still locate a jump.
 SLOW_SPREAD_SHARE = 0.5
+
+# The structure modes of a sample (`prm`'s mode) that start with a structure event of
+# gamma: a jump at this sample (the two-stage raise of gamma's variance: the state before
+# it stays as it was), or gamma^ wrong since before it and the state with it (the variance
+# raised alone, V and P kept); which, `monitor.estimation.structure` decides
+JUMP_EVENT = 2.0
+HELD_EVENT = 3.0
 
 # The random walk of gamma (step 4) adds at most this many times the variance the sample's
 # evidence takes away (M' P_yy^-1 M vc^2): old evidence fades as new evidence comes in, and
@@ -262,8 +270,9 @@ def fuzzy_ukf_step(
     """One sample of the fuzzy UKF, steps 0-7 of the module docstring, on flat buffers.
 
     mdl: a `MODEL` block, its `FRICTION` after it; prm: the sample's `PRM` (mode 0: no
-    structure test, the dwell time; 1: test, stats[3] = 1 when it fires; 2: a structure
-    event at the start of this sample, the caller re-processes from the onset of a change;
+    structure test, the dwell time; 1: test, stats[3] = 1 when it fires; JUMP_EVENT (2) or
+    HELD_EVENT (3): a structure event at the start of this sample, the caller re-processes
+    from the onset of a change;
     slot: this sample's place in the onset ring); st: the `STATE`, then the ring of `RING`
     slots; out: `OUT`; wk: `WORK`; lay: `monitor.estimation.layout.offsets` (n, m, p).
     centres .. rule_w: the rule base (`SelfConstructingFuzzySystem`) over the plant's
@@ -423,7 +432,9 @@ def fuzzy_ukf_step(
         # rules' own to var_rule. In the two-stage filter, raising the variance of gamma
         # from g0 to g1 is exact with V <- V g0/g1 and P <- P + V (g0 (g1 - g0) / g1) V':
         # the state keeps the uncertainty that the old gamma gave it, and what is learnt
-        # of the new one moves the state only as far as the jump has acted on it.
+        # of the new one moves the state only as far as the jump has acted on it. A
+        # HELD_EVENT (gamma^ wrong all along) raises the variance alone: what is learnt of
+        # gamma then moves the state by V, as it would have from the start.
         for a in range(m):
             if not hi[a] > lo[a]:
                 continue
@@ -434,7 +445,7 @@ def fuzzy_ukf_step(
             if vc[a] < var_reopen:
                 vc[a] = var_reopen
             g1 = vc[a] + _rule_variance(var, rule_idx, rule_w, nf, a)
-            if g1 > 0.0:
+            if g1 > 0.0 and mode == JUMP_EVENT:
                 f = g0 / g1
                 s0 = g0 - g0 * f
                 for r in range(n):
@@ -816,8 +827,8 @@ def reprocess_loop(
     n: int, m: int, p: int, max_mf: int, u: Array, y: Array, first_mode: float,
 ) -> None:
     """Samples first .. first + count - 1 of the ring again through `fuzzy_ukf_step`, the
-    first in first_mode (2: a structure event of gamma; 0: none, a bias event having
-    re-opened the biases), the others without the test (mode 0): what
+    first in first_mode (JUMP_EVENT or HELD_EVENT: a structure event of gamma; 0: none, a
+    bias event having re-opened the biases), the others without the test (mode 0): what
     `FuzzyUKF._reprocess` does one Python call per sample, in one compiled call."""
     o_u = lay[_R_U]
     o_y = lay[_R_Y]

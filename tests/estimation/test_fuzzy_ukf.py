@@ -349,7 +349,7 @@ def test_structure_event_relearns_from_the_onset() -> None:
     onsets: list[int] = []
     locate = est._onset
 
-    def spy(k: int) -> tuple[int, np.ndarray, np.ndarray,
+    def spy(k: int) -> tuple[int, np.ndarray, np.ndarray, float,
                              tuple[np.ndarray, np.ndarray, np.ndarray]]:
         found = locate(k)
         onsets.append(found[0])
