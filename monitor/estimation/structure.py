@@ -239,13 +239,16 @@ class StructureLearning(FilterState):
                        self._lay, self._faulty_idx, n, m, p, cands, W0, g, info)
             return g, info
         # Without the JIT (the hardened service's AOT kernel, or interpreted): the same
-        # statistics with numpy, every onset of the window at once, then the candidates'
+        # statistics with numpy, every onset of the window at once (the held reading's
+        # alone: it has one), then the candidates'
         eye = np.eye(n)
-        W = np.zeros((count, n, f))
+        rows = 1 if held else count
+        W = np.zeros((rows, n, f))
         W[0] = start
-        ga = np.zeros((count, f))
-        ia = np.zeros((count, f, f))
+        ga = np.zeros((rows, f))
+        ia = np.zeros((rows, f, f))
         for t in range(count):
+            h = min(t + 1, rows)  # the onsets started by this sample
             i = first + t
             u = self._field(i, "u")[F]
             A, B, _, C, D = self._matrices(float(self._field(i, "dt")[0]))
@@ -253,12 +256,12 @@ class StructureLearning(FilterState):
             Sti = self._field(i, "Sti").reshape(p, p)
             nu = self._field(i, "nu")
             Du = D[:, F] * u
-            Wm = A @ W[:t + 1] - B[:, F] * u
+            Wm = A @ W[:h] - B[:, F] * u
             Mi = C @ Wm - Du
             SM = Sti @ Mi
-            ga[:t + 1] += np.einsum("cpa,p->ca", SM, nu)
-            ia[:t + 1] += np.einsum("cpa,cpb->cab", Mi, SM)
-            W[:t + 1] = (eye - K @ C) @ Wm + K @ Du
+            ga[:h] += np.einsum("cpa,p->ca", SM, nu)
+            ia[:h] += np.einsum("cpa,cpb->cab", Mi, SM)
+            W[:h] = (eye - K @ C) @ Wm + K @ Du
         return ga[cands], ia[cands]
 
     def _onset(self, k: int) -> tuple[int, Array, Array, float,
