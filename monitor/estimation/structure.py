@@ -201,6 +201,13 @@ def onset_scores(g: Array, info: Array, vr: float) -> tuple[Array, Array]:
     return score, sol
 
 
+def posterior_sd(info: Array, vr: float) -> Array:
+    """The posterior standard deviation of each fault actuator's jump, from one candidate's
+    information `info` (f x f) and the prior variance vr (`onset_scores`'s jump)."""
+    return np.asarray(np.sqrt(np.diag(np.linalg.inv(info + np.eye(info.shape[0]) / vr))),
+                      np.float64)
+
+
 class StructureLearning(FilterState):
     """The fuzzy UKF's structure learning (20)-(22), as methods of the filter
     (`monitor.estimation.fuzzy_ukf.FuzzyUKF` inherits them): they read and rewind the
@@ -309,9 +316,8 @@ class StructureLearning(FilterState):
         g, info = self._onset_stats(first, count, cands, models)
         score, sol = onset_scores(g, info, vr)
         best = int(np.argmax(score))
-        f = info.shape[1]
-        sd = np.sqrt(np.diag(np.linalg.inv(info[best] + np.eye(f) / vr)))
-        return first + int(cands[best]), sol[best], sd, float(score[best]), models
+        return (first + int(cands[best]), sol[best], posterior_sd(info[best], vr),
+                float(score[best]), models)
 
     def _held_error(self, first: int, k: int, models: tuple[Array, Array, IntArray]
                     ) -> tuple[float, Array, Array]:
@@ -324,9 +330,7 @@ class StructureLearning(FilterState):
         g, info = self._onset_stats(first, k - first + 1, np.zeros(1, np.int64), models,
                                     held=True)
         score, sol = onset_scores(g, info, vr)
-        f = info.shape[1]
-        sd = np.sqrt(np.diag(np.linalg.inv(info[0] + np.eye(f) / vr)))
-        return float(score[0]), sol[0], sd
+        return float(score[0]), sol[0], posterior_sd(info[0], vr)
 
     def _reprocess(self, j: int, k: int, first: int,
                   models: tuple[Array, Array, IntArray], bias: bool = False,
